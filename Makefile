@@ -1,0 +1,73 @@
+# mcdenoise: Monte Carlo denoising dataset -> GT cleaner -> diffusion denoiser -> evaluation.
+#
+#   make demo                 the main job on configs/default.yaml (sets itself up)
+#   make test                 the test suite (sets itself up)
+#   make dataset [CONFIG=...] [key=value ...]
+#
+# Any `key=value` on the command line that is not one of the Make variables below is passed to
+# the pipeline as a config override, e.g. `make dataset dataset.scenes=4 render.max_depth=6`.
+
+PYTHON_SYS ?= python3
+VENV       ?= .venv
+PY         := $(VENV)/bin/python
+CONFIG     ?= configs/default.yaml
+SPP        ?=
+SHARD      ?=
+STAMP      := $(VENV)/.installed
+
+MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
+OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
+RUN        := $(PY) -m pipeline
+
+.PHONY: help setup llvm demo dataset inspect render-scene bench test clean distclean
+
+help:
+	@sed -n '1,12p' Makefile
+
+# ---- set-up -------------------------------------------------------------------------------
+setup: $(STAMP) llvm
+
+# A virtual environment with the exact versions of requirements.lock, then the project itself
+# without re-resolving (--no-deps): a looser resolve would pull CUDA builds of torch.
+$(STAMP): requirements.lock pyproject.toml
+	$(PYTHON_SYS) -m venv $(VENV)
+	$(VENV)/bin/pip install --disable-pip-version-check -q --no-deps -r requirements.lock
+	$(VENV)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+	@touch $@
+
+# Mitsuba's LLVM variants need libLLVM >= 16 (14/15 abort on the first render).
+llvm:
+	@if $(PYTHON_SYS) -c "import sys; sys.path.insert(0, '.'); from pipeline.mitsuba_env import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
+		true; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		echo "installing libllvm19 (Mitsuba's LLVM backend needs LLVM >= 16)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null; \
+	else \
+		echo "Mitsuba needs libLLVM >= 16. Install it (Debian/Ubuntu: sudo apt-get install libllvm19)"; \
+		echo "or set DRJIT_LIBLLVM_PATH to a libLLVM.so of version 16 or newer."; exit 1; \
+	fi
+
+# ---- stages -------------------------------------------------------------------------------
+demo: setup
+	$(MAKE) dataset CONFIG=$(CONFIG)
+	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+dataset: setup
+	$(RUN) dataset --config $(CONFIG) $(if $(SHARD),--shard $(SHARD)) $(OVERRIDES)
+
+inspect: setup
+	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+bench: setup
+	$(RUN) bench --config $(CONFIG) $(OVERRIDES)
+
+# ---- tests --------------------------------------------------------------------------------
+test: setup
+	$(PY) -m pytest -q tests
+
+# ---- housekeeping (make clean deletes outputs; it is not the GT cleaner) -------------------
+clean:
+	rm -rf data reports .pytest_cache
+
+distclean: clean
+	rm -rf $(VENV) *.egg-info

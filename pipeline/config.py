@@ -1,0 +1,245 @@
+"""Typed configuration: YAML (``yaml.safe_load``) → nested dataclasses, with ``key=value`` overrides.
+
+Every field carries its documentation in ``metadata["doc"]``; ``configs/README.md`` is generated
+from it (``python -m pipeline config --doc``) and a test keeps the two in sync, so a key cannot be
+added without being documented. Unknown keys and wrongly typed values are errors that name the
+file and the dotted key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A config file or override is malformed; the message names the source and the key."""
+
+
+def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasses.MISSING):
+    """A dataclass field with documentation attached."""
+    if factory is not dataclasses.MISSING:
+        return field(default_factory=factory, metadata={"doc": text})
+    return field(default=default, metadata={"doc": text})
+
+
+@dataclass
+class DatasetConfig:
+    scenes: int = doc("Number of random scenes.", 24)
+    frames: int = doc("Frames per scene along the random camera move (paper: 8).", 2)
+    resolution: list = doc("Image size [width, height] in pixels (paper: [256, 256]).", factory=lambda: [128, 128])
+    gt_spp: int = doc("Samples per pixel of each of the two ground truths GT1, GT2 (paper: 4096).", 1024)
+    stack_spp: int = doc("Samples per pixel of one low-spp stack (paper: 4).", 4)
+    stacks: int = doc("Low-spp stacks per frame; spp 4/16/64 average 1/4/16 stacks (paper: 16).", 16)
+    val_fraction: float = doc("Fraction of scenes in the validation split (paper: 0.03); at least one scene.", 0.03)
+    test_fraction: float = doc("Fraction of scenes in the test split (paper: 0.05); at least one scene.", 0.05)
+    stress: list = doc("Names of stress presets rendered as extra scenes in the split 'stress' (see render/stress.py); "
+                       "'all' for every preset.", factory=list)
+
+
+@dataclass
+class SceneConfig:
+    objects: list = doc("Range [min, max] of objects per scene.", factory=lambda: [3, 7])
+    mesh_dirs: list = doc("Folders of user meshes (OBJ/PLY/STL/OFF/GLB, e.g. ShapeNet) mixed into the scenes.", factory=list)
+    mesh_probability: float = doc("Probability that an object is drawn from mesh_dirs (when any are given).", 0.5)
+    texture_probability: float = doc("Probability that a material's base colour is a procedural texture.", 0.5)
+    group_probability: float = doc("Probability that an object is a grouped composition of primitives.", 0.2)
+    materials: dict = doc("Relative weights of material families: principled, diffuse, plastic, roughplastic, "
+                          "conductor, roughconductor, dielectric, roughdielectric.",
+                          factory=lambda: {"principled": 4.0, "diffuse": 1.0, "plastic": 1.0, "roughplastic": 1.0,
+                                           "conductor": 0.7, "roughconductor": 0.7, "dielectric": 0.5,
+                                           "roughdielectric": 0.4})
+    area_lights: list = doc("Range [min, max] of rectangular/spherical area lights.", factory=lambda: [1, 3])
+    small_light_probability: float = doc("Probability that an area light is small and very bright.", 0.25)
+    point_light_probability: float = doc("Probability of adding a point light.", 0.3)
+    spot_light_probability: float = doc("Probability of adding a spot light.", 0.3)
+    environment_probability: float = doc("Probability of an environment (procedural sky or constant).", 0.7)
+    walls_probability: float = doc("Probability of walls behind the objects (a ground plane is always present).", 0.6)
+    fov: list = doc("Range [min, max] of the camera's horizontal field of view in degrees.", factory=lambda: [35.0, 65.0])
+    camera_move: float = doc("Length of the smooth random camera move over all frames, relative to the camera distance.", 0.25)
+
+
+@dataclass
+class RenderConfig:
+    variant: str = doc("Mitsuba variant: 'auto' (cuda_ad_rgb with a GPU, else llvm_ad_rgb), or an explicit one "
+                       "such as llvm_ad_rgb, cuda_ad_rgb, scalar_rgb.", "auto")
+    max_depth: int = doc("Maximum path length (Mitsuba convention: 1 = directly visible emission only).", 8)
+    rr_depth: int = doc("Path depth at which Russian roulette starts.", 5)
+    features: str = doc("'auto': compute only the features the scene's materials can produce; 'all': every feature.", "auto")
+    omit_constant: bool = doc("Leave out channels that are constant over a frame; the EXR header records the constant.", True)
+    threads: int = doc("drjit worker threads per render process (0: all cores).", 0)
+
+
+@dataclass
+class ExecutorConfig:
+    kind: str = doc("'local' (worker processes on this machine) or 'ray' (Ray tasks, local or a cluster).", "local")
+    workers: int = doc("Parallel frames for the local executor (each uses render.threads threads).", 1)
+    address: str = doc("Ray cluster address for kind=ray (e.g. 'ray://head:10001' or 'auto'); empty: start a local Ray.", "")
+    ray_cpus_per_task: float = doc("CPUs Ray reserves per frame task.", 1.0)
+    retries: int = doc("How often a frame whose worker died (native crash, killed node) is retried.", 2)
+
+
+@dataclass
+class Config:
+    seed: int = doc("Master seed: scene i is generated from (seed, i); every render seed derives from it.", 0)
+    store: str = doc("Path of the EXR buffer store (relative paths are relative to the working directory).", "data/default")
+    dataset: DatasetConfig = doc("Dataset stage (make dataset).", factory=DatasetConfig)
+    scene: SceneConfig = doc("Scene randomizer.", factory=SceneConfig)
+    render: RenderConfig = doc("Renderer and integrator.", factory=RenderConfig)
+    executor: ExecutorConfig = doc("Where frames run.", factory=ExecutorConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def _check_type(value: Any, tp: Any, where: str) -> Any:
+    """Validate (and gently coerce int → float) a YAML value against a field's annotation."""
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__}")
+        return _from_dict(tp, value, where)
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, float) and isinstance(value, bool):
+        raise ConfigError(f"{where}: expected {tp.__name__}, got a boolean")
+    if tp in (int, float, str, bool, list, dict) and not isinstance(value, tp):
+        raise ConfigError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _from_dict(cls: type, data: dict, where: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ConfigError(f"unknown config key {prefix}{unknown[0]!s} (known: {', '.join(sorted(names))})")
+    kwargs = {}
+    for key, value in data.items():
+        kwargs[key] = _check_type(value, hints[key], f"{where}.{key}" if where else key)
+    return cls(**kwargs)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``dataset.scenes=4`` → (["dataset", "scenes"], 4); the value is parsed as YAML."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r}: expected key=value")
+    key, raw = text.split("=", 1)
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"override {text!r}: empty key")
+    try:
+        value = yaml.safe_load(raw) if raw != "" else ""
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({exc})") from exc
+    return key.split("."), value
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    for text in overrides:
+        path, value = parse_override(text)
+        node = data
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {text!r}: {part} is not a section")
+        node[path[-1]] = value
+    return data
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Load ``path`` (or the built-in defaults) and apply ``key=value`` overrides."""
+    data: dict = {}
+    source = "<defaults>"
+    if path is not None:
+        source = str(path)
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from exc
+        try:
+            data = yaml.safe_load(text) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+    apply_overrides(data, list(overrides or []))
+    try:
+        cfg = _from_dict(Config, data, "")
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    validate(cfg, source)
+    return cfg
+
+
+def validate(cfg: Config, source: str) -> None:
+    """Value checks that types alone cannot express."""
+    d = cfg.dataset
+
+    def bad(key: str, msg: str) -> None:
+        raise ConfigError(f"{source}: {key}: {msg}")
+
+    if d.scenes < 1:
+        bad("dataset.scenes", "must be >= 1")
+    if d.frames < 1:
+        bad("dataset.frames", "must be >= 1")
+    if (not isinstance(d.resolution, list) or len(d.resolution) != 2
+            or not all(isinstance(v, int) and v > 0 for v in d.resolution)):
+        bad("dataset.resolution", f"expected [width, height] of positive integers, got {d.resolution!r}")
+    for key in ("gt_spp", "stack_spp", "stacks"):
+        if getattr(d, key) < 1:
+            bad(f"dataset.{key}", "must be >= 1")
+    if not 0 <= d.val_fraction < 1 or not 0 <= d.test_fraction < 1 or d.val_fraction + d.test_fraction >= 1:
+        bad("dataset.val_fraction/test_fraction", "fractions in [0, 1) that sum to less than 1")
+    if cfg.render.features not in ("auto", "all"):
+        bad("render.features", f"expected 'auto' or 'all', got {cfg.render.features!r}")
+    if cfg.render.max_depth < 1:
+        bad("render.max_depth", "must be >= 1")
+    if cfg.executor.kind not in ("local", "ray"):
+        bad("executor.kind", f"expected 'local' or 'ray', got {cfg.executor.kind!r}")
+    if cfg.executor.workers < 1:
+        bad("executor.workers", "must be >= 1")
+    for key in ("objects", "area_lights", "fov"):
+        rng = getattr(cfg.scene, key)
+        if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
+            bad(f"scene.{key}", f"expected a range [min, max], got {rng!r}")
+
+
+def to_dict(cfg: Any) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def documentation(cls: type = Config, prefix: str = "") -> list[tuple[str, str, str]]:
+    """(dotted key, default, doc) for every leaf key, in declaration order."""
+    rows = []
+    for f in dataclasses.fields(cls):
+        key = f"{prefix}{f.name}"
+        hint = typing.get_type_hints(cls)[f.name]
+        if dataclasses.is_dataclass(hint):
+            rows.extend(documentation(hint, key + "."))
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        rows.append((key, yaml.safe_dump(default, default_flow_style=True).strip().removesuffix("..."
+                                                                                       ).strip(), f.metadata["doc"]))
+    return rows
+
+
+def documentation_markdown() -> str:
+    lines = [
+        "# Configuration keys",
+        "",
+        "Generated by `python -m pipeline config --doc` from the dataclasses in `pipeline/config.py`;",
+        "a test fails when this file and the code disagree. Every key can be set in a YAML file",
+        "(`--config FILE`, `make ... CONFIG=FILE`) or on the command line as `key=value`",
+        "(`python -m pipeline dataset dataset.scenes=4`, `make dataset dataset.scenes=4`).",
+        "",
+        "| key | default | meaning |",
+        "| --- | --- | --- |",
+    ]
+    for key, default, text in documentation():
+        lines.append(f"| `{key}` | `{default}` | {text} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,100 @@
+"""``python -m pipeline inspect STORE``: what a store holds, read from its manifests and headers.
+
+Reads only manifests and EXR headers (no pixels), so it is fast on large stores.
+"""
+from __future__ import annotations
+
+from collections import Counter
+
+from . import schema
+from .exr import StoreError
+from .store import Store
+
+
+def inspect_store(root: str, frame: str | None = None) -> dict:
+    store = Store(root)
+    m = store.manifest()
+    report: dict = {"store": str(root), "splits": {k: len(v) for k, v in m["splits"].items()},
+                    "scenes": len(m["scenes"]), "packages": m.get("packages", {})}
+    frames_total = frames_done = 0
+    images = bytes_ = nonfinite = 0
+    render_s: Counter = Counter()
+    omitted: Counter = Counter()
+    spp: Counter = Counter()
+    incomplete = []
+    for scene in m["scenes"]:
+        sm = store.scene_manifest(scene)
+        for f in range(int(sm["frames"])):
+            frames_total += 1
+            rec = store.frame_record(scene, f)
+            if rec is None or not store.is_frame_complete(scene, f, sm["images"]):
+                incomplete.append(f"{scene}/{f:03d}")
+                continue
+            frames_done += 1
+            for name, img in rec["images"].items():
+                images += 1
+                bytes_ += img.get("bytes", 0)
+                spp[img["spp"]] += 1
+                render_s["gt" if name.startswith("gt") else "stack"] += img.get("render_seconds") or 0.0
+                nonfinite += sum(img.get("nonfinite", {}).values())
+                for ch in img.get("constants", {}):
+                    omitted[ch] += 1
+    report.update({
+        "frames": frames_total, "frames_complete": frames_done, "incomplete": incomplete[:50],
+        "images": images, "bytes": bytes_, "spp": {str(k): v for k, v in sorted(spp.items())},
+        "render_seconds": {k: round(v, 2) for k, v in render_s.items()},
+        "nonfinite": nonfinite,
+        "omitted_channels": dict(omitted.most_common()),
+    })
+    if frame is not None:
+        report["frame"] = inspect_frame(store, frame)
+    return report
+
+
+def inspect_frame(store: Store, key: str) -> dict:
+    try:
+        scene, f = key.split("/")
+        f = int(f)
+    except ValueError:
+        raise StoreError(f"--frame {key!r}: expected SCENE/FRAME, e.g. s00000/000") from None
+    rec = store.frame_record(scene, f)
+    if rec is None:
+        raise StoreError(f"{store.frame_dir(scene, f)}: frame is not complete (no frame.json)")
+    out = {"scene": scene, "frame": f, "timing": rec["timing"], "features": rec["features"], "images": {}}
+    for name in rec["images"]:
+        h = store.image_header(scene, f, name)
+        stored = [ch for b in h["buffers"] for ch in schema.BY_NAME[b].exr_channels + schema.BY_NAME[b].variance_channels
+                  if ch not in h["constants"]]
+        out["images"][name] = {"spp": h["spp"], "seed": h["seed"], "size": f"{h['width']}x{h['height']}",
+                               "render_seconds": h.get("render_seconds"), "nonfinite": h.get("nonfinite", {}),
+                               "channels": stored, "constants": h["constants"],
+                               "bytes": rec["images"][name].get("bytes")}
+    return out
+
+
+def format_report(r: dict) -> str:
+    lines = [f"store {r['store']}: {r['scenes']} scenes "
+             f"({', '.join(f'{k} {v}' for k, v in r['splits'].items())}), "
+             f"{r['frames_complete']}/{r['frames']} frames complete, {r['images']} images, "
+             f"{r['bytes'] / 2**20:.1f} MiB",
+             f"  images per spp: {', '.join(f'{k} spp: {v}' for k, v in r['spp'].items())}",
+             f"  render seconds: {', '.join(f'{k} {v}' for k, v in r['render_seconds'].items())}",
+             f"  non-finite values repaired: {r['nonfinite']}"]
+    if r["omitted_channels"]:
+        top = ", ".join(f"{k} ({v})" for k, v in list(r["omitted_channels"].items())[:12])
+        lines.append(f"  constant channels left out (images): {top}")
+    if r["incomplete"]:
+        lines.append(f"  incomplete frames: {', '.join(r['incomplete'][:10])}"
+                     + (" ..." if len(r["incomplete"]) > 10 else ""))
+    if "frame" in r:
+        fr = r["frame"]
+        lines.append(f"frame {fr['scene']}/{fr['frame']:03d}: features {', '.join(fr['features'])}; "
+                     f"timing {fr['timing']}")
+        for name, img in fr["images"].items():
+            lines.append(f"  {name}: {img['size']} {img['spp']} spp seed {img['seed']} "
+                         f"{img['render_seconds']} s {img['bytes']} B; {len(img['channels'])} channels, "
+                         f"{len(img['constants'])} constant; non-finite {img['nonfinite'] or 0}")
+        first = next(iter(fr["images"].values()))
+        lines.append(f"  channels of {next(iter(fr['images']))}: {' '.join(first['channels'])}")
+        lines.append(f"  constants: {first['constants']}")
+    return "\n".join(lines)

@@ -1,0 +1,214 @@
+"""The on-disk EXR buffer store: the one reader/writer API every stage uses.
+
+Layout (documented for users in ``docs/store.md``)::
+
+    STORE/dataset.json                       dataset manifest: config, scenes, split by scene
+    STORE/scenes/<scene>/scene.json          scene manifest: description, seeds, settings, versions
+    STORE/scenes/<scene>/<frame>/gt1.exr     ground truth 1 (gt_spp), every buffer + variance
+    STORE/scenes/<scene>/<frame>/gt2.exr     ground truth 2, independent seed
+    STORE/scenes/<scene>/<frame>/s00.exr ..  K low-spp stacks (stack_spp each)
+    STORE/scenes/<scene>/<frame>/frame.json  written last: marks the frame complete, per-image records
+
+Every file is written to a temporary name and renamed, so a file that exists is complete.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import schema
+from .exr import StoreError, atomic_write_json, read_header, read_image, read_json, write_image
+
+STORE_FORMAT = "mcdenoise-store"
+STORE_VERSION = 1
+GT_IMAGES = ("gt1", "gt2")
+
+
+def stack_name(k: int) -> str:
+    return f"s{k:02d}"
+
+
+def frame_name(frame: int) -> str:
+    return f"{frame:03d}"
+
+
+def image_names(stacks: int) -> list[str]:
+    """Images of a frame in render order: GT1, GT2, then the stacks."""
+    return list(GT_IMAGES) + [stack_name(k) for k in range(stacks)]
+
+
+def image_seed(master: int, scene_index: int, frame: int, image: int, frames: int, images: int) -> int:
+    """A distinct 32-bit seed per image of the dataset.
+
+    A counter, not a hash: the (scene, frame, image) triples enumerate distinct integers, so no
+    two images of one dataset share a seed (up to 2^32 images). The master seed only offsets it.
+    Mitsuba hashes the seed with the sample index, so consecutive seeds are independent streams.
+    """
+    counter = (scene_index * frames + frame) * images + image
+    return int((master * 2654435761 + counter) % (1 << 32))
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def combine_stacks(images: list[dict[str, np.ndarray]], spp_each: int) -> dict[str, np.ndarray]:
+    """Average K independent stacks of ``spp_each`` samples, with the exact pooled variance.
+
+    Each stack k gives a mean m_k and the variance of that mean v_k = s_k²/n (n = spp_each).
+    The result equals what one render with K·n samples reports: mean m = Σ m_k / K and
+    variance of the mean s²/(K n) with the pooled sample variance
+        s² = [ Σ_k (n−1)·n·v_k + n·Σ_k (m_k − m)² ] / (K n − 1),
+    i.e. within-stack and between-stack scatter together (tests/test_store.py checks this
+    against the variance computed from the pooled samples directly).
+    """
+    if not images:
+        raise ValueError("combine_stacks needs at least one stack")
+    if len(images) == 1:
+        return {k: v.copy() for k, v in images[0].items()}
+    K, n = len(images), spp_each
+    out: dict[str, np.ndarray] = {}
+    names = [k for k in images[0] if not k.endswith(".variance")]
+    for name in names:
+        means = np.stack([img[name].astype(np.float64) for img in images])
+        m = means.mean(axis=0)
+        out[name] = m.astype(np.float32)
+        vkey = schema.variance_name(name)
+        if vkey in images[0]:
+            within = sum(img[vkey].astype(np.float64) for img in images) * (n - 1) * n
+            between = n * ((means - m) ** 2).sum(axis=0)
+            s2 = (within + between) / (K * n - 1)
+            out[vkey] = (s2 / (K * n)).astype(np.float32)
+    return out
+
+
+@dataclass(frozen=True)
+class FrameKey:
+    scene: str
+    frame: int
+
+    def __str__(self) -> str:
+        return f"{self.scene}/{frame_name(self.frame)}"
+
+
+class Store:
+    """Reader/writer for one store directory."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    # ---- paths -------------------------------------------------------------------------
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / "dataset.json"
+
+    def scene_dir(self, scene: str) -> Path:
+        return self.root / "scenes" / scene
+
+    def frame_dir(self, scene: str, frame: int) -> Path:
+        return self.scene_dir(scene) / frame_name(frame)
+
+    def image_path(self, scene: str, frame: int, image: str) -> Path:
+        return self.frame_dir(scene, frame) / f"{image}.exr"
+
+    # ---- manifests ---------------------------------------------------------------------
+    def manifest(self) -> dict:
+        data = read_json(self.manifest_path, "dataset manifest")
+        if data.get("format") != STORE_FORMAT:
+            raise StoreError(f"{self.manifest_path}: not a {STORE_FORMAT} manifest")
+        if data.get("version") != STORE_VERSION:
+            raise StoreError(f"{self.manifest_path}: store version {data.get('version')!r}, this code reads {STORE_VERSION}")
+        for key in ("scenes", "splits"):
+            if key not in data:
+                raise StoreError(f"{self.manifest_path}: key {key!r} is missing")
+        return data
+
+    def write_manifest(self, data: dict) -> None:
+        atomic_write_json(self.manifest_path, {"format": STORE_FORMAT, "version": STORE_VERSION, **data})
+
+    def scene_manifest(self, scene: str) -> dict:
+        return read_json(self.scene_dir(scene) / "scene.json", "scene manifest")
+
+    def write_scene_manifest(self, scene: str, data: dict) -> None:
+        atomic_write_json(self.scene_dir(scene) / "scene.json", data)
+
+    def frame_record(self, scene: str, frame: int) -> dict | None:
+        path = self.frame_dir(scene, frame) / "frame.json"
+        return read_json(path, "frame record") if path.exists() else None
+
+    def write_frame_record(self, scene: str, frame: int, data: dict) -> None:
+        atomic_write_json(self.frame_dir(scene, frame) / "frame.json", data)
+
+    # ---- frames ------------------------------------------------------------------------
+    def scenes(self, split: str | None = None) -> list[str]:
+        m = self.manifest()
+        if split is None:
+            return list(m["scenes"])
+        if split not in m["splits"]:
+            raise StoreError(f"{self.manifest_path}: no split {split!r} (have {', '.join(m['splits'])})")
+        return list(m["splits"][split])
+
+    def frames(self, split: str | None = None) -> list[FrameKey]:
+        out = []
+        for scene in self.scenes(split):
+            sm = self.scene_manifest(scene)
+            out += [FrameKey(scene, f) for f in range(int(sm["frames"]))]
+        return out
+
+    def is_frame_complete(self, scene: str, frame: int, images: list[str]) -> bool:
+        """True when frame.json lists every expected image and each file is on disk."""
+        try:
+            rec = self.frame_record(scene, frame)
+        except StoreError:
+            return False
+        if rec is None:
+            return False
+        have = rec.get("images", {})
+        return all(name in have and self.image_path(scene, frame, name).exists() for name in images)
+
+    # ---- images ------------------------------------------------------------------------
+    def write_image(self, scene: str, frame: int, image: str, arrays, constants=None, meta=None,
+                    omit_constant: bool = True) -> dict:
+        path = self.image_path(scene, frame, image)
+        record = write_image(path, arrays, constants, meta, omit_constant)
+        return {**record, "bytes": path.stat().st_size, "sha256": sha256(path)}
+
+    def read_image(self, scene: str, frame: int, image: str, buffers: list[str] | None = None):
+        return read_image(self.image_path(scene, frame, image), buffers)
+
+    def image_header(self, scene: str, frame: int, image: str) -> dict:
+        return read_header(self.image_path(scene, frame, image))
+
+    def read(self, scene: str, frame: int, spp: int, buffers: list[str] | None = None,
+             stacks: list[int] | None = None, rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
+        """Buffers of (scene, frame) at ``spp`` samples: the average of spp/stack_spp stacks.
+
+        Which stacks: ``stacks`` if given, else a random choice from ``rng`` (as the paper's
+        training does), else the first ones. ``spp`` equal to the GT sample count reads GT1.
+        """
+        sm = self.scene_manifest(scene)
+        n, total = int(sm["stack_spp"]), int(sm["stacks"])
+        if spp == int(sm["gt_spp"]) and stacks is None:
+            return self.read_image(scene, frame, "gt1", buffers)[0]
+        if spp % n or not 1 <= spp // n <= total:
+            raise StoreError(f"{self.scene_dir(scene)}: spp {spp} is not a multiple of the stack spp {n} "
+                             f"between {n} and {n * total} (or the GT spp {sm['gt_spp']})")
+        k = spp // n
+        if stacks is None:
+            stacks = sorted(rng.choice(total, size=k, replace=False).tolist()) if rng is not None else list(range(k))
+        if len(stacks) != k:
+            raise StoreError(f"spp {spp} needs {k} stacks, got {len(stacks)}")
+        images = [self.read_image(scene, frame, stack_name(i), buffers)[0] for i in stacks]
+        return combine_stacks(images, n)
+
+
+def describe(record: dict) -> str:
+    return json.dumps(record, indent=1, sort_keys=True)

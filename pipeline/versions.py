@@ -1,0 +1,17 @@
+"""Package versions recorded in every manifest, so a dataset says what made it."""
+from __future__ import annotations
+
+import platform
+from importlib import metadata
+
+PACKAGES = ("mitsuba", "drjit", "numpy", "OpenEXR", "trimesh", "torch", "PyYAML")
+
+
+def package_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out

@@ -1,0 +1,1 @@
+"""Stage 1: scene randomizer, split-buffer Mitsuba integrator and the frame renderer."""
