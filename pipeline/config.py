@@ -84,6 +84,23 @@ class ExecutorConfig:
 
 
 @dataclass
+class CleanConfig:
+    epochs: int = doc("Training epochs of the GT cleaner (SMAPE, GT1 -> GT2 swapped at random).", 30)
+    batch_size: int = doc("Crops per optimisation step.", 8)
+    crop: int = doc("Side of the random training crops in pixels.", 64)
+    lr: float = doc("AdamW learning rate.", 1e-3)
+    weight_decay: float = doc("AdamW weight decay.", 1e-4)
+    smape_eps: float = doc("epsilon of SMAPE(A, B) = |A - B|_1 / (|A|_1 + |B|_1 + eps) (paper eq. 2).", 1e-2)
+    kernel_size: int = doc("Side of each dilated affinity kernel.", 7)
+    dilations: list = doc("Dilation of each of the K iterated kernels (Isik et al.: 1, 2, 4).", factory=lambda: [1, 2, 4])
+    channels: list = doc("U-Net channels per level (Isik et al.: 64, 64, 80, 96; smaller for CPU).",
+                         factory=lambda: [32, 48, 64])
+    embed_channels: int = doc("Channels of the per-pixel embedding.", 32)
+    affinity_channels: int = doc("Channels of the affinity features f_p per iteration.", 8)
+    time_budget_s: float = doc("Stop training after this many seconds (0: no limit); the best checkpoint is kept.", 0.0)
+
+
+@dataclass
 class Config:
     seed: int = doc("Master seed: scene i is generated from (seed, i); every render seed derives from it.", 0)
     store: str = doc("Path of the EXR buffer store (relative paths are relative to the working directory).", "data/default")
@@ -91,6 +108,9 @@ class Config:
     scene: SceneConfig = doc("Scene randomizer.", factory=SceneConfig)
     render: RenderConfig = doc("Renderer and integrator.", factory=RenderConfig)
     executor: ExecutorConfig = doc("Where frames run.", factory=ExecutorConfig)
+    runs: str = doc("Folder for checkpoints, loss curves and logs of the training stages.", "runs/default")
+    clean: CleanConfig = doc("GT cleaner (make gt-clean) and the Isik baseline (make train MODEL=isik).",
+                             factory=CleanConfig)
 
 
 # --------------------------------------------------------------------------------------------

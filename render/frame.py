@@ -82,6 +82,11 @@ def render_frame(task: FrameTask) -> dict:
     if existing and all(n in existing.get("images", {}) and store.image_path(task.scene, task.frame, n).exists()
                         for n in names):
         return {**existing, "skipped": True}
+    # A SIGKILL during a write leaves its temporary file (never a partial image): drop them.
+    # Only the task of this frame writes into this folder, so nothing live is removed.
+    frame_dir = store.frame_dir(task.scene, task.frame)
+    for tmp in frame_dir.glob(".*.tmp") if frame_dir.exists() else ():
+        tmp.unlink(missing_ok=True)
     mi = import_mitsuba(task.render["variant"], task.render["threads"])
     scene, features, build_s = _scene(mi, task)
     t0 = time.perf_counter()

@@ -1,0 +1,186 @@
+"""``make bench``: the dataset stage's performance claims, measured in one run.
+
+1. Our split-buffer integrator against Mitsuba's built-in ``path`` on the same scenes, spp and
+   max depth: time per sample as a ratio (target <= 1.15x), with every feature and with the
+   features the scene needs.
+2. Where the dataset stage's wall time goes: rendering vs building scenes, writing EXR and the
+   rest (start-up, planning, manifests), on a few frames of the configured dataset.
+3. What leaving out unneeded and constant channels saves: bytes on disk (the same rendered
+   buffers written with and without omission) and render time (features 'auto' vs 'all').
+
+Results go to ``<out>/bench.json`` and ``<out>/bench.md``; the Markdown is also printed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import platform
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from .config import Config
+from .versions import package_versions
+
+
+def _time(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeats: int = 3) -> list[dict]:
+    import drjit as dr
+
+    from render.buffers import make_sensor, needed_features, render_image
+    from render.scene import build_scene, random_scene
+    from .mitsuba_env import import_mitsuba
+
+    mi = import_mitsuba(cfg.render.variant, cfg.render.threads)
+    rows = []
+    cases = [("cornell_box", mi.load_dict(mi.cornell_box()), None)]
+    desc = random_scene(cfg.scene, cfg.seed, 0, 1)
+    cases.append(("random scene 0", build_scene(mi, desc), desc))
+    for name, scene, desc in cases:
+        if desc is None:
+            sensor = make_sensor(mi, mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
+                                 39.3, resolution, resolution)
+        else:
+            from render.scene import build_sensor
+            sensor = build_sensor(mi, desc, 0, resolution, resolution)
+        path = mi.load_dict({"type": "path", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth})
+
+        def run_path():
+            dr.eval(mi.render(scene, sensor=sensor, integrator=path, spp=spp, seed=1))
+            dr.sync_thread()
+
+        def run_ours(features):
+            return lambda: render_image(mi, scene, sensor, spp=spp, seed=1, features=features,
+                                        max_depth=cfg.render.max_depth, rr_depth=cfg.render.rr_depth)
+
+        from pipeline import schema
+        needed = needed_features(mi, scene)
+        for fn in (run_path, run_ours(set(schema.OPTIONAL_FEATURES)), run_ours(needed)):
+            fn()  # warm-up: kernel compilation is not what we compare
+        t_path = _time(run_path, repeats)
+        t_all = _time(run_ours(set(schema.OPTIONAL_FEATURES)), repeats)
+        t_needed = _time(run_ours(needed), repeats)
+        samples = resolution * resolution * spp
+        rows.append({"scene": name, "resolution": resolution, "spp": spp, "path_s": t_path,
+                     "ours_all_s": t_all, "ours_needed_s": t_needed, "needed_features": sorted(needed),
+                     "ratio_all": t_all / t_path, "ratio_needed": t_needed / t_path,
+                     "path_msamples_per_s": samples / t_path / 1e6})
+    return rows
+
+
+def dataset_shares(cfg: Config, scenes: int) -> dict:
+    """Run the dataset stage on ``scenes`` scenes into a temporary store and split its wall time."""
+    from .dataset import run
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-store-"))
+    try:
+        sub = dataclasses.replace(cfg, store=str(tmp / "store"),
+                                  dataset=dataclasses.replace(cfg.dataset, scenes=scenes, stress=[]))
+        t0 = time.perf_counter()
+        stats = run(sub, quiet=True)
+        wall = time.perf_counter() - t0
+        tm = stats["timing"]
+        omission = omission_savings(sub)
+        return {"scenes": scenes, "frames": stats["frames"], "wall_s": wall,
+                "render_share": tm["render"] / wall, "build_share": tm["build"] / wall,
+                "write_share": tm["write"] / wall,
+                "rest_share": 1 - (tm["render"] + tm["build"] + tm["write"]) / wall,
+                "msamples_per_s": stats["samples"] / wall / 1e6, "omission": omission}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def omission_savings(cfg: Config) -> dict:
+    """Bytes of the rendered store vs the same buffers with every channel written.
+
+    Re-renders one frame per scene with features='all' to measure the render-time saving of
+    computing only what the scene needs.
+    """
+    from render.buffers import needed_features, render_image
+    from render.scene import build_scene, build_sensor
+    from pipeline import schema
+    from .exr import read_image, write_image
+    from .mitsuba_env import import_mitsuba
+    from .store import Store
+
+    store = Store(cfg.store)
+    omitted = full = 0
+    t_auto = t_all = 0.0
+    tmp = Path(tempfile.mkdtemp(prefix="bench-full-"))
+    mi = import_mitsuba(cfg.render.variant, cfg.render.threads)
+    try:
+        for scene in store.scenes():
+            sm = store.scene_manifest(scene)
+            for f in range(sm["frames"]):
+                for name in sm["images"]:
+                    path = store.image_path(scene, f, name)
+                    omitted += path.stat().st_size
+                    arrays, rec = read_image(path)
+                    write_image(tmp / "full.exr", arrays, omit_constant=False)
+                    full += (tmp / "full.exr").stat().st_size
+            mscene = build_scene(mi, sm["description"])
+            w, h = sm["resolution"]
+            sensor = build_sensor(mi, sm["description"], 0, w, h)
+            needed = needed_features(mi, mscene)
+            for features in (needed, set(schema.OPTIONAL_FEATURES)):  # warm both kernels
+                render_image(mi, mscene, sensor, spp=sm["stack_spp"], seed=0, features=features,
+                             max_depth=cfg.render.max_depth, rr_depth=cfg.render.rr_depth)
+            spp = sm["gt_spp"]
+            t_auto += render_image(mi, mscene, sensor, spp=spp, seed=1, features=needed,
+                                   max_depth=cfg.render.max_depth, rr_depth=cfg.render.rr_depth).seconds
+            t_all += render_image(mi, mscene, sensor, spp=spp, seed=1, features=set(schema.OPTIONAL_FEATURES),
+                                  max_depth=cfg.render.max_depth, rr_depth=cfg.render.rr_depth).seconds
+            del mscene
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"bytes_omitted": omitted, "bytes_full": full, "disk_saving": 1 - omitted / full,
+            "render_s_needed": t_auto, "render_s_all": t_all, "time_saving": 1 - t_auto / t_all}
+
+
+def run_bench(cfg: Config, out: str = "reports/bench", scenes: int = 4) -> dict:
+    result = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
+                          "cpus": __import__("os").cpu_count()},
+              "packages": package_versions(),
+              "integrator": integrator_vs_path(cfg),
+              "dataset": dataset_shares(cfg, scenes)}
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "bench.json").write_text(json.dumps(result, indent=1) + "\n")
+    md = format_markdown(result, cfg)
+    (out_dir / "bench.md").write_text(md)
+    print(md)
+    return result
+
+
+def format_markdown(r: dict, cfg: Config) -> str:
+    lines = ["# Benchmark", "", f"Machine: {r['machine']['cpus']} CPUs, {r['machine']['platform']}; "
+             f"mitsuba {r['packages']['mitsuba']}, drjit {r['packages']['drjit']}, variant {cfg.render.variant}.", "",
+             "## Split-buffer integrator vs built-in `path` (best of 3, after warm-up)", "",
+             "| scene | size | spp | path s | ours (all features) s | ratio | ours (needed features) s | ratio |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for row in r["integrator"]:
+        lines.append(f"| {row['scene']} | {row['resolution']}² | {row['spp']} | {row['path_s']:.3f} | "
+                     f"{row['ours_all_s']:.3f} | {row['ratio_all']:.2f}x | {row['ours_needed_s']:.3f} | "
+                     f"{row['ratio_needed']:.2f}x |")
+    d = r["dataset"]
+    o = d["omission"]
+    lines += ["", f"## Dataset stage wall time ({d['scenes']} scenes, {d['frames']} frames of the configured dataset)", "",
+              "| rendering | building scenes | writing EXR | rest | wall s | M samples/s |",
+              "| --- | --- | --- | --- | --- | --- |",
+              f"| {d['render_share']:.1%} | {d['build_share']:.1%} | {d['write_share']:.1%} | {d['rest_share']:.1%} | "
+              f"{d['wall_s']:.1f} | {d['msamples_per_s']:.2f} |", "",
+              "## Leaving out what a scene does not need", "",
+              f"- disk: {o['bytes_omitted'] / 2**20:.2f} MiB with omission vs {o['bytes_full'] / 2**20:.2f} MiB with every "
+              f"channel written: {o['disk_saving']:.1%} saved",
+              f"- render time at GT spp, one frame per scene: {o['render_s_needed']:.2f} s with the needed features vs "
+              f"{o['render_s_all']:.2f} s with all: {o['time_saving']:.1%} saved", ""]
+    return "\n".join(lines)

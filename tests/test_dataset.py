@@ -1,0 +1,221 @@
+"""The dataset stage end to end on configs/tiny.yaml, through the real command line.
+
+Renders a tiny store once per module (seconds), then checks the layout, manifests and splits,
+resume after SIGKILL, the Ray executor and the errors users will meet.
+"""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from pipeline import schema
+from pipeline.exr import read_image
+from pipeline.store import Store, image_names
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny.yaml"
+# Not deterministic across runs: wall-clock fields. Everything else must match exactly.
+TIMING_KEYS = {"render_seconds", "timing", "reused", "reused_images", "skipped"}
+
+
+def cli(*args, check=True, timeout=600):
+    proc = subprocess.run([sys.executable, "-m", "pipeline", *map(str, args)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="module")
+def tiny_store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tiny") / "store"
+    proc = cli("dataset", "--config", TINY, f"store={root}")
+    return root, proc
+
+
+def exr_payload(path: Path) -> dict:
+    """Pixel data and header record without wall-clock fields."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        chans = {k: v.pixels.copy() for k, v in f.channels().items()}
+        rec = json.loads(f.header()["mcdenoise"])
+    return {"channels": chans, "record": {k: v for k, v in rec.items() if k not in TIMING_KEYS}}
+
+
+def assert_same_store(a: Path, b: Path):
+    files_a = sorted(p.relative_to(a) for p in a.rglob("*.exr"))
+    files_b = sorted(p.relative_to(b) for p in b.rglob("*.exr"))
+    assert files_a == files_b and files_a
+    for rel in files_a:
+        pa, pb = exr_payload(a / rel), exr_payload(b / rel)
+        assert pa["record"] == pb["record"], rel
+        assert pa["channels"].keys() == pb["channels"].keys(), rel
+        for ch in pa["channels"]:
+            np.testing.assert_array_equal(pa["channels"][ch], pb["channels"][ch], err_msg=f"{rel}:{ch}")
+
+
+def test_tiny_dataset_layout(tiny_store):
+    root, proc = tiny_store
+    assert "dataset: 6 frames (6 rendered, 0 already done, 0 failed)" in proc.stdout
+    store = Store(root)
+    m = store.manifest()
+    splits = m["splits"]
+    assert sorted(splits["train"] + splits["val"] + splits["test"]) == sorted(m["scenes"])
+    assert len(splits["val"]) >= 1 and len(splits["test"]) >= 1
+    seeds = []
+    for key in store.frames():
+        rec = store.frame_record(key.scene, key.frame)
+        assert sorted(rec["images"]) == sorted(image_names(4))
+        for name, img in rec["images"].items():
+            assert img["spp"] == (64 if name.startswith("gt") else 4)
+            seeds.append(img["seed"])
+            assert img["sha256"] and img["bytes"] > 0
+        sm = store.scene_manifest(key.scene)
+        assert sm["description"] and sm["packages"]["mitsuba"]
+        assert str(key.frame) in sm["rendered"]
+    assert len(seeds) == len(set(seeds)), "every image of the dataset needs its own seed"
+
+
+def test_every_buffer_is_restored_and_finite(tiny_store):
+    root, _ = tiny_store
+    store = Store(root)
+    key = store.frames()[0]
+    img, rec = store.read_image(key.scene, key.frame, "gt1")
+    assert set(img) == set(schema.all_keys())
+    for k, v in img.items():
+        assert v.dtype == np.float32 and np.all(np.isfinite(v)), k
+        assert v.shape == (24, 32, v.shape[2])
+    total = sum(img[c] for c in schema.RADIANCE_COMPONENTS)
+    np.testing.assert_allclose(total, img["color"], rtol=1e-4, atol=1e-4)
+
+
+def test_stacks_average_to_spp(tiny_store):
+    root, _ = tiny_store
+    store = Store(root)
+    key = store.frames()[0]
+    b16 = store.read(key.scene, key.frame, 16)
+    stacks = [store.read_image(key.scene, key.frame, f"s{k:02d}")[0]["color"] for k in range(4)]
+    np.testing.assert_allclose(b16["color"], np.mean(stacks, axis=0), rtol=1e-5, atol=1e-7)
+
+
+def test_rerun_skips_finished_frames(tiny_store):
+    root, _ = tiny_store
+    before = {p: p.stat().st_mtime_ns for p in root.rglob("*.exr")}
+    proc = cli("dataset", "--config", TINY, f"store={root}")
+    assert "(0 rendered, 6 already done, 0 failed)" in proc.stdout
+    assert {p: p.stat().st_mtime_ns for p in root.rglob("*.exr")} == before
+
+
+def test_inspect_reports_frames_and_constants(tiny_store):
+    root, _ = tiny_store
+    proc = cli("inspect", root, "--json")
+    report = json.loads(proc.stdout)
+    assert report["frames"] == 6 and report["frames_complete"] == 6
+    assert report["images"] == 6 * 6 and report["nonfinite"] == 0
+    key = Store(root).frames()[0]
+    detail = json.loads(cli("inspect", root, "--frame", f"{key.scene}/000", "--json").stdout)["frame"]
+    gt1 = detail["images"]["gt1"]
+    assert gt1["spp"] == 64 and "R" in gt1["channels"]
+    assert set(gt1["channels"]).isdisjoint(gt1["constants"])
+    text = cli("inspect", root).stdout
+    assert "6/6 frames complete" in text
+
+
+def test_kill_and_resume_matches_uninterrupted_run(tiny_store, tmp_path):
+    """SIGKILL mid-run at several moments; the rerun completes and equals an uninterrupted run."""
+    reference, _ = tiny_store
+    root = tmp_path / "killed"
+    args = [sys.executable, "-m", "pipeline", "dataset", "--config", str(TINY), f"store={root}", "--quiet"]
+    for kill_after_images in (1, 5, 14):
+        proc = subprocess.Popen(args, cwd=ROOT, start_new_session=True)
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None:
+            if len(list(root.rglob("*.exr"))) >= kill_after_images:
+                break
+            time.sleep(0.02)
+        os.killpg(proc.pid, signal.SIGKILL)   # the worker processes too
+        proc.wait()
+    survivors = {p: p.stat().st_mtime_ns for p in root.rglob("*.exr")}
+    assert survivors, "the kills came before anything was written; the test did not test resume"
+    cli("dataset", "--config", TINY, f"store={root}", "--quiet")
+    for p, mtime in survivors.items():   # nothing already written was redone
+        assert p.stat().st_mtime_ns == mtime, p
+    assert not list(root.rglob("*.tmp")), "temporary files left behind"
+    assert_same_store(reference, root)
+
+
+def test_shards_cover_the_dataset(tiny_store, tmp_path):
+    reference, _ = tiny_store
+    root = tmp_path / "sharded"
+    for i in range(3):
+        cli("dataset", "--config", TINY, f"store={root}", "--shard", f"{i}/3", "--quiet")
+    assert_same_store(reference, root)
+
+
+@pytest.mark.slow
+def test_ray_executor_writes_the_same_files(tiny_store, tmp_path):
+    reference, _ = tiny_store
+    root = tmp_path / "ray"
+    cli("dataset", "--config", TINY, f"store={root}", "executor.kind=ray", "executor.workers=2", "--quiet")
+    assert_same_store(reference, root)
+
+
+def test_unknown_config_key_is_a_clear_error(tmp_path):
+    proc = cli("dataset", "--config", TINY, f"store={tmp_path}/s", "dataset.scene=3", check=False)
+    assert proc.returncode == 2
+    assert "unknown config key dataset.scene" in proc.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_store_made_with_another_config_is_refused(tiny_store):
+    root, _ = tiny_store
+    proc = cli("dataset", "--config", TINY, f"store={root}", "dataset.gt_spp=128", check=False)
+    assert proc.returncode == 2 and "different 'dataset'" in proc.stderr
+
+
+def test_unreadable_scene_xml_is_a_clear_error(tmp_path):
+    bad = tmp_path / "broken.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='nosuchshape'/></scene>")
+    proc = cli("render-scene", bad, "--store", tmp_path / "ext", "--config", TINY, check=False)
+    assert proc.returncode == 2
+    assert "broken.xml" in proc.stderr
+    assert not list((tmp_path / "ext").rglob("*.exr"))
+
+
+def test_render_scene_writes_a_test_frame(tmp_path):
+    xml = tmp_path / "box.xml"
+    xml.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="20"/><integer name="height" value="16"/>
+      <rfilter type="gaussian"/></film></sensor>
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+  <shape type="sphere"><bsdf type="diffuse"/></shape>
+</scene>""")
+    cli("render-scene", xml, "--store", tmp_path / "ext", "--config", TINY)
+    store = Store(tmp_path / "ext")
+    assert store.manifest()["splits"]["external"] == ["ext_box"]
+    img, rec = store.read_image("ext_box", 0, "gt1")
+    assert img["color"].shape == (16, 20, 3)
+    assert rec["spp"] == 64
+    assert img["color"][8, 10].mean() > 0.05         # the sphere is lit
+    assert np.all(img["transmission"] == 0)          # no transmissive material: constant, left out
+    assert "transmission.Y" in rec["constants"]
+
+
+def test_corrupt_image_in_store_names_the_file(tiny_store, tmp_path):
+    root, _ = tiny_store
+    store = Store(root)
+    key = store.frames()[0]
+    path = store.image_path(key.scene, key.frame, "s01")
+    data = path.read_bytes()
+    copy = tmp_path / "s01.exr"
+    copy.write_bytes(data[: len(data) - 200])
+    with pytest.raises(Exception, match=r"s01\.exr"):
+        read_image(copy)
