@@ -11,7 +11,8 @@ PYTHON_SYS ?= python3
 VENV       ?= .venv
 PY         := $(VENV)/bin/python
 CONFIG     ?= configs/default.yaml
-SPP        ?=
+SPP        ?= 4
+MODEL      ?= isik
 SHARD      ?=
 STAMP      := $(VENV)/.installed
 
@@ -19,7 +20,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset inspect render-scene bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean train inspect bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -52,8 +53,19 @@ demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
 
-dataset: setup
+# `make dataset` renders, then cleans the ground truth (the cleaner trains on the whole train
+# split, so with SHARD= only the rendering runs; run `make gt-clean` once all shards are done).
+dataset: render
+	$(if $(SHARD),@echo "shard $(SHARD) rendered; run 'make gt-clean' after the last shard",$(RUN) gt-clean --config $(CONFIG) $(OVERRIDES))
+
+render: setup
 	$(RUN) dataset --config $(CONFIG) $(if $(SHARD),--shard $(SHARD)) $(OVERRIDES)
+
+gt-clean: setup
+	$(RUN) gt-clean --config $(CONFIG) $(OVERRIDES)
+
+train: setup
+	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')

@@ -39,6 +39,19 @@ def cmd_render_scene(args) -> int:
     return 1 if stats["failed"] else 0
 
 
+def cmd_gt_clean(args) -> int:
+    from clean.cli import cmd_gt_clean as run
+    return run(_config(args), quiet=args.quiet)
+
+
+def cmd_train(args) -> int:
+    cfg = _config(args)
+    if args.model == "isik":
+        from clean.cli import cmd_train_isik
+        return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
+    raise ConfigError(f"--model {args.model!r}: only 'isik' is built so far (the diffusion model is issue 4)")
+
+
 def cmd_config(args) -> int:
     if args.doc:
         print(documentation_markdown(), end="")
@@ -67,6 +80,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shard", default=None, help="i/N: render only the i-th of N contiguous blocks of frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(fn=cmd_dataset)
+
+    p = with_config(sub.add_parser("gt-clean", help="train the GT cleaner (resumable), then write gt_clean for every frame"))
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_gt_clean)
+
+    p = with_config(sub.add_parser("train", help="train a denoiser: --model isik (the Isik baseline)"))
+    p.add_argument("--model", default="isik", choices=["isik"], help="which denoiser")
+    p.add_argument("--spp", type=int, required=True, help="sample count of the noisy input (4, 16, 64)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_train)
 
     p = sub.add_parser("inspect", help="describe a store (frames, channels, constants, timings, NaN/Inf)")
     p.add_argument("store")

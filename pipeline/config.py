@@ -97,7 +97,15 @@ class CleanConfig:
                          factory=lambda: [32, 48, 64])
     embed_channels: int = doc("Channels of the per-pixel embedding.", 32)
     affinity_channels: int = doc("Channels of the affinity features f_p per iteration.", 8)
-    time_budget_s: float = doc("Stop training after this many seconds (0: no limit); the best checkpoint is kept.", 0.0)
+    time_budget_s: float = doc("Stop training at the end of the epoch during which this many seconds have passed "
+                               "(0: no limit); the best and the last checkpoint are kept, a rerun resumes.", 0.0)
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping); HDR outliers "
+                           "otherwise make single steps huge.", 1.0)
+    tile: int = doc("Inference tile side in pixels: larger frames are denoised in overlapping tiles "
+                    "(bounded memory).", 512)
+    device: str = doc("Torch device of the cleaner and the Isik baseline: 'auto' (CUDA if available), 'cpu', "
+                      "'cuda', ...", "auto")
 
 
 @dataclass

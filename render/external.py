@@ -21,7 +21,7 @@ def load_external_scene(mi, xml: str):
         raise ExternalSceneError(f"{xml}: scene file not found")
     try:
         # Mitsuba resolves relative asset paths against the XML's folder.
-        return mi.load_file(str(path.resolve()))
+        return mi.load_file(str(path.resolve()), parallel=False, optimize=False)  # fixed order: see render.scene
     except Exception as exc:  # Mitsuba raises RuntimeError with the parser's message
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}") from None

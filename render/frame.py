@@ -63,7 +63,7 @@ def _scene(mi, task: FrameTask):
 
 
 def _sensor(mi, task: FrameTask, scene):
-    w, h = task.resolution
+    w, h = task.resolution or (None, None)
     if "xml" in task.desc:
         from render.external import external_sensor
         return external_sensor(mi, scene, w, h)

@@ -1,0 +1,241 @@
+"""Network inputs from store buffers, and the training pairs of the cleaner and the Isik baseline.
+
+Input channels (``CHANNELS``, derived from ``pipeline.schema.BUFFERS``, in schema order):
+
+- every radiance buffer (``color`` and the five components of the exact decomposition
+  ``emission``, ``diffuse_direct``, ``specular_direct``, ``diffuse_indirect``,
+  ``specular_indirect``): ``log1p(max(x, 0))``. HDR radiance spans 0 … 1e5; the log keeps the
+  inputs of a conv net in a few units (1e5 → 11.5) while staying linear near 0.
+- ``albedo``, ``roughness``, ``metallic``, ``transmission``: as stored (already in [0, 1]).
+- ``normal``: as stored, **world space** in [−1, 1]. Image flips permute pixels but do not change
+  world-space directions, so augmentation never touches the normal values.
+- ``depth``: divided by the frame's largest depth (background 0 stays 0): scenes differ in scale,
+  and the network needs relative depth edges, not metres. Crops use the whole frame's maximum.
+- one channel per buffer for its variance: ``log1p(v̄ / (m̄² + 1e-2))`` with v̄, m̄ the mean over
+  the buffer's channels of variance and value: the *relative* variance (squared coefficient of
+  variation) tells the network how noisy a pixel is independently of its brightness, where the
+  absolute variance of a 4096-spp ground truth would be ~0 everywhere; the 1e-2 makes dark
+  pixels count absolutely, like the SMAPE ε.
+
+The radiance the kernels filter is the HDR ``color`` itself (``radiance``), not an input channel.
+
+Pairs (dicts of float32 tensors ``inputs`` (C, h, w), ``radiance`` (3, h, w), ``target`` (3, h, w)):
+
+- ``CleanerPairs``: GT1 and GT2 of a frame, swapped at random (paper eq. 1): inputs and
+  radiance of one, target the other one's ``color``.
+- ``BaselinePairs``: the low-spp buffers at ``spp`` (``Store.read``, random stacks in training,
+  the first stacks in validation) → target ``gt_clean``.
+
+Training items are random crops with random horizontal/vertical flips; validation items are
+whole frames in a fixed order. Randomness comes from ``numpy.random.default_rng([seed, epoch,
+index])``: an epoch's items are reproducible, which makes resuming a training run exact.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from pipeline import schema
+from pipeline.store import FrameKey, Store, stack_name
+
+RADIANCE = "color"
+# Relative-variance floor (radiance² units), see the module docstring.
+VARIANCE_FLOOR = 1e-2
+# Preprocessed frames are kept in memory up to this many bytes (the EXR reads dominate otherwise).
+CACHE_BYTES = 1 << 30
+
+
+def _transform(buf: schema.Buffer) -> str:
+    if buf.radiance:
+        return "log1p"
+    if buf.name == "depth":
+        return "depth"
+    return "identity"
+
+
+# (key, channels, transform) of every input channel group, in order.
+CHANNELS: tuple[tuple[str, int, str], ...] = (
+    tuple((b.name, b.size, _transform(b)) for b in schema.BUFFERS)
+    + tuple((schema.variance_name(b.name), 1, "relative_variance") for b in schema.BUFFERS)
+)
+IN_CHANNELS: int = sum(n for _, n, _ in CHANNELS)
+
+
+def channel_names() -> list[str]:
+    """One name per input channel, e.g. ``color.R``, ``normal.X``, ``depth.variance`` (for JSON sidecars)."""
+    names = []
+    for key, n, transform in CHANNELS:
+        if transform == "relative_variance":
+            names.append(key)
+        else:
+            names += [f"{key}.{c}" for c in schema.BY_NAME[key].channels]
+    return names
+
+
+def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(inputs (C, H, W), radiance (3, H, W)) float32 from one image's buffers (HxWxC arrays).
+
+    A buffer missing from ``buffers`` (e.g. a feature a reader did not ask for) counts as 0.
+    """
+    ref = buffers[RADIANCE]
+    H, W = ref.shape[:2]
+    parts = []
+    for key, n, transform in CHANNELS:
+        if transform == "relative_variance":
+            name = key.removesuffix(".variance")
+            if key in buffers and name in buffers:
+                v = buffers[key].astype(np.float32).mean(axis=2)
+                m2 = (buffers[name].astype(np.float32) ** 2).mean(axis=2)
+                parts.append(np.log1p(np.maximum(v, 0.0) / (m2 + VARIANCE_FLOOR))[None])
+            else:
+                parts.append(np.zeros((1, H, W), np.float32))
+            continue
+        x = buffers.get(key)
+        x = np.zeros((H, W, n), np.float32) if x is None else x.astype(np.float32)
+        if transform == "log1p":
+            x = np.log1p(np.maximum(x, 0.0))
+        elif transform == "depth":
+            top = float(x.max()) if x.size else 0.0
+            x = x / top if top > 0 else np.zeros_like(x)
+        parts.append(np.moveaxis(x, 2, 0))
+    inputs = np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
+    radiance = np.ascontiguousarray(np.moveaxis(ref.astype(np.float32), 2, 0))
+    return inputs, radiance
+
+
+def to_tensors(inputs: np.ndarray, radiance: np.ndarray, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched (1, C, H, W) tensors for the model."""
+    return (torch.from_numpy(inputs)[None].to(device), torch.from_numpy(radiance)[None].to(device))
+
+
+def crop_and_flip(arrays: list[np.ndarray], crop: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """The same random crop×crop window and flips of several (C, H, W) arrays.
+
+    Flips only permute pixels: our normals are world-space, so their values stay as they are.
+    """
+    H, W = arrays[0].shape[-2:]
+    y = int(rng.integers(0, H - crop + 1))
+    x = int(rng.integers(0, W - crop + 1))
+    flip_x, flip_y = bool(rng.integers(2)), bool(rng.integers(2))
+    out = []
+    for a in arrays:
+        a = a[..., y:y + crop, x:x + crop]
+        if flip_x:
+            a = a[..., :, ::-1]
+        if flip_y:
+            a = a[..., ::-1, :]
+        out.append(np.ascontiguousarray(a))
+    return out
+
+
+class _Cache:
+    """Keeps computed values until CACHE_BYTES are used, then stops adding (no eviction churn)."""
+
+    def __init__(self, limit: int = CACHE_BYTES):
+        self.limit, self.used, self.data = limit, 0, {}
+
+    def get(self, key, make):
+        if key in self.data:
+            return self.data[key]
+        value = make()
+        size = sum(a.nbytes for a in value)
+        if self.used + size <= self.limit:
+            self.data[key] = value
+            self.used += size
+        return value
+
+
+class _Pairs(Dataset):
+    def __init__(self, store: Store, keys: list[FrameKey], crop: int | None, crops_per_frame: int = 1,
+                 seed: int = 0):
+        if not keys:
+            raise ValueError("no frames to train or validate on")
+        self.store, self.keys, self.seed, self.epoch = store, list(keys), int(seed), 0
+        self.train = crop is not None
+        self.crops_per_frame = int(crops_per_frame) if self.train else 1
+        self.crop = None
+        if self.train:
+            # One crop size for the whole batch: no larger than the smallest frame.
+            sides = [min(store.scene_manifest(s)["resolution"]) for s in {k.scene for k in keys}]
+            self.crop = max(1, min([int(crop)] + sides))
+        self.cache = _Cache()
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.keys) * self.crops_per_frame
+
+    def _rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, self.epoch, index])
+
+    def _image(self, key: FrameKey, image: str) -> tuple[np.ndarray, np.ndarray]:
+        return self.cache.get((key.scene, key.frame, image),
+                              lambda: frame_inputs(self.store.read_image(key.scene, key.frame, image)[0]))
+
+    def _target(self, key: FrameKey, image: str) -> np.ndarray:
+        def make():
+            color = self.store.read_image(key.scene, key.frame, image, buffers=[RADIANCE])[0][RADIANCE]
+            return (np.ascontiguousarray(np.moveaxis(color, 2, 0)),)
+        return self.cache.get((key.scene, key.frame, image, "target"), make)[0]
+
+    def _item(self, inputs, radiance, target, rng) -> dict[str, torch.Tensor]:
+        if self.train:
+            inputs, radiance, target = crop_and_flip([inputs, radiance, target], self.crop, rng)
+        return {"inputs": torch.from_numpy(inputs), "radiance": torch.from_numpy(radiance),
+                "target": torch.from_numpy(target)}
+
+
+class CleanerPairs(_Pairs):
+    """GT1 ↔ GT2 of each frame (swapped at random in training; GT1 → GT2 in validation)."""
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        rng = self._rng(index)
+        key = self.keys[index // self.crops_per_frame]
+        a, b = ("gt1", "gt2") if not self.train or rng.integers(2) == 0 else ("gt2", "gt1")
+        inputs, radiance = self._image(key, a)
+        target = self._image(key, b)[1]
+        return self._item(inputs, radiance, target, rng)
+
+
+class BaselinePairs(_Pairs):
+    """Low-spp buffers at ``spp`` (random stacks in training, the first ones in validation) → gt_clean."""
+
+    def __init__(self, store: Store, keys: list[FrameKey], spp: int, crop: int | None, crops_per_frame: int = 1,
+                 seed: int = 0):
+        super().__init__(store, keys, crop, crops_per_frame, seed)
+        self.spp = int(spp)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        rng = self._rng(index)
+        key = self.keys[index // self.crops_per_frame]
+        if self.train:
+            inputs, radiance = frame_inputs(self.store.read(key.scene, key.frame, self.spp, rng=rng))
+        else:
+            inputs, radiance = self._image(key, f"spp{self.spp}")
+        target = self._target(key, "gt_clean")
+        return self._item(inputs, radiance, target, rng)
+
+    def _image(self, key: FrameKey, image: str):
+        if image.startswith("spp"):
+            return self.cache.get((key.scene, key.frame, image),
+                                  lambda: frame_inputs(self.store.read(key.scene, key.frame, self.spp)))
+        return super()._image(key, image)
+
+
+def usable_frames(store: Store, split: str, images: list[str]) -> list[FrameKey]:
+    """Frames of ``split`` that are complete and have every image of ``images`` on disk."""
+    out = []
+    for key in store.frames(split):
+        if not store.is_frame_complete(key.scene, key.frame, ["gt1"]):
+            continue
+        if all(store.image_path(key.scene, key.frame, name).exists() for name in images):
+            out.append(key)
+    return out
+
+
+def baseline_images(store: Store, key: FrameKey, spp: int) -> list[str]:
+    """Images the baseline needs for ``key`` at ``spp``: the stacks it averages and gt_clean."""
+    sm = store.scene_manifest(key.scene)
+    return [stack_name(k) for k in range(max(1, spp // int(sm["stack_spp"])))] + ["gt_clean"]

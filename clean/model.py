@@ -1,0 +1,186 @@
+"""The affinity denoiser of Isik et al. 2021 ("Interactive Monte Carlo denoising using affinity of
+neural features"), single-frame: the GT cleaner of the paper's section 3.1 and the Isik baseline.
+
+    inputs (B, C, H, W)  ──► per-pixel embedding (1×1 convs) ──► U-Net ──► for each of K iterations:
+                                                                       features f (F channels),
+                                                                       bandwidth a >= 0,
+                                                                       centre weight c > 0
+    radiance (B, 3, H, W) ──► K dilated size×size kernels, iteration k:
+         out_p = Σ_q w_pq r_q / Σ_q w_pq,   w_pq = exp(−a_p ‖f_p − f_q‖²) (q ≠ p),   w_pp = c_p
+
+The kernels filter the **HDR radiance** itself: the output is a convex combination of input
+radiances (weights are positive and normalized), so it stays HDR, non-negative for non-negative
+input, energy is neither invented nor lost, and it is finite whenever the input radiance is
+finite, whatever the network predicts. Only the network's inputs are range-compressed (by
+``clean.data``; ``forward`` additionally clamps them to ±``INPUT_CLAMP`` so that any finite input
+gives finite activations).
+
+Numerics (``apply_affinity_kernel``): the weights are computed as a softmax over the kernel's
+log-weights ``−a‖f_p − f_q‖²`` and ``log c_p``. Softmax subtracts the maximum log-weight, so the
+normalizer is at least 1 and never 0 even when every affinity underflows (then the result is
+the centre pixel: identity); the centre weight is parametrised by its logarithm, hence strictly
+positive. Neighbours outside the image get log-weight −inf (excluded), never zero padding.
+
+Any image size works: the U-Net input is padded (replicate) to a multiple of 2^(levels−1) and the
+per-pixel outputs are cropped back before filtering, so the output has the input's shape.
+Memory: the kernels use shifted slices (no unfold copy); for one 256² image and a 7×7 kernel the
+largest temporary is the (B, 49, H, W) log-weight stack (13 MB in float32).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# Inputs are range-compressed by clean.data to roughly [-20, 20]; this clamp only guards against
+# pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
+INPUT_CLAMP = 1e3
+
+
+def apply_affinity_kernel(radiance: torch.Tensor, features: torch.Tensor, bandwidth: torch.Tensor,
+                          log_centre: torch.Tensor, dilation: int = 1, size: int = 7) -> torch.Tensor:
+    """One normalized affinity filtering step.
+
+    radiance (B, C, H, W) HDR; features (B, F, H, W); bandwidth (B, 1, H, W) >= 0 (the a_p of
+    exp(−a_p ‖f_p − f_q‖²)); log_centre (B, 1, H, W), log of the centre weight c_p > 0.
+    Neighbours q = p + dilation·(i, j), |i|, |j| <= size // 2, inside the image.
+    Returns (B, C, H, W) = Σ_q w_pq r_q / Σ_q w_pq.
+    """
+    if size % 2 != 1:
+        raise ValueError(f"kernel size must be odd, got {size}")
+    B, _, H, W = radiance.shape
+    r = (size // 2) * dilation
+    # a·‖Δf‖² with a = inf and ‖Δf‖² = 0 would be NaN: cap a at the largest finite value.
+    bandwidth = bandwidth.clamp(min=0.0, max=torch.finfo(bandwidth.dtype).max)
+    pad = (r, r, r, r)
+    f_pad = F.pad(features, pad)
+    r_pad = F.pad(radiance, pad)
+    sq = (features * features).sum(1, keepdim=True)
+    sq_pad = F.pad(sq, pad)
+    inside = F.pad(torch.ones(1, 1, H, W, dtype=torch.bool, device=radiance.device), pad)
+    offsets = [(i * dilation, j * dilation) for i in range(-(size // 2), size // 2 + 1)
+               for j in range(-(size // 2), size // 2 + 1)]
+    logits = []
+    for dy, dx in offsets:
+        if dy == 0 and dx == 0:
+            logits.append(log_centre)
+            continue
+        window = (..., slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+        # ‖f_p − f_q‖² = ‖f_p‖² + ‖f_q‖² − 2 f_p·f_q: keeps only views of f_pad for backward
+        # instead of one (B, F, H, W) difference per offset; clamp the round-off below 0.
+        dist = (sq + sq_pad[window] - 2.0 * (features * f_pad[window]).sum(1, keepdim=True)).clamp(min=0.0)
+        logit = -(bandwidth * dist)
+        logits.append(logit.masked_fill(~inside[window], float("-inf")))
+    # Softmax = max-subtracted exp / sum: the centre logit is finite, so the max is finite and
+    # the normalizer >= 1; underflowing affinities just become 0 weights.
+    weights = torch.softmax(torch.cat(logits, dim=1), dim=1)
+    out = torch.zeros_like(radiance)
+    for k, (dy, dx) in enumerate(offsets):
+        out = out + weights[:, k:k + 1] * r_pad[..., r + dy:r + dy + H, r + dx:r + dx + W]
+    return out
+
+
+def _block(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.LeakyReLU(0.1),
+                         nn.Conv2d(cout, cout, 3, padding=1), nn.LeakyReLU(0.1))
+
+
+class UNet(nn.Module):
+    """Plain U-Net: two 3×3 convs per level, 2× average-pool down, nearest up + skip concat."""
+
+    def __init__(self, cin: int, channels: list[int], cout: int):
+        super().__init__()
+        self.enc = nn.ModuleList()
+        prev = cin
+        for ch in channels:
+            self.enc.append(_block(prev, ch))
+            prev = ch
+        self.dec = nn.ModuleList(_block(channels[i + 1] + channels[i], channels[i])
+                                 for i in reversed(range(len(channels) - 1)))
+        self.head = nn.Conv2d(channels[0], cout, 1)
+
+    @property
+    def multiple(self) -> int:
+        return 2 ** (len(self.enc) - 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for i, block in enumerate(self.enc):
+            if i:
+                x = F.avg_pool2d(x, 2)
+            x = block(x)
+            skips.append(x)
+        for block, skip in zip(self.dec, reversed(skips[:-1])):
+            x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
+            x = block(torch.cat([x, skip], dim=1))
+        return self.head(x)
+
+
+class AffinityDenoiser(nn.Module):
+    """forward(inputs (B, C, H, W), radiance (B, 3, H, W) HDR) → denoised HDR radiance (B, 3, H, W)."""
+
+    def __init__(self, in_channels: int, embed_channels: int = 32, channels: list[int] = (32, 48, 64),
+                 affinity_channels: int = 8, kernel_size: int = 7, dilations: list[int] = (1, 2, 4)):
+        super().__init__()
+        self.hparams = {"in_channels": int(in_channels), "embed_channels": int(embed_channels),
+                        "channels": [int(c) for c in channels], "affinity_channels": int(affinity_channels),
+                        "kernel_size": int(kernel_size), "dilations": [int(d) for d in dilations]}
+        self.kernel_size = int(kernel_size)
+        self.dilations = [int(d) for d in dilations]
+        self.affinity_channels = int(affinity_channels)
+        # Isik et al. embed each sample with a small MLP and average; we have per-pixel buffers,
+        # so the embedding is a per-pixel MLP (1×1 convs).
+        self.embed = nn.Sequential(nn.Conv2d(in_channels, embed_channels, 1), nn.LeakyReLU(0.1),
+                                   nn.Conv2d(embed_channels, embed_channels, 1), nn.LeakyReLU(0.1))
+        per_iter = affinity_channels + 2          # features, bandwidth, log centre weight
+        self.unet = UNet(embed_channels, list(channels), per_iter * len(self.dilations))
+        with torch.no_grad():
+            # Start as a moderate smoother: bandwidth softplus(0.5) ≈ 1, centre weight e^0 = 1.
+            bias = self.unet.head.bias.view(len(self.dilations), per_iter)
+            bias[:, affinity_channels] = 0.5
+            bias[:, affinity_channels + 1] = 0.0
+
+    def kernel_parameters(self, inputs: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """Per iteration (features, bandwidth, log_centre), each (B, ·, H, W) at the input size."""
+        H, W = inputs.shape[-2:]
+        m = self.unet.multiple
+        ph, pw = (-H) % m, (-W) % m
+        x = inputs.clamp(-INPUT_CLAMP, INPUT_CLAMP)
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        out = self.unet(self.embed(x))[..., :H, :W]
+        params = []
+        n = self.affinity_channels
+        for chunk in out.split(n + 2, dim=1):
+            params.append((chunk[:, :n], F.softplus(chunk[:, n:n + 1]), chunk[:, n + 1:n + 2]))
+        return params
+
+    def forward(self, inputs: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+        if inputs.shape[-2:] != radiance.shape[-2:]:
+            raise ValueError(f"inputs {tuple(inputs.shape)} and radiance {tuple(radiance.shape)} differ in size")
+        out = radiance
+        for (feat, bw, logc), d in zip(self.kernel_parameters(inputs), self.dilations):
+            out = apply_affinity_kernel(out, feat, bw, logc, dilation=d, size=self.kernel_size)
+        return out
+
+
+# ---- weights on disk: safetensors + a JSON sidecar ------------------------------------------
+
+
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[AffinityDenoiser, dict]:
+    """Load ``model.safetensors`` and its sidecar ``model.json`` (hparams, epoch, metrics, ...).
+
+    ``path`` is the .safetensors file or the run folder holding ``model.safetensors``.
+    """
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.safetensors"
+    meta = json.loads(path.with_suffix(".json").read_text())
+    model = AffinityDenoiser(**meta["hparams"])
+    model.load_state_dict(load_file(str(path), device=str(device)))
+    return model.to(device).eval(), meta

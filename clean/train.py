@@ -1,0 +1,296 @@
+"""Training of the affinity network: the GT cleaner (GT1 ↔ GT2, paper eq. 1) or the Isik baseline
+(low-spp buffers at ``spp`` → GT_clean).
+
+    train(cfg, mode="cleaner")          → runs/<...>/cleaner/
+    train(cfg, mode="baseline", spp=4)  → runs/<...>/isik_spp4/
+
+Loss SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW, random crops and flips from
+the train split; after every epoch a validation pass over the whole frames of the val split
+(SMAPE, L1 and PSNR). Files of a run folder:
+
+- ``model.safetensors`` + ``model.json``: the best epoch so far (lowest validation SMAPE; the
+  training loss where the val split is empty). What ``clean.apply`` and the evaluator load
+  (``clean.model.load_model``).
+- ``last.safetensors``: the state after the last finished epoch, one file written atomically:
+  weights (``model.*``), AdamW moments (``optim.*``), the torch RNG state, and in the safetensors
+  metadata a JSON record (epoch, history, best, optimizer hyper-parameters, config fingerprint).
+  A rerun resumes from it and gives bitwise the weights of an uninterrupted run: each epoch's
+  crops come from ``default_rng([seed, epoch, item])``, independent of what ran before.
+- ``loss.png``: training and validation loss per epoch; ``train.json``: the history as JSON.
+
+No pickle anywhere: everything is safetensors or JSON.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from pipeline.config import Config
+from pipeline.exr import StoreError, atomic_write_bytes, atomic_write_json
+from pipeline.metrics import all_metrics
+from pipeline.store import Store
+
+from .data import IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
+from .losses import smape
+from .model import AffinityDenoiser
+
+FORMAT = "mcdenoise-affinity"
+PSNR_CEILING = 999.0
+
+
+class TrainError(StoreError):
+    """The run cannot proceed (no data, incompatible checkpoint); the message says what to do.
+
+    A ``StoreError``, so ``python -m pipeline`` prints it as one line and exits with status 2."""
+
+
+def run_dir(cfg: Config, mode: str = "cleaner", spp: int | None = None) -> Path:
+    if mode == "cleaner":
+        return Path(cfg.runs) / "cleaner"
+    if mode == "baseline":
+        return Path(cfg.runs) / f"isik_spp{int(spp)}"
+    raise ValueError(f"mode must be 'cleaner' or 'baseline', got {mode!r}")
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def build_model(cfg: Config) -> AffinityDenoiser:
+    c = cfg.clean
+    return AffinityDenoiser(IN_CHANNELS, c.embed_channels, c.channels, c.affinity_channels, c.kernel_size, c.dilations)
+
+
+def fingerprint(cfg: Config, mode: str, spp: int | None) -> dict:
+    """What must not change between a checkpoint and the run resuming it (epochs, time budget
+    and device may)."""
+    c = cfg.clean
+    return {"mode": mode, "spp": spp, "seed": cfg.seed, "hparams": build_model_hparams(cfg),
+            **{k: getattr(c, k) for k in ("batch_size", "crop", "crops_per_frame", "lr", "weight_decay",
+                                          "smape_eps", "grad_clip")}}
+
+
+def build_model_hparams(cfg: Config) -> dict:
+    c = cfg.clean
+    return {"in_channels": IN_CHANNELS, "embed_channels": c.embed_channels, "channels": list(c.channels),
+            "affinity_channels": c.affinity_channels, "kernel_size": c.kernel_size, "dilations": list(c.dilations)}
+
+
+# ---- data ------------------------------------------------------------------------------------
+
+
+def datasets(cfg: Config, mode: str, spp: int | None):
+    store = Store(cfg.store)
+    c = cfg.clean
+
+    def keys(split: str) -> list:
+        if split not in store.manifest()["splits"]:
+            return []
+        if mode == "cleaner":
+            return usable_frames(store, split, ["gt1", "gt2"])
+        return [k for k in usable_frames(store, split, ["gt1"])
+                if all(store.image_path(k.scene, k.frame, n).exists() for n in baseline_images(store, k, spp))]
+
+    train_keys, val_keys = keys("train"), keys("val")
+    if not train_keys:
+        need = "gt1/gt2" if mode == "cleaner" else f"gt_clean and the stacks for {spp} spp (run make gt-clean)"
+        raise TrainError(f"{store.root}: no complete training frame with {need}")
+    make = ((lambda k, crop, n: CleanerPairs(store, k, crop, n, cfg.seed)) if mode == "cleaner" else
+            (lambda k, crop, n: BaselinePairs(store, k, spp, crop, n, cfg.seed)))
+    train_ds = make(train_keys, c.crop, c.crops_per_frame)
+    val_ds = make(val_keys, None, 1) if val_keys else None
+    return train_ds, val_ds
+
+
+# ---- checkpoints -----------------------------------------------------------------------------
+
+
+def _save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+    from safetensors.torch import save_file
+    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
+
+
+def save_best(folder: Path, model: AffinityDenoiser, record: dict) -> None:
+    _save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": FORMAT})
+    atomic_write_json(folder / "model.json", record)
+
+
+def save_last(path: Path, model: AffinityDenoiser, opt: torch.optim.Optimizer, record: dict) -> None:
+    sd = opt.state_dict()
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    for idx, state in sd["state"].items():
+        for key, value in state.items():
+            tensors[f"optim.{idx}.{key}"] = torch.as_tensor(value)
+    tensors["rng.torch"] = torch.get_rng_state()
+    record = {**record, "param_groups": sd["param_groups"]}
+    _save_safetensors(path, tensors, {"format": FORMAT, "state": json.dumps(record, allow_nan=False)})
+
+
+def load_last(path: Path, model: AffinityDenoiser, opt: torch.optim.Optimizer, device) -> dict:
+    from safetensors import safe_open
+    with safe_open(str(path), framework="pt") as f:
+        record = json.loads(f.metadata()["state"])
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    state: dict[int, dict] = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, idx, key = k.split(".", 2)
+            state.setdefault(int(idx), {})[key] = v if key == "step" else v.to(device)
+    groups = [{**g, "betas": tuple(g["betas"])} if "betas" in g else g for g in record["param_groups"]]
+    opt.load_state_dict({"state": state, "param_groups": groups})
+    torch.set_rng_state(tensors["rng.torch"])
+    return record
+
+
+def plot_curve(path: Path, history: list[dict], title: str) -> None:
+    """Training and validation SMAPE per epoch (log scale) as a PNG, written atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    epochs = [h["epoch"] for h in history]
+    ax.plot(epochs, [h["train_loss"] for h in history], "o-", label="train SMAPE")
+    val = [(h["epoch"], h["val"]["smape"]) for h in history if h.get("val")]
+    if val:
+        ax.plot(*zip(*val), "s-", label="val SMAPE")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    if all(h["train_loss"] > 0 for h in history):
+        ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))
+
+
+# ---- loops -----------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def validate(model: AffinityDenoiser, ds, cfg: Config, device) -> dict[str, float]:
+    """Mean SMAPE / L1 (HDR, clamped to [0, 6]) / PSNR (x/(1+x), peak 1) over whole frames."""
+    from .apply import denoise
+
+    model.eval()
+    rows = []
+    for i in range(len(ds)):
+        item = ds[i]
+        out = denoise(model, item["inputs"].numpy(), item["radiance"].numpy(), tile=cfg.clean.tile, device=device)
+        row = all_metrics(out, np.moveaxis(item["target"].numpy(), 0, 2), eps=cfg.clean.smape_eps)
+        # Identical images have PSNR inf, which JSON cannot hold: record a ceiling instead.
+        rows.append({**row, "psnr": min(row["psnr"], PSNR_CEILING)})
+    model.train()
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: bool = False) -> dict:
+    """Train (or resume) and return a summary dict; the best weights end up in ``run_dir``."""
+    t_start = time.perf_counter()
+    if mode == "baseline" and not spp:
+        raise TrainError("the Isik baseline needs an spp (make train MODEL=isik SPP=4)")
+    c = cfg.clean
+    folder = run_dir(cfg, mode, spp)
+    device = pick_device(c.device)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=c.lr, weight_decay=c.weight_decay)
+    fp = fingerprint(cfg, mode, spp)
+    history: list[dict] = []
+    best: dict | None = None
+    start = 0
+    last = folder / "last.safetensors"
+    if last.exists():
+        record = load_last(last, model, opt, device)
+        if record.get("fingerprint") != fp:
+            changed = sorted(k for k in fp if record.get("fingerprint", {}).get(k) != fp[k])
+            raise TrainError(f"{last}: made with different settings ({', '.join(changed)}); delete {folder} "
+                             f"or set another 'runs' folder to start over")
+        start, history, best = int(record["epoch"]), record["history"], record["best"]
+    if start >= c.epochs:
+        summary = _summary(folder, mode, spp, history, best, 0, time.perf_counter() - t_start)
+        if not quiet:
+            print(f"{folder.name}: already trained ({start} epochs); {summary['line']}")
+        return summary
+
+    train_ds, val_ds = datasets(cfg, mode, spp)
+    title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
+    trained = 0
+    for epoch in range(start, c.epochs):
+        train_ds.set_epoch(epoch)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_ds)).tolist()
+        loader = DataLoader(train_ds, batch_size=c.batch_size, sampler=order, num_workers=0)
+        model.train()
+        losses = []
+        bar = _progress(loader, f"{folder.name} epoch {epoch + 1}/{c.epochs}", quiet)
+        for batch in bar:
+            inputs, radiance, target = (batch[k].to(device) for k in ("inputs", "radiance", "target"))
+            loss = smape(model(inputs, radiance), target, c.smape_eps)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if c.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), c.grad_clip)
+            opt.step()
+            losses.append(float(loss.detach()))
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(smape=f"{np.mean(losses):.4f}")
+        entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
+                 "val": validate(model, val_ds, cfg, device) if val_ds is not None else None,
+                 "seconds": time.perf_counter() - t_start}
+        history.append(entry)
+        trained += 1
+        score = entry["val"]["smape"] if entry["val"] else entry["train_loss"]
+        if best is None or score < best["score"]:
+            best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
+            save_best(folder, model, {"format": FORMAT, "mode": mode, "spp": spp, "hparams": model.hparams,
+                                      "input_channels": channel_names(), "epoch": epoch + 1,
+                                      "metrics": entry["val"], "train_loss": entry["train_loss"],
+                                      "smape_eps": c.smape_eps, "store": str(cfg.store), "clean": vars(c).copy()})
+        save_last(last, model, opt, {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": fp})
+        plot_curve(folder / "loss.png", history, title)
+        atomic_write_json(folder / "train.json", {"mode": mode, "spp": spp, "history": history, "best": best})
+        if not quiet:
+            val = entry["val"]
+            print(f"{folder.name} epoch {epoch + 1}: train SMAPE {entry['train_loss']:.4f}"
+                  + (f", val SMAPE {val['smape']:.4f} L1 {val['l1']:.4f} PSNR {val['psnr']:.2f} dB" if val else ""),
+                  flush=True)
+        if c.time_budget_s > 0 and time.perf_counter() - t_start >= c.time_budget_s and epoch + 1 < c.epochs:
+            if not quiet:
+                print(f"{folder.name}: time budget of {c.time_budget_s:g} s reached after epoch {epoch + 1}; "
+                      f"rerun to resume")
+            break
+    summary = _summary(folder, mode, spp, history, best, trained, time.perf_counter() - t_start)
+    if not quiet:
+        print(summary["line"], flush=True)
+    return summary
+
+
+def _progress(iterable, desc: str, quiet: bool):
+    if quiet:
+        return iterable
+    from tqdm import tqdm
+    return tqdm(iterable, desc=desc, leave=False, dynamic_ncols=True)
+
+
+def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:
+    epochs = history[-1]["epoch"] if history else 0
+    line = f"{folder.name}: {epochs} epochs ({trained} this run, {seconds:.1f} s)"
+    if best:
+        v = best["val"]
+        line += (f"; best epoch {best['epoch']}: " + (f"val SMAPE {v['smape']:.4f}, L1 {v['l1']:.4f}, "
+                                                      f"PSNR {v['psnr']:.2f} dB" if v else
+                                                      f"train SMAPE {best['train_loss']:.4f}"))
+    line += f" -> {folder / 'model.safetensors'}"
+    return {"mode": mode, "spp": spp, "folder": str(folder), "epochs": epochs, "trained_epochs": trained,
+            "best": best, "seconds": seconds, "line": line}

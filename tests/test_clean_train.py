@@ -1,0 +1,208 @@
+"""Cleaner training, resume, apply and the Isik baseline on a tiny synthetic store (no rendering).
+
+The store mimics what the dataset stage writes (dataset.json, scene.json, frame.json, gt1, gt2
+and low-spp stacks): a smooth "true" image per frame, GT1/GT2 = truth + independent noise, the
+stacks = truth + stronger noise, every schema buffer present.
+"""
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from clean import apply as clean_apply
+from clean.cli import cmd_gt_clean, cmd_train_isik
+from clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
+from clean.model import load_model
+from clean.train import run_dir, save_best, train
+from pipeline import schema
+from pipeline.config import load_config
+from pipeline.store import Store, image_names
+
+SIZE = 16
+SCENES = {"s00000": "train", "s00001": "train", "s00002": "val"}
+FRAMES = 2
+STACKS = 2
+
+
+def _image(truth: np.ndarray, noise: float, rng: np.random.Generator, spp: int) -> dict[str, np.ndarray]:
+    arrays = {}
+    for b in schema.BUFFERS:
+        if b.name == "color":
+            value = np.maximum(truth + noise * rng.standard_normal(truth.shape) * truth, 0)
+        elif b.radiance:
+            value = 0.2 * truth
+        elif b.name == "normal":
+            value = np.broadcast_to(np.array([0.0, 0.0, 1.0]), truth.shape)
+        elif b.name == "depth":
+            value = 1.0 + truth[..., :1]
+        else:
+            value = np.full(truth.shape[:2] + (b.size,), 0.5)
+        arrays[b.name] = value.astype(np.float32)
+        var = (noise * truth.mean(axis=2, keepdims=True)) ** 2 if b.name == "color" else np.zeros((1, 1, 1))
+        arrays[schema.variance_name(b.name)] = np.broadcast_to(var, value.shape).astype(np.float32)
+    return arrays
+
+
+def make_store(root: Path, seed: int = 0) -> Path:
+    """2 train scenes + 1 val scene × 2 frames × 16² px; returns the store root."""
+    store = Store(root)
+    rng = np.random.default_rng(seed)
+    names = image_names(STACKS)
+    splits = {"train": [s for s, k in SCENES.items() if k == "train"], "val": ["s00002"], "test": []}
+    store.write_manifest({"config": {}, "scenes": list(SCENES), "splits": splits, "images": names, "packages": {}})
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
+    for i, (scene, split) in enumerate(SCENES.items()):
+        store.write_scene_manifest(scene, {"scene": scene, "index": i, "split": split, "frames": FRAMES,
+                                           "resolution": [SIZE, SIZE], "gt_spp": 64, "stack_spp": 4,
+                                           "stacks": STACKS, "images": names})
+        for f in range(FRAMES):
+            truth = np.stack([0.5 + 0.4 * np.sin(3 * xx + i + f), 0.5 + 0.4 * np.cos(2 * yy + i), 0.3 + 0 * xx], -1)
+            records = {}
+            for k, name in enumerate(names):
+                noise = 0.1 if name.startswith("gt") else 0.5
+                records[name] = store.write_image(scene, f, name, _image(truth, noise, rng, 64),
+                                                  meta={"image": name, "scene": scene, "frame": f})
+            store.write_frame_record(scene, f, {"images": records})
+    return root
+
+
+def tiny_cfg(tmp_path: Path, **clean) -> object:
+    overrides = [f"store={tmp_path / 'store'}", f"runs={tmp_path / 'runs'}", "clean.epochs=2",
+                 "clean.batch_size=2", "clean.crop=8", "clean.crops_per_frame=2", "clean.channels=[8, 8]",
+                 "clean.embed_channels=8", "clean.affinity_channels=4", "clean.kernel_size=3",
+                 "clean.dilations=[1, 2]", "clean.device=cpu", "clean.lr=0.01"]
+    overrides += [f"clean.{k}={v}" for k, v in clean.items()]
+    return load_config(None, overrides)
+
+
+@pytest.fixture(scope="module")
+def store_root(tmp_path_factory):
+    return make_store(tmp_path_factory.mktemp("clean") / "store")
+
+
+@pytest.fixture
+def cfg_dir(tmp_path, store_root):
+    os.symlink(store_root, tmp_path / "store")
+    return tmp_path
+
+
+def test_inputs_follow_the_schema(store_root):
+    store = Store(store_root)
+    inputs, radiance = frame_inputs(store.read_image("s00000", 0, "gt1")[0])
+    assert inputs.shape == (IN_CHANNELS, SIZE, SIZE) and radiance.shape == (3, SIZE, SIZE)
+    assert np.isfinite(inputs).all()
+
+
+def test_crop_and_flip_moves_pixels_only():
+    a = np.arange(2 * 4 * 4, dtype=np.float32).reshape(2, 4, 4)
+    rng = np.random.default_rng(3)
+    seen = set()
+    for _ in range(20):
+        (c,) = crop_and_flip([a], 4, rng)
+        seen.add(c.tobytes())
+        assert sorted(c.ravel()) == sorted(a.ravel())     # same values: no sign change, only moved
+    assert len(seen) == 4                                  # the four flip combinations occur
+
+
+def test_datasets_give_crops_and_swap(store_root):
+    store = Store(store_root)
+    keys = store.frames("train")
+    ds = CleanerPairs(store, keys, crop=8, crops_per_frame=2, seed=0)
+    item = ds[0]
+    assert item["inputs"].shape == (IN_CHANNELS, 8, 8) and item["target"].shape == (3, 8, 8)
+    val = CleanerPairs(store, keys, crop=None)
+    whole = val[0]
+    gt2 = store.read_image(keys[0].scene, keys[0].frame, "gt2")[0]["color"]
+    np.testing.assert_array_equal(whole["target"].numpy(), np.moveaxis(gt2, 2, 0))
+
+
+def test_training_reduces_loss_and_writes_files(cfg_dir):
+    cfg = tiny_cfg(cfg_dir, epochs=4)
+    summary = train(cfg, "cleaner", quiet=True)
+    folder = run_dir(cfg, "cleaner")
+    hist = json.loads((folder / "train.json").read_text())["history"]
+    assert len(hist) == 4 and summary["trained_epochs"] == 4
+    # Target noise makes single epochs jumpy: compare the end with the first epoch.
+    assert hist[-1]["val"]["smape"] < 0.95 * hist[0]["val"]["smape"]
+    assert min(h["train_loss"] for h in hist[1:]) < hist[0]["train_loss"]
+    assert all(np.isfinite(h["val"]["smape"]) for h in hist)
+    assert (folder / "model.safetensors").exists() and (folder / "loss.png").stat().st_size > 1000
+    model, meta = load_model(folder)
+    assert meta["epoch"] == summary["best"]["epoch"] and meta["hparams"]["in_channels"] == IN_CHANNELS
+    # Rerun with the same epochs: nothing to do.
+    assert train(cfg, "cleaner", quiet=True)["trained_epochs"] == 0
+
+
+def test_resume_is_exact(tmp_path, store_root):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        d.mkdir()
+        os.symlink(store_root, d / "store")
+    train(tiny_cfg(a, epochs=2), "cleaner", quiet=True)
+    train(tiny_cfg(b, epochs=1), "cleaner", quiet=True)
+    summary = train(tiny_cfg(b, epochs=2), "cleaner", quiet=True)
+    assert summary["trained_epochs"] == 1
+    from safetensors.torch import load_file
+    wa = load_file(str(a / "runs" / "cleaner" / "last.safetensors"))
+    wb = load_file(str(b / "runs" / "cleaner" / "last.safetensors"))
+    assert wa.keys() == wb.keys()
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+
+
+def test_changed_settings_refuse_to_resume(cfg_dir):
+    train(tiny_cfg(cfg_dir, epochs=1), "cleaner", quiet=True)
+    with pytest.raises(RuntimeError, match="different settings.*lr"):
+        train(tiny_cfg(cfg_dir, epochs=2, lr=0.1), "cleaner", quiet=True)
+
+
+def test_apply_is_idempotent_and_follows_the_checkpoint(cfg_dir):
+    cfg = tiny_cfg(cfg_dir, epochs=1)
+    assert cmd_gt_clean(cfg, quiet=True) == 0
+    store = Store(cfg.store)
+    paths = [store.image_path(k.scene, k.frame, "gt_clean") for k in store.frames()]
+    assert len(paths) == len(SCENES) * FRAMES and all(p.exists() for p in paths)
+    digest = json.loads((store.root / "cleaner.json").read_text())["sha256"]
+    key = store.frames()[0]
+    img, rec = store.read_image(key.scene, key.frame, "gt_clean")
+    assert rec["cleaner_sha256"] == digest and img["color"].shape == (SIZE, SIZE, 3)
+    assert np.isfinite(img["color"]).all() and (img["color"] >= 0).all()
+    mtimes = [p.stat().st_mtime_ns for p in paths] + [(store.root / "cleaner.json").stat().st_mtime_ns]
+    stats = clean_apply.apply_cleaner(cfg, quiet=True)
+    assert stats["written"] == 0 and stats["skipped"] == len(paths)
+    assert [p.stat().st_mtime_ns for p in paths] + [(store.root / "cleaner.json").stat().st_mtime_ns] == mtimes
+    # A changed checkpoint (here: perturbed weights saved as the best) rewrites every frame.
+    folder = run_dir(cfg, "cleaner")
+    model, meta = load_model(folder)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.mul_(1.01)
+    save_best(folder, model, meta)
+    stats = clean_apply.apply_cleaner(cfg, quiet=True)
+    assert stats["written"] == len(paths)
+    assert json.loads((store.root / "cleaner.json").read_text())["sha256"] != digest
+    assert store.image_header(key.scene, key.frame, "gt_clean")["cleaner_sha256"] != digest
+
+
+def test_baseline_trains_from_low_spp(cfg_dir):
+    cfg = tiny_cfg(cfg_dir, epochs=1)
+    clean_apply_needed = cmd_gt_clean(cfg, quiet=True)
+    assert clean_apply_needed == 0
+    store = Store(cfg.store)
+    ds = BaselinePairs(store, store.frames("train"), spp=4, crop=8, crops_per_frame=1, seed=0)
+    item = ds[0]
+    assert item["inputs"].shape == (IN_CHANNELS, 8, 8)
+    assert cmd_train_isik(cfg, 4, quiet=True) == 0
+    folder = run_dir(cfg, "baseline", 4)
+    assert folder.name == "isik_spp4" and (folder / "model.safetensors").exists()
+    meta = json.loads((folder / "model.json").read_text())
+    assert meta["mode"] == "baseline" and meta["spp"] == 4
+
+
+def test_time_budget_stops_after_an_epoch_and_resumes(cfg_dir):
+    cfg = tiny_cfg(cfg_dir, epochs=3, time_budget_s="0.000001")
+    assert train(cfg, "cleaner", quiet=True)["epochs"] == 1
+    assert train(cfg, "cleaner", quiet=True)["epochs"] == 2

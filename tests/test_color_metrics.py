@@ -1,0 +1,75 @@
+"""Tonemappers (round trips, numpy and torch alike) and metrics against hand-computed values."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline import color, metrics
+
+PAIRS = [
+    (color.reinhard, color.inverse_reinhard),
+    (color.log_compress, color.inverse_log_compress),
+    (color.gamma_compress, color.inverse_gamma_compress),
+]
+VALUES = [0.0, 1e-4, 0.5, 1.0, 6.0, 1e5]
+
+
+@pytest.mark.parametrize("fwd,inv", PAIRS)
+def test_round_trip_numpy(fwd, inv):
+    x = np.array(VALUES, dtype=np.float64)
+    np.testing.assert_allclose(inv(fwd(x)), x, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("fwd,inv", PAIRS)
+def test_round_trip_torch_float32(fwd, inv):
+    x = torch.tensor(VALUES, dtype=torch.float32)
+    y = fwd(x)
+    assert isinstance(y, torch.Tensor) and y.dtype == torch.float32
+    # float32 Reinhard of 1e5 keeps ~2 digits (1 − 1e−5 next to 1): a loose tolerance there.
+    torch.testing.assert_close(inv(y)[:-1], x[:-1], rtol=1e-5, atol=1e-6)
+    assert inv(y)[-1].item() == pytest.approx(1e5, rel=1e-2)
+
+
+def test_known_values():
+    assert color.reinhard(1.0) == 0.5
+    assert color.reinhard(-3.0) == 0.0                      # negative radiance clamps to 0
+    assert color.log_compress(6.0) == pytest.approx(0.51 * math.log(7.0))
+    assert color.gamma_compress(6.0) == pytest.approx(0.47 * 6.0 ** (1 / 2.4))
+    assert 0.98 < color.log_compress(6.0) < 1.0 and 0.98 < color.gamma_compress(6.0) < 1.0
+    assert np.isfinite(color.inverse_reinhard(1.0))          # clamped below 1: finite
+
+
+def test_psnr():
+    a = np.zeros((4, 4, 3))
+    assert metrics.psnr(a, a) == math.inf
+    # Reinhard(1) = 0.5 against 0 on every pixel: MSE 0.25 → 10·log10(4) dB.
+    assert metrics.psnr(np.ones((4, 4, 3)), a) == pytest.approx(10 * math.log10(4.0))
+    # One of 4 pixels off by reinhard 0.5: MSE 0.0625 → 12.04 dB; torch gives the same.
+    b = np.zeros((2, 2, 1)); b[0, 0, 0] = 1.0
+    assert metrics.psnr(b, np.zeros((2, 2, 1))) == pytest.approx(10 * math.log10(16.0))
+    assert metrics.psnr(torch.tensor(b), torch.zeros(2, 2, 1, dtype=torch.float64)) == pytest.approx(
+        10 * math.log10(16.0))
+
+
+def test_l1_and_clamp():
+    pred = np.array([0.0, 2.0, 10.0, -1.0])
+    ref = np.array([1.0, 2.0, 4.0, 0.0])
+    assert metrics.l1(pred, ref) == pytest.approx((1 + 0 + 6 + 1) / 4)
+    assert metrics.l1(pred, ref, clamp=(0, 6)) == pytest.approx((1 + 0 + 2 + 0) / 4)
+
+
+def test_smape_hand_values():
+    # |1−3|/(1+3+0.01) and 0/(0+0.01): mean of the two.
+    a, b = np.array([1.0, 0.0]), np.array([3.0, 0.0])
+    assert metrics.smape(a, b, eps=0.01) == pytest.approx((2 / 4.01 + 0) / 2)
+    t = metrics.smape(torch.tensor(a), torch.tensor(b), eps=0.01)
+    assert isinstance(t, torch.Tensor) and t.item() == pytest.approx((2 / 4.01) / 2)
+    assert metrics.smape(np.zeros(5), np.zeros(5)) == 0.0
+    assert metrics.smape(np.full(5, 1e5), np.zeros(5)) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_all_metrics_keys():
+    x = np.random.default_rng(0).random((8, 8, 3))
+    m = metrics.all_metrics(x, x)
+    assert m == {"psnr": math.inf, "l1": 0.0, "smape": 0.0}

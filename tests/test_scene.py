@@ -1,0 +1,149 @@
+"""Scene randomizer: determinism, JSON descriptions, building and rendering every material family and
+stress preset, user meshes, the camera move and the procedural textures."""
+from __future__ import annotations
+
+import dataclasses
+import gc
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.config import SceneConfig
+from render import camera as cam
+from render.materials import FAMILIES
+from render.scene import STRESS_PRESETS, random_scene, stress_scene
+from render.textures import KINDS, make_texture, random_texture_params
+
+
+@pytest.fixture(scope="module")
+def mi():
+    from pipeline.mitsuba_env import import_mitsuba
+
+    return import_mitsuba("llvm_ad_rgb")
+
+
+def _sensor(mi, desc, frame, size=32):
+    # Private equivalent of render.buffers.make_sensor, so these tests do not depend on it.
+    pose = desc["camera"]["frames"][frame]
+    return mi.load_dict({"type": "perspective", "fov": pose["fov"], "to_world": cam.to_world(mi, pose),
+                         "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}})
+
+
+def _render(mi, desc, frame=0, spp=4):
+    from render.scene import build_scene
+
+    scene = build_scene(mi, desc)
+    img = np.asarray(mi.render(scene, sensor=_sensor(mi, desc, frame), integrator=mi.load_dict({"type": "path"}),
+                               spp=spp))
+    del scene
+    gc.collect()
+    return img
+
+
+def test_deterministic_and_distinct():
+    cfg = SceneConfig()
+    a, b = random_scene(cfg, 7, 3, 4), random_scene(cfg, 7, 3, 4)
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    assert json.dumps(a, sort_keys=True) != json.dumps(random_scene(cfg, 7, 4, 4), sort_keys=True)
+    assert json.dumps(a, sort_keys=True) != json.dumps(random_scene(cfg, 8, 3, 4), sort_keys=True)
+
+
+def test_json_round_trip_and_counts():
+    cfg = SceneConfig()
+    for index in range(10):
+        desc = random_scene(cfg, 0, index, 3)
+        assert json.loads(json.dumps(desc)) == desc
+        assert desc["preset"] is None and desc["ground"] is not None
+        assert cfg.objects[0] <= len(desc["objects"]) <= cfg.objects[1]
+        assert cfg.area_lights[0] <= sum(l["type"] in ("rectangle", "sphere") for l in desc["lights"])
+        for obj in desc["objects"]:
+            assert obj["transform"]["position"][1] >= 0  # lowest point on or above the ground
+    for name in STRESS_PRESETS:
+        desc = stress_scene(name, 0, 2)
+        assert json.loads(json.dumps(desc)) == desc and desc["preset"] == name
+
+
+def test_unknown_preset():
+    with pytest.raises(ValueError, match="caustics"):
+        stress_scene("nope", 0, 2)
+
+
+def test_camera_moves_smoothly():
+    cfg = SceneConfig()
+    for frames in (1, 2, 8):
+        desc = random_scene(cfg, 1, 0, frames)
+        assert len(desc["camera"]["frames"]) == frames
+    poses = desc["camera"]["frames"]
+    origins = np.array([p["origin"] for p in poses])
+    steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
+    center = np.asarray(desc["cluster"]["center"])
+    dist = np.linalg.norm(origins[0] - center)
+    assert np.all(steps > 1e-4)                       # the camera does move every frame
+    assert steps.sum() < cfg.camera_move * dist * 2   # ... by a small amount in total
+    assert steps.max() < 2.5 * steps.min() + 1e-6     # ... in even steps (no jumps)
+    assert all(o[1] > 0 for o in origins)
+    for p in poses:  # the cluster centre stays in front of the camera, within the field of view
+        fwd = np.subtract(p["target"], p["origin"])
+        to_c = center - np.asarray(p["origin"])
+        cos = fwd @ to_c / np.linalg.norm(fwd) / np.linalg.norm(to_c)
+        assert np.degrees(np.arccos(cos)) < p["fov"] / 2
+
+
+def test_textures_in_range_and_deterministic():
+    rng = np.random.default_rng(0)
+    for kind in KINDS:
+        p = random_texture_params(rng, size=64)
+        p["kind"] = kind
+        a, b = make_texture(p), make_texture(p)
+        assert a.shape == (64, 64, 3) and a.dtype == np.float32
+        assert np.array_equal(a, b) and a.min() >= 0 and a.max() <= 1 and a.std() > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_material_family_renders(mi, family):
+    cfg = dataclasses.replace(SceneConfig(), materials={family: 1.0}, objects=[2, 2], texture_probability=0.5)
+    desc = random_scene(cfg, 0, 11, 1)
+    assert {o["material"]["family"] for o in desc["objects"]} == {family}
+    img = _render(mi, desc)
+    assert img.shape == (32, 32, 3) and np.isfinite(img).all() and img.mean() > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", STRESS_PRESETS)
+def test_every_stress_preset_renders(mi, name):
+    img = _render(mi, stress_scene(name, 0, 2), frame=1)
+    assert np.isfinite(img).all() and img.mean() > 0
+
+
+@pytest.mark.slow
+def test_user_mesh_folder(mi, tmp_path):
+    import trimesh
+
+    trimesh.creation.annulus(r_min=0.2, r_max=0.5, height=0.3).export(tmp_path / "ring.obj")
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    cfg = dataclasses.replace(SceneConfig(), mesh_dirs=[str(tmp_path)], mesh_probability=1.0, objects=[2, 2])
+    desc = random_scene(cfg, 0, 0, 1)
+    assert [o["shape"] for o in desc["objects"]] == [{"kind": "file", "path": str(tmp_path / "ring.obj")}] * 2
+    img = _render(mi, desc)
+    assert np.isfinite(img).all() and img.mean() > 0
+
+
+@pytest.mark.slow
+def test_random_scenes_are_lit(mi):
+    means = [float(_render(mi, random_scene(SceneConfig(), 3, i, 1), spp=4).mean()) for i in range(3)]
+    assert all(np.isfinite(means)) and all(0.003 < m < 5.0 for m in means), means
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("render.buffers") is None, reason="render.buffers not written yet")
+def test_build_sensor(mi):
+    from render.scene import build_sensor
+
+    desc = random_scene(SceneConfig(), 0, 0, 2)
+    sensor = build_sensor(mi, desc, 1, 48, 32)
+    assert tuple(int(v) for v in sensor.film().size()) == (48, 32)
+    with pytest.raises(IndexError):
+        build_sensor(mi, desc, 2, 48, 32)
