@@ -79,7 +79,7 @@ test: setup
 
 # ---- housekeeping (make clean deletes outputs; it is not the GT cleaner) -------------------
 clean:
-	rm -rf data reports .pytest_cache
+	rm -rf data runs reports .pytest_cache
 
 distclean: clean
 	rm -rf $(VENV) *.egg-info

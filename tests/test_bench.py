@@ -1,0 +1,21 @@
+"""`make bench` runs end to end (its numbers are claims for the README, not asserted here)."""
+import json
+
+from pipeline.bench import run_bench
+from pipeline.config import load_config
+from tests.test_dataset import TINY
+
+
+def test_bench_writes_its_report(tmp_path):
+    cfg = load_config(TINY, [f"store={tmp_path / 'none'}", "dataset.frames=1"])
+    result = run_bench(cfg, out=str(tmp_path / "bench"), scenes=1, resolution=32, spp=4, repeats=1)
+    report = json.loads((tmp_path / "bench" / "bench.json").read_text())
+    assert [r["scene"] for r in report["integrator"]] == ["cornell_box", "random scene 0"]
+    assert all(r["ratio_all"] > 0 and r["ratio_needed"] > 0 for r in report["integrator"])
+    d = report["dataset"]
+    assert d["frames"] == 1 and 0 < d["render_share"] < 1
+    assert abs(d["render_share"] + d["build_share"] + d["write_share"] + d["rest_share"] - 1) < 1e-9
+    o = report["omission"]
+    assert o["images"] == 6 and o["bytes_full"] >= o["bytes_omitted"] > 0
+    assert "Split-buffer integrator" in (tmp_path / "bench" / "bench.md").read_text()
+    assert result["omission"] == o
