@@ -52,6 +52,12 @@ def cmd_train(args) -> int:
     raise ConfigError(f"--model {args.model!r}: only 'isik' is built so far (the diffusion model is issue 4)")
 
 
+def cmd_clean_report(args) -> int:
+    from clean.report import run_report
+    run_report(_config(args), out=args.out, spp=args.spp)
+    return 0
+
+
 def cmd_config(args) -> int:
     if args.doc:
         print(documentation_markdown(), end="")
@@ -90,6 +96,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spp", type=int, required=True, help="sample count of the noisy input (4, 16, 64)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
+
+    p = with_config(sub.add_parser("clean-report", help="GT1 vs GT_clean against GT2 on val/test, crop grid; "
+                                                        "--spp N adds the Isik baseline on the test split"))
+    p.add_argument("--out", default="reports/cleaner")
+    p.add_argument("--spp", type=int, default=None)
+    p.set_defaults(fn=cmd_clean_report)
 
     p = sub.add_parser("inspect", help="describe a store (frames, channels, constants, timings, NaN/Inf)")
     p.add_argument("store")

@@ -1,5 +1,6 @@
 """Stress presets: named, hand-built extreme scenes in the same description format as the random
-ones (``render.scene``), rendered as extra test-split scenes to see where a denoiser breaks.
+ones (``render.scene``), rendered into the store's split ``stress`` (``dataset.stress``) to see where
+a denoiser breaks.
 
 Each preset is deterministic in (name, seed); the seed only varies the free details (object
 shapes, colours, the camera path), never what makes the case extreme.

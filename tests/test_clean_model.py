@@ -98,3 +98,16 @@ def test_tiled_inference_matches_whole_frame():
     tiled = denoise(model, x, r, tile=8)
     assert whole.shape == (20, 23, 3)
     np.testing.assert_allclose(tiled, whole, rtol=1e-6, atol=1e-6)
+
+
+def test_variance_feature_resolves_ground_truth_noise_levels():
+    """The noise-level input must separate 1024-spp levels (rel ~1e-5..1e-2) as well as 4-spp ones."""
+    from clean.data import relative_variance_feature
+
+    m2 = np.full(5, 0.09, np.float32)                        # radiance 0.3
+    rel = np.array([0.0, 1e-5, 1e-3, 1e-1, 1.0], np.float32)
+    f = relative_variance_feature(rel * (m2 + 1e-2), m2)
+    assert f[0] == pytest.approx(0.0, abs=1e-6)               # noise-free
+    assert f[-1] == pytest.approx(1.0, abs=1e-3)              # relative variance 1
+    assert np.all(np.diff(f) > 0.15)                          # each decade step is visible
+    assert f[2] == pytest.approx(0.5, abs=1e-3)
