@@ -137,6 +137,11 @@ class AffinityDenoiser(nn.Module):
                                    nn.Conv2d(embed_channels, embed_channels, 1), nn.LeakyReLU(0.1))
         per_iter = affinity_channels + 2          # features, bandwidth, log centre weight
         self.unet = UNet(embed_channels, list(channels), per_iter * len(self.dilations))
+        # Guide: the raw inputs join the learned affinity features, weighted per iteration and
+        # channel by learned scales (a cross-bilateral term). Without it, training on noisy
+        # inputs collapsed within one epoch to identical learned features — a uniform blur where
+        # ‖f_p − f_q‖ = 0 makes the features' gradient exactly zero, so it never left.
+        self.guide_scale = nn.Parameter(torch.full((len(self.dilations), int(in_channels)), 0.1))
         with torch.no_grad():
             # Start as a moderate smoother: bandwidth softplus(0.5) ≈ 1, centre weight e^0 = 1.
             bias = self.unet.head.bias.view(len(self.dilations), per_iter)
@@ -152,10 +157,12 @@ class AffinityDenoiser(nn.Module):
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")
         out = self.unet(self.embed(x))[..., :H, :W]
+        guide = inputs.clamp(-INPUT_CLAMP, INPUT_CLAMP)
         params = []
         n = self.affinity_channels
-        for chunk in out.split(n + 2, dim=1):
-            params.append((chunk[:, :n], F.softplus(chunk[:, n:n + 1]), chunk[:, n + 1:n + 2]))
+        for k, chunk in enumerate(out.split(n + 2, dim=1)):
+            feat = torch.cat([chunk[:, :n], guide * self.guide_scale[k].view(1, -1, 1, 1)], dim=1)
+            params.append((feat, F.softplus(chunk[:, n:n + 1]), chunk[:, n + 1:n + 2]))
         return params
 
     def forward(self, inputs: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
