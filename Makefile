@@ -20,7 +20,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean train inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report train inspect bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -52,6 +52,7 @@ llvm:
 demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+	$(RUN) clean-report --config $(CONFIG) $(OVERRIDES)
 
 # `make dataset` renders, then cleans the ground truth (the cleaner trains on the whole train
 # split, so with SHARD= only the rendering runs; run `make gt-clean` once all shards are done).
@@ -63,6 +64,10 @@ render: setup
 
 gt-clean: setup
 	$(RUN) gt-clean --config $(CONFIG) $(OVERRIDES)
+
+# GT1 vs GT_clean against GT2, crop grid; with SPP= also the Isik baseline (after make train).
+clean-report: setup
+	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
