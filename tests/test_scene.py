@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import gc
-import importlib.util
 import json
 
 import numpy as np
@@ -138,7 +137,6 @@ def test_random_scenes_are_lit(mi):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("render.buffers") is None, reason="render.buffers not written yet")
 def test_build_sensor(mi):
     from render.scene import build_sensor
 
