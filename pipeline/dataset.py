@@ -85,15 +85,22 @@ def make_plan(cfg: Config) -> Plan:
                 else stress_scene(preset, cfg.seed + index, d.frames))
         seeds = {str(f): {name: image_seed(cfg.seed, index, f, k, d.frames, len(names))
                           for k, name in enumerate(names)} for f in range(d.frames)}
-        scenes.append({
-            "scene": sid, "index": index, "split": split_of[sid], "preset": preset,
-            "frames": d.frames, "resolution": list(d.resolution), "gt_spp": d.gt_spp,
-            "stack_spp": d.stack_spp, "stacks": d.stacks, "images": names, "seeds": seeds,
-            "integrator": {"type": "split", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth,
-                           "features": cfg.render.features, "filter": "box"},
-            "description": desc,
-        })
+        scenes.append(scene_record(cfg, sid, index, split_of[sid], preset, d.frames, list(d.resolution), seeds, desc))
     return Plan(scenes, splits)
+
+
+def scene_record(cfg: Config, sid: str, index: int, split: str, preset: str | None, frames: int,
+                 resolution: list | None, seeds: dict, desc: dict) -> dict:
+    """The static part of a scene manifest (``scene.json``); see docs/store.md."""
+    d = cfg.dataset
+    return {
+        "scene": sid, "index": index, "split": split, "preset": preset, "frames": frames,
+        "resolution": resolution, "gt_spp": d.gt_spp, "stack_spp": d.stack_spp, "stacks": d.stacks,
+        "images": image_names(d.stacks), "seeds": seeds,
+        "integrator": {"type": "split", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth,
+                       "features": cfg.render.features, "filter": "box"},
+        "description": desc,
+    }
 
 
 def _fixed_part(cfg_dict: dict) -> dict:

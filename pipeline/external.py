@@ -46,7 +46,7 @@ def _register(store: Store, cfg: Config, sid: str) -> int:
 def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
                  name: str | None = None) -> dict:
     from render.frame import FrameTask
-    from .dataset import _render_frame_entry
+    from .dataset import _render_frame_entry, scene_record
 
     if not Path(xml).is_file():
         raise StoreError(f"{xml}: scene file not found")
@@ -63,14 +63,8 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
     names = image_names(d.stacks)
     seeds = {n: image_seed(cfg.seed, index, 0, k, 1, len(names)) for k, n in enumerate(names)}
     desc = {"xml": str(Path(xml).resolve())}
-    store.write_scene_manifest(sid, {
-        "scene": sid, "index": index, "split": EXTERNAL_SPLIT, "preset": None, "frames": 1,
-        "resolution": list(size) if size else None, "gt_spp": d.gt_spp, "stack_spp": d.stack_spp,
-        "stacks": d.stacks, "images": names, "seeds": {"0": seeds},
-        "integrator": {"type": "split", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth,
-                       "features": cfg.render.features, "filter": "box"},
-        "description": desc, "packages": package_versions(),
-    })
+    record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
+    store.write_scene_manifest(sid, {**record, "packages": package_versions()})
     task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,
                      gt_spp=d.gt_spp, stack_spp=d.stack_spp, stacks=d.stacks, seeds=seeds,
                      render=dataclasses.asdict(cfg.render))
