@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from pipeline.config import Config
+from pipeline.progress import progress
 from pipeline.exr import StoreError, atomic_write_json, read_json
 from pipeline.store import Store, sha256
 
@@ -79,7 +80,7 @@ def apply_cleaner(cfg: Config, quiet: bool = False) -> dict:
     frames_done = dict(old.get("frames", {})) if old.get("sha256") == digest else {}
     stats = {"written": 0, "skipped": 0, "incomplete": 0}
     keys = store.frames()
-    bar = keys if quiet else _progress(keys)
+    bar = progress(keys, desc="gt-clean", unit="frame", disable=quiet, leave=False)
     for key in bar:
         if not store.is_frame_complete(key.scene, key.frame, ["gt1"]):
             stats["incomplete"] += 1
@@ -119,8 +120,3 @@ def _current(store: Store, key, digest: str) -> bool:
         return store.image_header(key.scene, key.frame, "gt_clean").get("cleaner_sha256") == digest
     except StoreError:
         return False        # a damaged file is rewritten
-
-
-def _progress(keys):
-    from tqdm import tqdm
-    return tqdm(keys, desc="gt-clean", leave=False, dynamic_ncols=True)

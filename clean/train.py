@@ -31,6 +31,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from pipeline.config import Config
+from pipeline.progress import progress
 from pipeline.exr import StoreError, atomic_write_bytes, atomic_write_json
 from pipeline.metrics import all_metrics
 from pipeline.store import Store
@@ -233,7 +234,8 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
         loader = DataLoader(train_ds, batch_size=c.batch_size, sampler=order, num_workers=0)
         model.train()
         losses = []
-        bar = _progress(loader, f"{folder.name} epoch {epoch + 1}/{c.epochs}", quiet)
+        bar = progress(loader, desc=f"{folder.name} epoch {epoch + 1}/{c.epochs}", unit="step", disable=quiet,
+                       leave=False)
         for batch in bar:
             inputs, radiance, target = (batch[k].to(device) for k in ("inputs", "radiance", "target"))
             loss = smape(model(inputs, radiance), target, c.smape_eps)
@@ -243,8 +245,7 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
                 torch.nn.utils.clip_grad_norm_(model.parameters(), c.grad_clip)
             opt.step()
             losses.append(float(loss.detach()))
-            if hasattr(bar, "set_postfix"):
-                bar.set_postfix(smape=f"{np.mean(losses):.4f}")
+            bar.set_postfix(smape=f"{np.mean(losses):.4f}")
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
                  "val": validate(model, val_ds, cfg, device) if val_ds is not None else None,
                  "seconds": time.perf_counter() - t_start}
@@ -274,13 +275,6 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     if not quiet:
         print(summary["line"], flush=True)
     return summary
-
-
-def _progress(iterable, desc: str, quiet: bool):
-    if quiet:
-        return iterable
-    from tqdm import tqdm
-    return tqdm(iterable, desc=desc, leave=False, dynamic_ncols=True)
 
 
 def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import sys
+from typing import Iterable
 
 from tqdm.auto import tqdm
 
 
-def progress(total: int, desc: str, unit: str = "it", initial: int = 0, disable: bool = False) -> tqdm:
+def progress(iterable: Iterable | None = None, *, total: int | None = None, desc: str, unit: str = "it",
+             initial: int = 0, disable: bool = False, leave: bool = True) -> tqdm:
     # mininterval keeps CI logs short; dynamic_ncols keeps the bar readable in narrow terminals.
-    return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=disable, file=sys.stderr,
-                mininterval=1.0, dynamic_ncols=True)
+    return tqdm(iterable, total=total, initial=initial, desc=desc, unit=unit, disable=disable, leave=leave,
+                file=sys.stderr, mininterval=1.0, dynamic_ncols=True)
