@@ -12,7 +12,7 @@ VENV       ?= .venv
 PY         := $(VENV)/bin/python
 CONFIG     ?= configs/default.yaml
 SPP        ?= 4
-MODEL      ?= isik
+MODEL      ?= diffusion
 SHARD      ?=
 STAMP      := $(VENV)/.installed
 
@@ -20,7 +20,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report train inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train inspect bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -69,8 +69,16 @@ gt-clean: setup
 clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
+# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline).
+# SPP=any trains one diffusion model for every sample count. Several GPUs/nodes: run the same
+# command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
+
+# The stand-in base (IF-II layout, super-resolution prior on GT_clean + pretrain.images); the
+# repository ships one in train/base_model, so this is only needed to make a new one.
+pretrain: setup
+	$(RUN) pretrain --config $(CONFIG) $(OVERRIDES)
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')

@@ -22,7 +22,6 @@ No pickle anywhere: everything is safetensors or JSON.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -32,7 +31,8 @@ from torch.utils.data import DataLoader
 
 from pipeline.config import Config
 from pipeline.progress import progress
-from pipeline.exr import StoreError, atomic_write_bytes, atomic_write_json
+from pipeline.checkpoint import load_last, plot_curves, save_last, save_safetensors
+from pipeline.exr import StoreError, atomic_write_json
 from pipeline.metrics import all_metrics
 from pipeline.store import Store
 
@@ -113,67 +113,18 @@ def datasets(cfg: Config, mode: str, spp: int | None):
 # ---- checkpoints -----------------------------------------------------------------------------
 
 
-def _save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
-    from safetensors.torch import save_file
-    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
-    atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
-
-
 def save_best(folder: Path, model: AffinityDenoiser, record: dict) -> None:
-    _save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": FORMAT})
+    save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": FORMAT})
     atomic_write_json(folder / "model.json", record)
-
-
-def save_last(path: Path, model: AffinityDenoiser, opt: torch.optim.Optimizer, record: dict) -> None:
-    sd = opt.state_dict()
-    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
-    for idx, state in sd["state"].items():
-        for key, value in state.items():
-            tensors[f"optim.{idx}.{key}"] = torch.as_tensor(value)
-    tensors["rng.torch"] = torch.get_rng_state()
-    record = {**record, "param_groups": sd["param_groups"]}
-    _save_safetensors(path, tensors, {"format": FORMAT, "state": json.dumps(record, allow_nan=False)})
-
-
-def load_last(path: Path, model: AffinityDenoiser, opt: torch.optim.Optimizer, device) -> dict:
-    from safetensors import safe_open
-    with safe_open(str(path), framework="pt") as f:
-        record = json.loads(f.metadata()["state"])
-        tensors = {k: f.get_tensor(k) for k in f.keys()}
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
-    state: dict[int, dict] = {}
-    for k, v in tensors.items():
-        if k.startswith("optim."):
-            _, idx, key = k.split(".", 2)
-            state.setdefault(int(idx), {})[key] = v if key == "step" else v.to(device)
-    groups = [{**g, "betas": tuple(g["betas"])} if "betas" in g else g for g in record["param_groups"]]
-    opt.load_state_dict({"state": state, "param_groups": groups})
-    torch.set_rng_state(tensors["rng.torch"])
-    return record
 
 
 def plot_curve(path: Path, history: list[dict], title: str) -> None:
     """Training and validation SMAPE per epoch (log scale) as a PNG, written atomically."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6, 4), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    epochs = [h["epoch"] for h in history]
-    ax.plot(epochs, [h["train_loss"] for h in history], "o-", label="train SMAPE")
     val = [(h["epoch"], h["val"]["smape"]) for h in history if h.get("val")]
+    curves = {"train SMAPE": [(h["epoch"], h["train_loss"]) for h in history]}
     if val:
-        ax.plot(*zip(*val), "s-", label="val SMAPE")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("loss")
-    if all(h["train_loss"] > 0 for h in history):
-        ax.set_yscale("log")
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))
+        curves["val SMAPE"] = val
+    plot_curves(path, curves, title, xlabel="epoch", ylabel="loss")
 
 
 # ---- loops -----------------------------------------------------------------------------------
@@ -258,7 +209,8 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
                                       "input_channels": channel_names(), "epoch": epoch + 1,
                                       "metrics": entry["val"], "train_loss": entry["train_loss"],
                                       "smape_eps": c.smape_eps, "store": str(cfg.store), "clean": vars(c).copy()})
-        save_last(last, model, opt, {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": fp})
+        save_last(last, model, opt, {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": fp},
+                  FORMAT)
         plot_curve(folder / "loss.png", history, title)
         atomic_write_json(folder / "train.json", {"mode": mode, "spp": spp, "history": history, "best": best})
         if not quiet:

@@ -44,12 +44,35 @@ def cmd_gt_clean(args) -> int:
     return run(_config(args), quiet=args.quiet)
 
 
+def _spp(text: str):
+    if text == "any":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a sample count (4, 16, 64) or 'any', got {text!r}") from None
+
+
 def cmd_train(args) -> int:
     cfg = _config(args)
     if args.model == "isik":
+        if args.spp == "any":
+            raise ConfigError("--spp any: the Isik baseline trains one model per sample count")
         from clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
-    raise ConfigError(f"--model {args.model!r}: only 'isik' is built so far (the diffusion model is issue 4)")
+    from train.cli import cmd_train as train_diffusion
+    return train_diffusion(cfg, args.spp, quiet=args.quiet)
+
+
+def cmd_pretrain(args) -> int:
+    from train.cli import cmd_pretrain as run
+    return run(_config(args), quiet=args.quiet)
+
+
+def cmd_denoise(args) -> int:
+    from train.cli import cmd_denoise as run
+    return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
+               base_only=args.base_only, quiet=args.quiet)
 
 
 def cmd_clean_report(args) -> int:
@@ -91,11 +114,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_gt_clean)
 
-    p = with_config(sub.add_parser("train", help="train a denoiser: --model isik (the Isik baseline)"))
-    p.add_argument("--model", default="isik", choices=["isik"], help="which denoiser")
-    p.add_argument("--spp", type=int, required=True, help="sample count of the noisy input (4, 16, 64)")
+    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours) or isik (baseline); "
+                                                 "runs under torchrun for DDP"))
+    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik"], help="which denoiser")
+    p.add_argument("--spp", type=_spp, required=True,
+                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion model for all")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
+
+    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, super-resolution prior)"))
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_pretrain)
+
+    p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
+    p.add_argument("--spp", type=_spp, required=True, help="which run (diffusion_spp<N>) and the input's spp")
+    p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000")
+    p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
+    p.add_argument("--out", required=True, help="output EXR")
+    p.add_argument("--skip", type=int, default=None, help="DDPM steps to skip of 27 (default: the run's)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_denoise)
 
     p = with_config(sub.add_parser("clean-report", help="GT1 vs GT_clean against GT2 on val/test, crop grid; "
                                                         "--spp N adds the Isik baseline on the test split"))

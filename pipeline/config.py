@@ -109,6 +109,61 @@ class CleanConfig:
 
 
 @dataclass
+class DiffusionConfig:
+    base: str = doc("Base model folder in the diffusers layout (config.json, diffusion_pytorch_model.safetensors, "
+                    "prompt_embeds.safetensors). Empty: the small base shipped in train/base_model "
+                    "(made by make pretrain). A DeepFloyd IF-II checkpoint's unet/ folder works the same way.", "")
+    tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
+                       "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
+    epochs: int = doc("Training epochs of the Control Module (an epoch: crops_per_frame crops of every train frame).", 100)
+    batch_size: int = doc("Crops per optimisation step (per process under torchrun).", 8)
+    crop: int = doc("Side of the random training crops (a multiple of 2^(levels-1) of the base).", 64)
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    lr: float = doc("AdamW learning rate (the authors' code: 2e-5).", 2e-5)
+    weight_decay: float = doc("AdamW weight decay (the authors' code: 0.01).", 0.01)
+    warmup_steps: int = doc("Linear learning-rate warm-up steps, then a cosine decay to 0 over the run.", 100)
+    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
+    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
+                         "an error after this many such steps in a row.", 10)
+    train_base: bool = doc("Train the base as well as the Control Module (for comparison; the paper freezes it).", False)
+    control: bool = doc("Use the Control Module; false trains/evaluates the base alone (the paper's ablation row).",
+                        True)
+    precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
+    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
+                               "limit); a rerun resumes.", 0.0)
+    skip: int = doc("Sampler: DDPM steps skipped of the 27 super27 steps; the noisy render is q-sampled at the "
+                    "first step kept (skip 12 starts at t=900 and runs 15 steps, as the authors' code).", 0)
+    threshold_ratio: float = doc("Dynamic thresholding percentile of the predicted clean image (IF: 0.95).", 0.95)
+    val_frames: int = doc("Validation frames sampled after every epoch (val PSNR with the sampler at val_skip).", 2)
+    val_skip: int = doc("Sampler skip used for the per-epoch validation (cheaper than the full 27 steps).", 12)
+    tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles.", 256)
+    tile_overlap: int = doc("Overlap between inference tiles, blended linearly.", 32)
+
+
+@dataclass
+class PretrainConfig:
+    channels: list = doc("Channels per level of a new base (IF-II layout; the last level has attention).",
+                         factory=lambda: [32, 64, 96, 128])
+    layers_per_block: int = doc("ResNet layers per level of a new base.", 1)
+    images: list = doc("Extra folders of images (.png/.jpg, sRGB) or EXRs (R,G,B radiance) for the prior, besides "
+                       "every GT_clean frame of the store.", factory=list)
+    epochs: int = doc("Pretraining epochs (an epoch: crops_per_image crops of every image).", 100)
+    batch_size: int = doc("Crops per step.", 8)
+    crop: int = doc("Side of the training crops.", 64)
+    crops_per_image: int = doc("Crops per image per epoch.", 4)
+    lr: float = doc("AdamW learning rate.", 2e-4)
+    weight_decay: float = doc("AdamW weight decay.", 0.01)
+    scales: list = doc("Down-sampling factors of the super-resolution degradation (one drawn per crop).",
+                       factory=lambda: [2, 4])
+    noise: float = doc("Largest std of Gaussian noise added to the degraded image (model space, drawn uniformly).", 0.1)
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: none).",
+                               0.0)
+    out: str = doc("Where make pretrain writes the new base; empty: <runs>/base. Copy it to train/base_model to "
+                   "ship it.", "")
+
+
+@dataclass
 class Config:
     seed: int = doc("Master seed: scene i is generated from (seed, i); every render seed derives from it.", 0)
     store: str = doc("Path of the EXR buffer store (relative paths are relative to the working directory).", "data/default")
@@ -119,6 +174,9 @@ class Config:
     runs: str = doc("Folder for checkpoints, loss curves and logs of the training stages.", "runs/default")
     clean: CleanConfig = doc("GT cleaner (make gt-clean) and the Isik baseline (make train MODEL=isik).",
                              factory=CleanConfig)
+    diffusion: DiffusionConfig = doc("Diffusion denoiser: frozen base + Control Module (make train SPP=4).",
+                                     factory=DiffusionConfig)
+    pretrain: PretrainConfig = doc("The small stand-in base (make pretrain).", factory=PretrainConfig)
 
 
 # --------------------------------------------------------------------------------------------
@@ -235,6 +293,26 @@ def validate(cfg: Config, source: str) -> None:
         rng = getattr(cfg.scene, key)
         if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
             bad(f"scene.{key}", f"expected a range [min, max], got {rng!r}")
+    f = cfg.diffusion
+    if f.tonemap not in ("log", "gamma"):
+        bad("diffusion.tonemap", f"expected 'log' or 'gamma', got {f.tonemap!r}")
+    if f.precision not in ("auto", "fp32", "bf16"):
+        bad("diffusion.precision", f"expected 'auto', 'fp32' or 'bf16', got {f.precision!r}")
+    for key in ("skip", "val_skip"):
+        if not 0 <= getattr(f, key) <= 26:
+            bad(f"diffusion.{key}", "must be in [0, 26] (super27 has 27 steps; at least one must run)")
+    if not 0 < f.threshold_ratio <= 1:
+        bad("diffusion.threshold_ratio", "must be in (0, 1]")
+    for sec, key in (("diffusion", "epochs"), ("diffusion", "batch_size"), ("diffusion", "crop"),
+                     ("pretrain", "epochs"), ("pretrain", "batch_size"), ("pretrain", "crop")):
+        if getattr(getattr(cfg, sec), key) < 1:
+            bad(f"{sec}.{key}", "must be >= 1")
+    if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
+        bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
+    if not cfg.pretrain.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in cfg.pretrain.channels):
+        bad("pretrain.channels", f"expected positive multiples of 16 (group norm), got {cfg.pretrain.channels!r}")
+    if not all(isinstance(k, int) and k >= 1 for k in cfg.pretrain.scales) or not cfg.pretrain.scales:
+        bad("pretrain.scales", f"expected integers >= 1, got {cfg.pretrain.scales!r}")
 
 
 def to_dict(cfg: Any) -> dict:

@@ -242,3 +242,36 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
                     raise StoreError(f"{path}: channel {ch!r} of buffer {name!r} is missing (neither stored nor a recorded constant)")
             out[key] = arr
     return out, record
+
+
+def read_layers(path: Path) -> dict[str, np.ndarray]:
+    """Buffers of *any* EXR that uses the schema's channel names (e.g. from another renderer).
+
+    ``R, G, B`` are required; every other buffer (``albedo.R``…, ``N.X``…, ``variance.R``…) is
+    read when all its channels are present and left out otherwise (consumers treat a missing
+    feature as its background value). No ``mcdenoise`` header is needed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise StoreError(f"{path}: EXR file not found")
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"\x76\x2f\x31\x01":
+            raise StoreError(f"{path}: not an OpenEXR file (bad magic number)")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: ch.pixels for name, ch in f.channels().items()}
+    except Exception as exc:
+        raise StoreError(f"{path}: corrupt or truncated EXR ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if not all(c in channels for c in ("R", "G", "B")):
+        raise StoreError(f"{path}: channels R, G, B (the noisy colour) are required; found {', '.join(sorted(channels))}")
+    out: dict[str, np.ndarray] = {}
+    shape = channels["R"].shape
+    for buf in schema.BUFFERS:
+        for key, names in ((buf.name, buf.exr_channels), (schema.variance_name(buf.name), buf.variance_channels)):
+            if all(n in channels for n in names):
+                arrs = [channels[n] for n in names]
+                for n, a in zip(names, arrs):
+                    if a.shape != shape:
+                        raise StoreError(f"{path}: channel {n!r} has shape {a.shape}, expected {shape}")
+                out[key] = np.stack(arrs, axis=2).astype(np.float32)
+    return out

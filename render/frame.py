@@ -15,6 +15,8 @@ import gc
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from pipeline import schema
 from pipeline.exr import StoreError
 from pipeline.mitsuba_env import import_mitsuba
@@ -127,6 +129,10 @@ def render_frame(task: FrameTask) -> dict:
         "timing": {"build": round(build_s, 4), "render": round(render_s, 4), "write": round(write_s, 4),
                    "total": round(time.perf_counter() - t_start, 4)},
         "reused_images": reused,
+        # The camera frame (columns: left, up, forward, origin): lets consumers turn the
+        # world-space normals into camera space (train.data).
+        "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
+                                    .reshape(4, 4), 6).tolist(),
     }
     if not task.images:
         store.write_frame_record(task.scene, task.frame, record)

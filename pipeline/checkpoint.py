@@ -1,0 +1,95 @@
+"""Checkpoints and training curves shared by every trainer (cleaner, Isik baseline, diffusion).
+
+Everything is safetensors or JSON; nothing is pickled, so a checkpoint from elsewhere cannot run
+code when it is loaded.
+
+- ``save_safetensors``: tensors + string metadata, written atomically.
+- ``save_last`` / ``load_last``: the resumable state after a finished epoch in one file: a
+  module's weights (``model.*``), the optimizer's moments (``optim.*``), the torch RNG state and,
+  in the metadata, a JSON record (epoch, history, optimizer hyper-parameters, ...). Loading
+  restores all of it in place and returns the record.
+- ``plot_curves``: named (x, y) series as a PNG (log y when every value is positive).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from .exr import atomic_write_bytes
+
+
+def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+    from safetensors.torch import save_file
+    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
+
+
+def save_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, record: dict, fmt: str,
+              extra: dict[str, torch.Tensor] | None = None) -> None:
+    sd = opt.state_dict()
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    for idx, state in sd["state"].items():
+        for key, value in state.items():
+            tensors[f"optim.{idx}.{key}"] = torch.as_tensor(value)
+    tensors["rng.torch"] = torch.get_rng_state()
+    tensors.update({f"extra.{k}": v for k, v in (extra or {}).items()})
+    record = {**record, "param_groups": sd["param_groups"]}
+    save_safetensors(path, tensors, {"format": fmt, "state": json.dumps(record, allow_nan=False)})
+
+
+def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, device,
+              extra: dict[str, torch.Tensor] | None = None) -> dict:
+    """Restore ``model``, ``opt``, the torch RNG (and fill ``extra`` with saved extras); return the record."""
+    from safetensors import safe_open
+    with safe_open(str(path), framework="pt") as f:
+        record = json.loads(f.metadata()["state"])
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    state: dict[int, dict] = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, idx, key = k.split(".", 2)
+            state.setdefault(int(idx), {})[key] = v if key == "step" else v.to(device)
+    groups = [{**g, "betas": tuple(g["betas"])} if "betas" in g else g for g in record["param_groups"]]
+    opt.load_state_dict({"state": state, "param_groups": groups})
+    torch.set_rng_state(tensors["rng.torch"])
+    if extra is not None:
+        extra.update({k[6:]: v for k, v in tensors.items() if k.startswith("extra.")})
+    return record
+
+
+def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title: str, xlabel: str = "epoch",
+                ylabel: str = "loss", right: dict[str, list[tuple[float, float]]] | None = None,
+                right_label: str = "") -> None:
+    """Named (x, y) series as a PNG, written atomically; ``right`` series get their own y axis."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    values = []
+    for name, pts in curves.items():
+        if pts:
+            ax.plot(*zip(*pts), "o-" if len(pts) < 60 else "-", label=name, markersize=3)
+            values += [y for _, y in pts]
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if values and all(v > 0 for v in values):
+        ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    if right:
+        ax2 = ax.twinx()
+        for name, pts in right.items():
+            if pts:
+                ax2.plot(*zip(*pts), "s--", color="C3", label=name, markersize=3)
+        ax2.set_ylabel(right_label)
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.set_title(title)
+    ax.legend(handles, labels)
+    fig.tight_layout()
+    atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))

@@ -1,0 +1,98 @@
+"""The diffusion stage through the real command line on configs/tiny.yaml: pretrain, train (also under
+torchrun with 2 CPU processes), denoise a store frame and a foreign EXR, and the errors users meet."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from pipeline.exr import read_image
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny.yaml"
+SMALL = ["pretrain.channels=[16,32]", "pretrain.crop=16", "pretrain.epochs=1", "diffusion.crop=16",
+         "diffusion.batch_size=2", "diffusion.val_skip=24", "diffusion.val_frames=1"]
+
+
+def run(*args, check=True, module=("-m", "pipeline")):
+    proc = subprocess.run([sys.executable, *module, *map(str, args)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=900)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr[-4000:]}")
+    return proc
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("diffusion")
+    keys = ["--config", TINY, f"store={tmp / 'store'}", f"runs={tmp / 'runs'}", *SMALL]
+    run("dataset", *keys, "--quiet")
+    run("gt-clean", *keys, "clean.epochs=1", "--quiet")
+    proc = run("pretrain", *keys)
+    assert "base written to" in proc.stdout
+    keys.append(f"diffusion.base={tmp / 'runs' / 'base'}")
+    return tmp, keys
+
+
+def test_pretrain_writes_a_loadable_base(setup):
+    tmp, _ = setup
+    base = tmp / "runs" / "base"
+    assert {p.name for p in base.iterdir()} >= {"config.json", "diffusion_pytorch_model.safetensors",
+                                                 "prompt_embeds.safetensors", "training.json"}
+    assert json.loads((base / "config.json").read_text())["in_channels"] == 6
+
+
+def test_train_then_denoise(setup, tmp_path):
+    tmp, keys = setup
+    proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
+    assert "diffusion_spp4: 2 epochs (2 this run" in proc.stdout and "val PSNR" in proc.stdout
+    folder = tmp / "runs" / "diffusion_spp4"
+    meta = json.loads((folder / "model.json").read_text())
+    assert meta["spp"] == "4" and len(meta["aux_channels"]) > 30
+    assert (folder / "loss.png").exists() and (folder / "last.safetensors").exists()
+    # A second run with the same epochs does nothing.
+    assert "already trained" in run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2").stdout
+
+    scene = sorted(p.name for p in (tmp / "store" / "scenes").iterdir())[0]
+    out = tmp_path / "den.exr"
+    proc = run("denoise", "--spp", "4", "--frame", f"{scene}/000", "--out", out, "--skip", "24", *keys)
+    img, rec = read_image(out)
+    assert img["color"].shape == (24, 32, 3) and np.isfinite(img["color"]).all()
+    assert rec["method"] == "ours" and rec["skip"] == 24
+
+    # A foreign EXR: only R, G, B (+ a NaN that must be repaired and counted).
+    rgb = np.random.default_rng(0).random((20, 28), np.float32)
+    rgb[3, 4] = np.nan
+    foreign = tmp_path / "foreign.exr"
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {c: rgb.copy() for c in "RGB"}) as f:
+        f.write(str(foreign))
+    proc = run("denoise", "--spp", "4", "--exr", foreign, "--out", tmp_path / "f.exr", "--skip", "24", *keys)
+    assert "3 non-finite input values replaced by 0" in proc.stdout   # one NaN pixel in R, G and B
+    img, rec = read_image(tmp_path / "f.exr")
+    assert img["color"].shape == (20, 28, 3) and np.isfinite(img["color"]).all() and rec["repaired_nonfinite"] == 3
+
+
+def test_torchrun_two_cpu_processes(setup):
+    tmp, keys = setup
+    keys = [k for k in keys if not str(k).startswith("runs=")] + [f"runs={tmp / 'ddp'}"]
+    proc = run("--nproc_per_node", "2", "-m", "pipeline", "train", "--model", "diffusion", "--spp", "4", *keys,
+               "diffusion.epochs=1", module=("-m", "torch.distributed.run"))
+    assert "DDP: 2 ranks in sync" in proc.stdout, proc.stdout + proc.stderr[-2000:]
+    assert (tmp / "ddp" / "diffusion_spp4" / "control.safetensors").exists()
+
+
+def test_errors_are_one_line_and_exit_2(setup, tmp_path):
+    tmp, keys = setup
+    proc = run("train", "--model", "diffusion", "--spp", "4", "--config", TINY, f"store={tmp_path / 'none'}",
+               check=False)
+    assert proc.returncode == 2 and "no dataset" in proc.stderr
+    proc = run("denoise", "--spp", "16", "--frame", "s00000/000", "--out", tmp_path / "x.exr", *keys, check=False)
+    assert proc.returncode == 2 and "no trained diffusion denoiser" in proc.stderr
+    assert not (tmp_path / "x.exr").exists()
+    proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.base=/nonexistent", check=False)
+    assert proc.returncode == 2 and "config.json: missing" in proc.stderr
+    proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.skip=27", check=False)
+    assert proc.returncode == 2 and "diffusion.skip" in proc.stderr

@@ -1,0 +1,96 @@
+"""Assemble the controlled denoiser from a config, and save / load a trained run.
+
+A run folder (``runs/<name>/diffusion_spp{N}``, ``diffusion_sppany``) holds:
+
+- ``control.safetensors``: the Control Module's weights (and ``base.*`` when the base trained
+  too), the best epoch by validation PSNR;
+- ``model.json``: what is needed to rebuild it: the base folder and the SHA-256 of its weights
+  (a changed base is refused: the Control Module only fits the base it was trained with), the
+  condition's channel names, the tonemap, the spp, the sampler defaults, the metrics;
+- ``last.safetensors``: the resumable state (``pipeline.checkpoint``), ``loss.png``, ``train.json``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from pipeline.checkpoint import save_safetensors
+from pipeline.config import Config
+from pipeline.exr import StoreError, atomic_write_json, read_json
+from pipeline.store import sha256
+
+from . import base as base_lib
+from .control import ControlledDenoiser, ControlModule
+from .data import AUX_CHANNELS, aux_names
+
+FORMAT = "mcdenoise-control"
+
+
+def base_folder(cfg: Config) -> Path:
+    return Path(cfg.diffusion.base) if cfg.diffusion.base else base_lib.SHIPPED
+
+
+def run_dir(cfg: Config, spp: int | str) -> Path:
+    name = "diffusion_sppany" if str(spp) == "any" else f"diffusion_spp{int(spp)}"
+    if not cfg.diffusion.control:
+        name += "_base_only"
+    return Path(cfg.runs) / name
+
+
+def build(cfg: Config, seed: int | None = None) -> ControlledDenoiser:
+    """The frozen base from ``diffusion.base`` plus a fresh Control Module (or none, ``control: false``)."""
+    unet, prompt = base_lib.load(base_folder(cfg))
+    torch.manual_seed(cfg.seed if seed is None else seed)
+    control = ControlModule(unet, AUX_CHANNELS) if cfg.diffusion.control else None
+    return ControlledDenoiser(unet, prompt, control, train_base=cfg.diffusion.train_base)
+
+
+def trainable_state(model: ControlledDenoiser) -> dict[str, torch.Tensor]:
+    state = {}
+    if model.control is not None:
+        state.update({f"control.{k}": v for k, v in model.control.state_dict().items()})
+    if model.train_base:
+        state.update({f"base.{k}": v for k, v in model.base.state_dict().items()})
+    return state
+
+
+def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict) -> None:
+    base = base_folder(cfg)
+    save_safetensors(folder / "control.safetensors", trainable_state(model), {"format": FORMAT})
+    atomic_write_json(folder / "model.json", {
+        "format": FORMAT, "spp": spp, "base": str(base.resolve()),
+        "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(),
+        "control": model.control is not None, "train_base": model.train_base,
+        "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
+        "threshold_ratio": cfg.diffusion.threshold_ratio, **record})
+
+
+def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[ControlledDenoiser, dict]:
+    """(model in eval mode, model.json) of a trained run; refuses a changed base or channel layout."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    meta_path, weights = folder / "model.json", folder / "control.safetensors"
+    if not meta_path.exists() or not weights.exists():
+        raise StoreError(f"{folder}: no trained diffusion denoiser (model.json/control.safetensors missing); "
+                         "run `make train SPP=<n>`")
+    meta = read_json(meta_path, "model record")
+    if meta.get("format") != FORMAT:
+        raise StoreError(f"{meta_path}: not a {FORMAT} record")
+    if meta.get("aux_channels") != aux_names():
+        raise StoreError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
+                         f"channels, this code makes {AUX_CHANNELS}); retrain")
+    base = Path(meta["base"])
+    if sha256(base / base_lib.WEIGHTS) != meta["base_sha256"]:
+        raise StoreError(f"{base / base_lib.WEIGHTS}: the base changed since {folder} was trained "
+                         "(SHA-256 differs); retrain the Control Module for this base")
+    unet, prompt = base_lib.load(base)
+    control = ControlModule(unet, AUX_CHANNELS) if meta["control"] else None
+    model = ControlledDenoiser(unet, prompt, control, train_base=False)
+    state = load_file(str(weights))
+    if control is not None:
+        control.load_state_dict({k[8:]: v for k, v in state.items() if k.startswith("control.")})
+    if meta.get("train_base"):
+        unet.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("base.")})
+    return model.to(device).eval(), meta
