@@ -20,7 +20,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report train inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -71,6 +71,16 @@ clean-report: setup
 
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
+
+# Every method on the test split (and external scenes) per spp: tables, error vs time, crops in
+# reports/<run>/. SPP=4 limits it to one sample count; SCENES="a.xml b.xml" renders Mitsuba 3
+# scenes into the store (split 'external') first and reports them separately.
+eval: setup
+	$(RUN) eval --config $(CONFIG) $(OVERRIDES) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(foreach s,$(SCENES),--scene $(s))
+
+# Every method on synthetic edge cases (fireflies, NaN/Inf, black, 1e5, sizes up to 1920x1080).
+stability: setup
+	$(RUN) stability --config $(CONFIG) $(OVERRIDES)
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
