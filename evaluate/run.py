@@ -186,7 +186,7 @@ def _warm_up(methods: dict, store: Store, key: FrameKey, spp: int, side: int = 3
 def _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names, opts) -> dict:
     e = cfg.eval
     out = {}
-    if e.equal_time == "off":
+    if e.equal_time == "none":
         return out
     for name in e.equal_time_methods:
         row = rows.get(name)

@@ -124,7 +124,7 @@ class EvalConfig:
     fvvdp_display: str = doc("FovVideoVDP display model (pyfvvdp's display_models.json).", "standard_4k")
     equal_time: str = doc("Equal-time Monte Carlo: 'render' (render each frame at the equal-time spp with the "
                           "dataset's renderer, cached in the store), 'pool' (average stored stacks, capped at "
-                          "stacks x stack_spp), 'off'.", "render")
+                          "stacks x stack_spp), 'none'.", "render")
     equal_time_methods: list = doc("Denoisers whose time budget gets an equal-time MC row.",
                                    factory=lambda: ["ours", "isik", "oidn"])
     equal_time_max_spp: int = doc("Cap of the equal-time MC spp ('render'); capped rows are marked.", 4096)
@@ -260,8 +260,8 @@ def validate(cfg: Config, source: str) -> None:
         bad("executor.kind", f"expected 'local' or 'ray', got {cfg.executor.kind!r}")
     if cfg.executor.workers < 1:
         bad("executor.workers", "must be >= 1")
-    if cfg.eval.equal_time not in ("render", "pool", "off"):
-        bad("eval.equal_time", f"expected 'render', 'pool' or 'off', got {cfg.eval.equal_time!r}")
+    if cfg.eval.equal_time not in ("render", "pool", "none"):
+        bad("eval.equal_time", f"expected 'render', 'pool' or 'none', got {cfg.eval.equal_time!r}")
     for key in ("objects", "area_lights", "fov"):
         rng = getattr(cfg.scene, key)
         if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):

@@ -156,11 +156,15 @@ def fvvdp(pred, ref, display: str = "standard_4k") -> float:
     (``standard_4k``: 200 cd/m², sRGB), as the paper's evaluation does. Runs on the CPU, offline
     (the package ships its parameters and CSF tables).
     """
+    import warnings
+
     import torch
-    import pyfvvdp
 
     if display not in _FVVDP:
-        _FVVDP[display] = pyfvvdp.fvvdp(display_name=display, heatmap=None, device=torch.device("cpu"))
+        with warnings.catch_warnings():      # pyfvvdp 1.2.2 uses scipy.io names deprecated in SciPy 1.8+
+            warnings.simplefilter("ignore", DeprecationWarning)
+            import pyfvvdp
+            _FVVDP[display] = pyfvvdp.fvvdp(display_name=display, heatmap=None, device=torch.device("cpu"))
     r = np.ascontiguousarray(reinhard(np.asarray(ref, dtype=np.float32)), dtype=np.float32)
     t = np.ascontiguousarray(reinhard(np.asarray(pred, dtype=np.float32)), dtype=np.float32)
     with torch.no_grad():
