@@ -17,7 +17,8 @@ SHARD      ?=
 STAMP      := $(VENV)/.installed
 
 MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
-OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
+# Words without '=' are the rest of a multi-word variable (SCENES="a.xml b.xml"), not overrides.
+OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a)))))
 RUN        := $(PY) -m pipeline
 
 .PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect bench test clean distclean

@@ -166,7 +166,11 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
         key = f"mc_equal_{n}"
         cells = [f"**{fmt(m, values[m].get(key))}**" if key in winners[m] else fmt(m, values[m].get(key))
                  for m in metric_names]
-        notes = [f"{et['mode']}: {et['spp']:.0f} spp for {et['wanted_spp']:.0f} wanted"]
+        notes = [f"{et['mode']}: {et['spp']:.1f} spp for {et['wanted_spp']:.1f} wanted (means over frames)"]
+        measured = [p["measured_seconds"] for p in et["per_frame"] if p.get("measured_seconds") is not None]
+        if measured:
+            notes.append(f"measured render {fmt_seconds(float(np.mean(measured)))} s (first render in a worker "
+                         "includes the JIT compile)")
         if et["capped_frames"]:
             notes.append(f"CAPPED on {et['capped_frames']} frame(s)")
         if et["failed_frames"]:

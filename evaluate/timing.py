@@ -14,7 +14,9 @@ cancels). The evaluator renders that N (or pools stored stacks up to their total
 Worth in samples (``spp_equivalent``): the sample count at which plain Monte Carlo reaches a
 given error, by piecewise-linear interpolation of log(error) against log(spp) on the measured MC
 curve; outside the measured range the end segment's slope is extended and the result is marked
-as extrapolated.
+as extrapolated, at most ``MAX_EXTRAPOLATION``× past the curve's ends (further out the end slope
+says nothing: a nearly flat segment would put a method at 1e20 spp); beyond that the answer is
+"more than" that bound, without a number.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 _STACK = re.compile(r"^s\d+$")
+MAX_EXTRAPOLATION = 16.0
 
 
 @dataclass(frozen=True)
@@ -96,7 +99,12 @@ def spp_equivalent(spps, errors, target: float) -> tuple[float | None, str]:
     if slope >= 0:
         return None, "not reached: the MC curve does not decrease there"
     j = 0 if i == 0 else i + 1
-    return math.exp(x[j] + (ly - y[j]) / slope), where
+    value = math.exp(x[j] + (ly - y[j]) / slope)
+    if value > pts[-1][0] * MAX_EXTRAPOLATION:
+        return None, f"more than {pts[-1][0] * MAX_EXTRAPOLATION:g} spp ({MAX_EXTRAPOLATION:g}x past the MC curve)"
+    if value < pts[0][0] / MAX_EXTRAPOLATION:
+        return None, f"less than {pts[0][0] / MAX_EXTRAPOLATION:g} spp ({MAX_EXTRAPOLATION:g}x below the MC curve)"
+    return value, where
 
 
 def psnr_to_mse(psnr: float) -> float:

@@ -53,6 +53,13 @@ def test_spp_equivalent_interpolates_log_log():
     assert how == "extrapolated below 4 spp" and value == pytest.approx(1)
 
 
+def test_spp_equivalent_does_not_extrapolate_far():
+    # a nearly flat last segment would put a good method at an absurd sample count
+    assert spp_equivalent([4, 16, 64], [0.1, 0.07, 0.069], 0.006) == (None, "more than 1024 spp (16x past the MC curve)")
+    assert spp_equivalent([4, 8], [0.1, 0.099], 0.5) == (None, "less than 0.25 spp (16x below the MC curve)")
+    assert spp_equivalent([4, 16], [0.1, 0.05], 0.0125)[0] == pytest.approx(256)        # 16x: still a number
+
+
 def test_spp_equivalent_honest_failures():
     assert spp_equivalent([4, 8], [0.1, 0.1], 0.01)[0] is None       # flat curve: never reached
     assert spp_equivalent([4, 8], [0.1, 0.05], 0.0) == (None, "unreachable: zero error")
