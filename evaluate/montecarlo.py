@@ -26,6 +26,7 @@ import numpy as np
 from pipeline import metrics
 from pipeline.config import Config
 from pipeline.exr import StoreError
+from pipeline.progress import progress
 from pipeline.store import FrameKey, Store
 
 from .timing import RenderCost
@@ -83,12 +84,12 @@ class EqualTime:
 
 
 def equal_time_images(cfg: Config, store: Store, wanted: dict[FrameKey, float], mode: str,
-                      max_spp: int) -> dict[FrameKey, EqualTime]:
+                      max_spp: int, quiet: bool = False) -> dict[FrameKey, EqualTime]:
     """The MC image with the equal-time sample count ``wanted[key]`` of each frame (see module doc)."""
     if mode == "pool":
         return {key: _pooled(store, key, n) for key, n in wanted.items()}
     plan = {key: min(max(1, int(round(n))), int(max_spp)) for key, n in wanted.items()}
-    errors = _render_missing(cfg, store, plan)
+    errors = _render_missing(cfg, store, plan, quiet)
     out = {}
     for key, n in wanted.items():
         spp = plan[key]
@@ -113,7 +114,7 @@ def _pooled(store: Store, key: FrameKey, wanted: float) -> EqualTime:
     return EqualTime(k * n, wanted, capped, img)
 
 
-def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int]) -> dict[FrameKey, str]:
+def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int], quiet: bool) -> dict[FrameKey, str]:
     """Render ``mc<N>`` for every frame that lacks it, in worker processes; returns errors by frame."""
     from render.frame import FrameTask
     from pipeline.dataset import _render_frame_entry
@@ -139,8 +140,13 @@ def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int]) -> dic
                          render=render, images=[name])
         tasks.append(task)
     errors = {}
+    if not tasks:
+        return errors
+    bar = progress(total=len(tasks), desc="equal-time MC", unit="render", disable=quiet, leave=False)
     for task, _result, error in run_tasks(tasks, _render_frame_entry, cfg.executor):
         if error is not None:
             text = str(error).strip()
             errors[FrameKey(task.scene, task.frame)] = text.splitlines()[-1] if text else repr(error)
+        bar.update(1)
+    bar.close()
     return errors

@@ -132,9 +132,10 @@ def fmt_equivalent(value) -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    out = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
-    out += ["| " + " | ".join(r) + " |" for r in rows]
-    return out
+    """A Markdown table; a '|' inside a cell (an error message, |n|) is escaped."""
+    def line(cells):
+        return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
+    return [line(header), "| " + " | ".join("---" for _ in header) + " |"] + [line(r) for r in rows]
 
 
 def method_table(entry: dict, metric_names: list[str]) -> list[str]:
@@ -148,24 +149,25 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
     winners = {m: best(values[m], m) for m in metric_names}
     header = ["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names] + ["s/frame", "device",
                                                                                               "notes"]
+    def cells(row: str) -> list[str]:
+        return [f"**{fmt(m, values[m].get(row))}**" if row in winners[m] else fmt(m, values[m].get(row))
+                for m in metric_names]
+
     lines = []
     for n, r in rows.items():
         if not r["available"]:
-            lines.append([f"{r['label']} (`{n}`)"] + ["–"] * len(metric_names) + ["–", "–", f"not available: {r['reason']}"])
+            lines.append([f"{r['label']} (`{n}`)"] + ["–"] * len(metric_names)
+                         + ["–", "–", f"not available: {r['reason']}"])
             continue
-        cells = [f"**{fmt(m, values[m].get(n))}**" if n in winners[m] else fmt(m, values[m].get(n)) for m in metric_names]
         notes = []
         if r.get("failed_frames"):
             bad = sorted({p["status"] for p in r["per_frame"] if p["status"] != "ok"})
             notes.append(f"{r['failed_frames']} frame(s) failed: {'; '.join(bad)[:200]}")
         if r.get("input_repaired"):
             notes.append(f"{r['input_repaired']} NaN/Inf input values repaired")
-        lines.append([f"{r['label']} (`{n}`)"] + cells + [fmt_seconds(r["seconds"]["median"]), r["device"],
-                                                         "; ".join(notes)])
+        lines.append([f"{r['label']} (`{n}`)"] + cells(n) + [fmt_seconds(r["seconds"]["median"]), r["device"],
+                                                            "; ".join(notes)])
     for n, et in entry["equal_time"].items():
-        key = f"mc_equal_{n}"
-        cells = [f"**{fmt(m, values[m].get(key))}**" if key in winners[m] else fmt(m, values[m].get(key))
-                 for m in metric_names]
         notes = [f"{et['mode']}: {et['spp']:.1f} spp for {et['wanted_spp']:.1f} wanted (means over frames)"]
         measured = [p["measured_seconds"] for p in et["per_frame"] if p.get("measured_seconds") is not None]
         if measured:
@@ -176,7 +178,7 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
         if et["failed_frames"]:
             notes.append(f"render failed on {et['failed_frames']} frame(s)")
         secs = float(np.mean([p["model_seconds"] for p in et["per_frame"]]))
-        lines.append([f"MC at equal time to `{n}` (≈{et['spp']:.0f} spp)"] + cells +
+        lines.append([f"MC at equal time to `{n}` (≈{et['spp']:.0f} spp)"] + cells(f"mc_equal_{n}") +
                      [f"{fmt_seconds(secs)} (render)", "renderer", "; ".join(notes)])
     return _table(header, lines)
 

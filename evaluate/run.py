@@ -163,7 +163,7 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
                 row["failed_frames"] = sum(r["status"] != "ok" for r in pf)
                 row["input_repaired"] = sum(r["input_repaired"] for r in pf)
         entry = {"methods": rows, "equal_time": _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names,
-                                                            opts)}
+                                                            opts, quiet)}
         entry["time_vs_error"] = _time_vs_error(spp, keys, rows, entry["equal_time"], costs, result["mc_mean"])
         titles = [CROP_TITLES[m] for m in CROP_METHODS if m in e.methods] + [CROP_TITLES[refs[keys[0]][0]]]
         if crops:
@@ -183,7 +183,7 @@ def _warm_up(methods: dict, store: Store, key: FrameKey, spp: int, side: int = 3
         run_method(method, crop)
 
 
-def _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names, opts) -> dict:
+def _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names, opts, quiet) -> dict:
     e = cfg.eval
     out = {}
     if e.equal_time == "none":
@@ -194,7 +194,7 @@ def _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names, opts) ->
             continue
         t_d = row["seconds"]["median"]
         wanted = {k: equal_time_spp(spp, t_d, costs[k]) for k in keys}
-        images = equal_time_images(cfg, store, wanted, e.equal_time, e.equal_time_max_spp)
+        images = equal_time_images(cfg, store, wanted, e.equal_time, e.equal_time_max_spp, quiet)
         per_frame = []
         for key in keys:
             et = images[key]

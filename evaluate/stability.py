@@ -188,7 +188,8 @@ def run_stability(cfg: Config, large: bool | None = None, out: str | Path | None
         results[case] = row
     bar.close()
     data = {"date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"), "spp": spp,
-            "cases": {c: CASES[c][0] for c in cases}, "input_repaired": repaired, "input_mean": input_mean, "results": results,
+            "cases": {c: CASES[c][0] for c in cases}, "input_repaired": repaired, "input_mean": input_mean,
+            "results": results,
             "unavailable": unavailable, "seconds": time.perf_counter() - t0}
     out_dir = Path(out) if out else report_dir(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -212,13 +213,12 @@ def format_markdown(data: dict, methods: list[str]) -> str:
             return f"ok {fmt_seconds(c['seconds'])} s, mean {c['out_mean']:.3g}"
         return f"**FAIL** {c['status'][:160]} ({fmt_seconds(c['seconds'])} s)"
 
-    rows = [[f"{case}: {desc}", f"{data['input_mean'][case]:.3g}", str(data["input_repaired"].get(case, 0))] + [cell(data["results"][case][m])
-                                                                            for m in methods]
-            for case, desc in data["cases"].items()]
+    rows = [[f"{case}: {desc}", f"{data['input_mean'][case]:.3g}", str(data["input_repaired"].get(case, 0))]
+            + [cell(data["results"][case][m]) for m in methods] for case, desc in data["cases"].items()]
     lines = ["# Stability", "",
              f"{data['date']}, checkpoints of {data['spp']} spp. A run passes (ok) when the method returns a finite "
-             "(H, W, 3) image; times are denoise wall seconds, 'mean' the output's mean radiance (compare the input mean). 'NaN/Inf repaired' counts the input values set to 0 "
-             "before any method saw them.", ""]
+             "(H, W, 3) image; times are denoise wall seconds, 'mean' the output's mean radiance (compare the "
+             "input mean). 'NaN/Inf repaired' counts the input values set to 0 before any method saw them.", ""]
     lines += _table(["case", "input mean", "NaN/Inf repaired", *[f"`{m}`" for m in methods]], rows)
     if data["unavailable"]:
         lines += ["", "Not available:"] + [f"- `{m}`: {why}" for m, why in data["unavailable"].items()]

@@ -55,6 +55,9 @@ def test_every_case_every_method(tmp_path):
     assert data["results"]["radiance_1e5"]["oidn"]["out_mean"] == pytest.approx(1e5, rel=0.05)
     md = (tmp_path / "r" / "stability.md").read_text()
     assert "| nan_inf:" in md and "n/a" in md and "`isik`" in md
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    cells = {line.replace("\\|", "").count("|") for line in table}
+    assert len(table) == 2 + len(data["cases"]) and cells == {3 + 5 + 1}       # '|n|' is escaped
     assert json.loads((tmp_path / "r" / "stability.json").read_text())["spp"] == 4
 
 
