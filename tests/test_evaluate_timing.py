@@ -3,6 +3,7 @@ import math
 
 import pytest
 
+from evaluate.report import reference_warning
 from evaluate.timing import RenderCost, equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 
@@ -69,3 +70,11 @@ def test_spp_equivalent_honest_failures():
     assert psnr_to_mse(30.0) == pytest.approx(1e-3) and psnr_to_mse(math.inf) == 0.0
     mse = [psnr_to_mse(p) for p in (20.0, 23.0103, 26.0206)]     # +3.0103 dB per doubling
     assert spp_equivalent([4, 8, 16], mse, psnr_to_mse(29.0309))[0] == pytest.approx(32, rel=1e-4)
+
+
+def test_reference_warning_when_mc_stops_converging():
+    good = [{"spp": 4, "psnr": 20.0}, {"spp": 16, "psnr": 26.0}, {"spp": 64, "psnr": 32.0}]
+    assert reference_warning(good) == []
+    flat = [{"spp": 4, "psnr": 20.0}, {"spp": 16, "psnr": 23.0}, {"spp": 64, "psnr": 23.5}]
+    text = reference_warning(flat)[0]
+    assert "gains only 0.25 dB per doubling of samples between 16 and 64 spp" in text
