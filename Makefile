@@ -17,10 +17,11 @@ SHARD      ?=
 STAMP      := $(VENV)/.installed
 
 MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
-OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
+# Words without '=' are the rest of a multi-word variable (SCENES="a.xml b.xml"), not overrides.
+OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a)))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -79,6 +80,16 @@ train: setup
 # repository ships one in train/base_model, so this is only needed to make a new one.
 pretrain: setup
 	$(RUN) pretrain --config $(CONFIG) $(OVERRIDES)
+
+# Every method on the test split (and external scenes) per spp: tables, error vs time, crops in
+# reports/<run>/. SPP=4 limits it to one sample count; SCENES="a.xml b.xml" renders Mitsuba 3
+# scenes into the store (split 'external') first and reports them separately.
+eval: setup
+	$(RUN) eval --config $(CONFIG) $(OVERRIDES) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(foreach s,$(SCENES),--scene $(s))
+
+# Every method on synthetic edge cases (fireflies, NaN/Inf, black, 1e5, sizes up to 1920x1080).
+stability: setup
+	$(RUN) stability --config $(CONFIG) $(OVERRIDES)
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')

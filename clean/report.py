@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.color import gamma_compress
+from pipeline import figures
 from pipeline.config import Config
 from pipeline.metrics import all_metrics, mse
 from pipeline.store import Store
@@ -65,47 +65,11 @@ def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -
             "isik": _mean_rows(rows_den)}
 
 
-def _detail_crop(img: np.ndarray, size: int) -> tuple[int, int]:
-    """Top-left corner of the ``size``² window with the most gradient energy (where blur shows)."""
-    lum = img.mean(axis=2)
-    g = np.abs(np.diff(lum, axis=0))[:, :-1] + np.abs(np.diff(lum, axis=1))[:-1, :]
-    h, w = g.shape
-    size = min(size, h, w)
-    best, corner = -1.0, (0, 0)
-    step = max(1, size // 4)
-    for y in range(0, h - size + 1, step):
-        for x in range(0, w - size + 1, step):
-            e = float(g[y:y + size, x:x + size].sum())
-            if e > best:
-                best, corner = e, (y, x)
-    return corner
-
-
 def crop_grid(store: Store, split: str, path: Path, rows: int = 4, size: int = 64) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     keys = [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()][:rows]
-    if not keys:
-        return
-    fig, axes = plt.subplots(len(keys), 3, figsize=(7.5, 2.6 * len(keys)), squeeze=False)
-    for r, key in enumerate(keys):
-        imgs = [store.read_image(key.scene, key.frame, n, ["color"])[0]["color"] for n in ("gt1", "gt_clean", "gt2")]
-        y, x = _detail_crop(imgs[2], size)
-        for c, (name, img) in enumerate(zip(("GT1", "GT_clean", "GT2"), imgs)):
-            crop = np.clip(gamma_compress(img[y:y + size, x:x + size]), 0, 1)
-            ax = axes[r][c]
-            ax.imshow(crop, interpolation="nearest")
-            ax.set_xticks([]), ax.set_yticks([])
-            if r == 0:
-                ax.set_title(name)
-            if c == 0:
-                ax.set_ylabel(f"{key}", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    grid = [(str(key), [store.read_image(key.scene, key.frame, n, ["color"])[0]["color"]
+                        for n in ("gt1", "gt_clean", "gt2")]) for key in keys]
+    figures.crop_grid(grid, ["GT1", "GT_clean", "GT2"], path, size=size)
 
 
 def run_report(cfg: Config, out: str = "reports/cleaner", spp: int | None = None) -> dict:

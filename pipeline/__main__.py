@@ -81,6 +81,25 @@ def cmd_clean_report(args) -> int:
     return 0
 
 
+def cmd_eval(args) -> int:
+    from evaluate.run import run_eval
+    spps = None
+    if args.spp:
+        try:
+            spps = [int(v) for v in args.spp.split(",") if v.strip()]
+        except ValueError:
+            raise ConfigError(f"--spp {args.spp!r}: expected sample counts such as 4 or 4,16,64") from None
+    run_eval(_config(args), spps=spps, scenes=args.scenes, out=args.out, quiet=args.quiet)
+    return 0
+
+
+def cmd_stability(args) -> int:
+    from evaluate.stability import run_stability
+    data = run_stability(_config(args), out=args.out, quiet=args.quiet)
+    failed = sum(c["status"] not in ("ok", "not available") for r in data["results"].values() for c in r.values())
+    return 1 if failed else 0
+
+
 def cmd_config(args) -> int:
     if args.doc:
         print(documentation_markdown(), end="")
@@ -142,6 +161,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="reports/cleaner")
     p.add_argument("--spp", type=int, default=None)
     p.set_defaults(fn=cmd_clean_report)
+
+    p = with_config(sub.add_parser("eval", help="every method on the test frames per spp: tables, error vs time, "
+                                                "crops (reports/<run>/)"))
+    p.add_argument("--spp", default=None, help="sample counts, comma-separated, e.g. 4 or 4,16 (default: eval.spp)")
+    p.add_argument("--scene", action="append", default=None, metavar="XML", dest="scenes",
+                   help="a Mitsuba 3 scene to render into the store (split 'external') and report separately; "
+                        "repeat for several")
+    p.add_argument("--out", default=None, help="report folder (default: eval.out or reports/<runs name>)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_eval)
+
+    p = with_config(sub.add_parser("stability", help="every method on synthetic edge cases (fireflies, NaN, sizes, ...)"))
+    p.add_argument("--out", default=None, help="report folder (default: as eval)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_stability)
 
     p = sub.add_parser("inspect", help="describe a store (frames, channels, constants, timings, NaN/Inf)")
     p.add_argument("store")

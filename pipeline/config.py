@@ -164,6 +164,34 @@ class PretrainConfig:
 
 
 @dataclass
+class EvalConfig:
+    methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
+                        "ours, ours_skipN (N of the 27 steps skipped), base_only[_skipN] (the base without the "
+                        "Control Module). A method whose model is missing is listed as not available.",
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip12", "ours_skip18",
+                                         "base_only"])
+    spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
+                    "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
+    split: str = doc("Store split to evaluate (external scenes are always reported separately).", "test")
+    frames: int = doc("Evaluate at most this many frames of the split (0: all).", 0)
+    metrics: list = doc("Metric columns: l1, psnr, ssim, flip (LDR, on the tonemap), hdr_flip, fvvdp.",
+                        factory=lambda: ["l1", "psnr", "ssim", "flip", "hdr_flip", "fvvdp"])
+    fvvdp_display: str = doc("FovVideoVDP display model (pyfvvdp's display_models.json).", "standard_4k")
+    equal_time: str = doc("Equal-time Monte Carlo: 'render' (render each frame at the equal-time spp with the "
+                          "dataset's renderer, cached in the store), 'pool' (average stored stacks, capped at "
+                          "stacks x stack_spp), 'none'.", "render")
+    equal_time_methods: list = doc("Denoisers whose time budget gets an equal-time MC row.",
+                                   factory=lambda: ["ours", "isik", "oidn"])
+    equal_time_max_spp: int = doc("Cap of the equal-time MC spp ('render'); capped rows are marked.", 4096)
+    device: str = doc("Torch device of the Isik and diffusion methods: 'auto', 'cpu', 'cuda', ...", "auto")
+    seed: int = doc("Sampling seed of the diffusion methods.", 0)
+    crops: int = doc("Frames in the crop grid per spp.", 4)
+    crop_size: int = doc("Side of each crop in pixels.", 64)
+    stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
+    out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
+
+
+@dataclass
 class Config:
     seed: int = doc("Master seed: scene i is generated from (seed, i); every render seed derives from it.", 0)
     store: str = doc("Path of the EXR buffer store (relative paths are relative to the working directory).", "data/default")
@@ -177,6 +205,7 @@ class Config:
     diffusion: DiffusionConfig = doc("Diffusion denoiser: frozen base + Control Module (make train SPP=4).",
                                      factory=DiffusionConfig)
     pretrain: PretrainConfig = doc("The small stand-in base (make pretrain).", factory=PretrainConfig)
+    eval: EvalConfig = doc("Evaluation (make eval, make stability).", factory=EvalConfig)
 
 
 # --------------------------------------------------------------------------------------------
@@ -289,6 +318,8 @@ def validate(cfg: Config, source: str) -> None:
         bad("executor.kind", f"expected 'local' or 'ray', got {cfg.executor.kind!r}")
     if cfg.executor.workers < 1:
         bad("executor.workers", "must be >= 1")
+    if cfg.eval.equal_time not in ("render", "pool", "none"):
+        bad("eval.equal_time", f"expected 'render', 'pool' or 'none', got {cfg.eval.equal_time!r}")
     for key in ("objects", "area_lights", "fov"):
         rng = getattr(cfg.scene, key)
         if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):

@@ -10,6 +10,15 @@ of each metric; ``clean.losses`` trains with the very same ``smape``.
 - ``psnr``: on the ``clamp(x, 0)/(1 + x)`` tonemap (paper eq. 7) with peak 1:
   ``10·log10(1 / MSE)``; identical images give ``inf``.
 - ``smape``: symmetric mean absolute percentage error, per pixel and channel (see ``smape``).
+
+Evaluation metrics (numpy only, float results; used by ``evaluate``):
+
+- ``ssim``: SSIM (Wang et al. 2004) on the Reinhard tonemap, 11×11 Gaussian window σ = 1.5,
+  K1 = 0.01, K2 = 0.03, dynamic range 1, "valid" positions only, mean over RGB channels.
+- ``flip``: NVIDIA FLIP (``flip-evaluator``), LDR-FLIP on the Reinhard tonemap or HDR-FLIP on
+  the linear radiance; lower is better, 0 for identical images.
+- ``fvvdp``: FovVideoVDP (``pyfvvdp``) in JOD on the Reinhard tonemap shown on a display model
+  (default ``standard_4k``); 10 for identical images, higher is better.
 """
 from __future__ import annotations
 
@@ -60,6 +69,107 @@ def smape(pred, ref, eps: float = SMAPE_EPS):
     noise, from dominating.
     """
     return _mean(abs(pred - ref) / (abs(pred) + abs(ref) + eps))
+
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K1, SSIM_K2 = 0.01, 0.03
+
+
+def _gaussian_window(size: int, sigma: float) -> np.ndarray:
+    r = np.arange(size, dtype=np.float64) - (size - 1) / 2
+    g = np.exp(-r * r / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def _filter_valid(x: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Separable correlation of (H, W, C) ``x`` with ``g`` ⊗ ``g`` at the "valid" positions."""
+    k = len(g)
+    H, W = x.shape[:2]
+    y = sum(g[i] * x[i:H - k + 1 + i] for i in range(k))
+    return sum(g[j] * y[:, j:W - k + 1 + j] for j in range(k))
+
+
+def ssim(pred, ref, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> float:
+    """Mean SSIM of the Reinhard-tonemapped images (Wang et al. 2004, dynamic range L = 1).
+
+    Local means, variances and the covariance use the normalised Gaussian window without Bessel
+    correction (as the reference implementation); the SSIM map is taken at the "valid" window
+    positions only (no padding) and averaged over them and the channels. Images smaller than the
+    window use the largest odd window that fits (a 1×1 window compares pixel values only).
+    Identical images give 1; two black images give 1 as well (C1, C2 keep the ratio defined).
+    """
+    x = np.asarray(reinhard(np.asarray(pred, dtype=np.float64)))
+    y = np.asarray(reinhard(np.asarray(ref, dtype=np.float64)))
+    if x.shape != y.shape:
+        raise ValueError(f"ssim: shapes differ {x.shape} vs {y.shape}")
+    if x.ndim == 2:
+        x, y = x[..., None], y[..., None]
+    size = min(window, x.shape[0], x.shape[1])
+    size -= 1 - size % 2                      # odd
+    g = _gaussian_window(size, sigma)
+    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
+    mx, my = _filter_valid(x, g), _filter_valid(y, g)
+    sxx = _filter_valid(x * x, g) - mx * mx
+    syy = _filter_valid(y * y, g) - my * my
+    sxy = _filter_valid(x * y, g) - mx * my
+    num = (2 * mx * my + c1) * (2 * sxy + c2)
+    den = (mx * mx + my * my + c1) * (sxx + syy + c2)
+    return float((num / den).mean())
+
+
+# FLIP's sRGB -> luminance weights (linear sRGB, D65): the reference's Y decides its exposures.
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def flip(pred, ref, hdr: bool = False) -> float:
+    """Mean FLIP error (NVIDIA ``flip-evaluator``) of ``pred`` against ``ref``, HDR radiance inputs.
+
+    ``hdr=False``: LDR-FLIP of the Reinhard tonemaps (displayed values, sRGB-encoded as FLIP
+    assumes). ``hdr=True``: HDR-FLIP of the radiance clamped at 0 (linear sRGB), with FLIP's own
+    exposure range from the reference — except for an all-black reference, where FLIP's start
+    exposure is log2(x/0) and its C++ core terminates the process: there one exposure (0) is
+    used, i.e. LDR-FLIP of the ACES-tonemapped images.
+    """
+    import flip_evaluator
+
+    params = {}
+    if hdr:
+        r = np.ascontiguousarray(np.clip(np.asarray(ref, dtype=np.float32), 0, None))
+        t = np.ascontiguousarray(np.clip(np.asarray(pred, dtype=np.float32), 0, None))
+        if float((r.reshape(-1, 3) @ _LUMINANCE).max(initial=0.0)) <= 0.0:
+            params = {"startExposure": 0.0, "stopExposure": 0.0}
+    else:
+        r = np.ascontiguousarray(reinhard(np.asarray(ref, dtype=np.float32)), dtype=np.float32)
+        t = np.ascontiguousarray(reinhard(np.asarray(pred, dtype=np.float32)), dtype=np.float32)
+    _, mean, _ = flip_evaluator.evaluate(r, t, "HDR" if hdr else "LDR", applyMagma=False, parameters=params)
+    return float(mean)
+
+
+_FVVDP: dict = {}
+
+
+def fvvdp(pred, ref, display: str = "standard_4k") -> float:
+    """FovVideoVDP quality in JOD (10 = no visible difference) of the Reinhard tonemaps as still images.
+
+    The tonemapped values are treated as display-encoded pixel values of the ``display`` model
+    (``standard_4k``: 200 cd/m², sRGB), as the paper's evaluation does. Runs on the CPU, offline
+    (the package ships its parameters and CSF tables).
+    """
+    import warnings
+
+    import torch
+
+    if display not in _FVVDP:
+        with warnings.catch_warnings():      # pyfvvdp 1.2.2 uses scipy.io names deprecated in SciPy 1.8+
+            warnings.simplefilter("ignore", DeprecationWarning)
+            import pyfvvdp
+            _FVVDP[display] = pyfvvdp.fvvdp(display_name=display, heatmap=None, device=torch.device("cpu"))
+    r = np.ascontiguousarray(reinhard(np.asarray(ref, dtype=np.float32)), dtype=np.float32)
+    t = np.ascontiguousarray(reinhard(np.asarray(pred, dtype=np.float32)), dtype=np.float32)
+    with torch.no_grad():
+        q, _ = _FVVDP[display].predict(t, r, dim_order="HWC")
+    return float(q)
 
 
 def all_metrics(pred, ref, eps: float = SMAPE_EPS) -> dict[str, float]:

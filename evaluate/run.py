@@ -1,0 +1,282 @@
+"""``make eval`` → ``python -m pipeline eval``: every method on the test frames, per spp.
+
+For each group of frames (the ``eval.split`` split against GT_clean; the store's ``external``
+split, e.g. scenes given with ``--scenes``, against GT_clean where it exists, else GT1 — the
+paper does not post-process its external test scenes) and each spp of ``eval.spp``:
+
+1. every method of ``eval.methods`` denoises the first stacks pooled to that spp
+   (``evaluate.harness``: inputs repaired and counted, denoise wall time measured, output
+   checked); a method that cannot run is a row with its reason;
+2. metrics against the reference (``evaluate.scoring``), means over frames;
+3. plain MC at equal time to each of ``eval.equal_time_methods`` (``evaluate.montecarlo``);
+4. the MC convergence curve per frame and the spp plain MC needs to match each method
+   (``evaluate.timing.spp_equivalent``), and a crop grid.
+
+Tables, plots and the raw per-frame numbers go to ``reports/<run>/`` (``evaluate.report``).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import Config, ConfigError
+from pipeline.exr import StoreError
+from pipeline.progress import progress
+from pipeline.store import FrameKey, Store
+
+from . import report
+from .harness import finite_output, run_method
+from .methods import Loader, MethodUnavailable, check_names, label, parse_name
+from .montecarlo import equal_time_images, mc_curve, mean_curve
+from .scoring import NOT_COMPUTED, check_metrics, score, usable_metrics
+from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
+
+EXTERNAL = "external"
+CROP_METHODS = ("noisy", "oidn", "isik", "ours")
+CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "isik": "Isik", "ours": "ours", "gt_clean": "GT_clean", "gt1": "GT1"}
+
+
+def report_dir(cfg: Config, out: str | None = None) -> Path:
+    if out:
+        return Path(out)
+    if cfg.eval.out:
+        return Path(cfg.eval.out)
+    return Path("reports") / (Path(cfg.runs).name or "default")
+
+
+def open_store(cfg: Config) -> Store:
+    store = Store(cfg.store)
+    if not store.manifest_path.exists():
+        raise StoreError(f"{store.root}: no dataset store here (no dataset.json); render one first "
+                         f"(make dataset CONFIG=...) or point store= at it")
+    store.manifest()
+    return store
+
+
+def _reference(store: Store, key: FrameKey, allow_gt1: bool) -> tuple[str, np.ndarray] | None:
+    for name in ("gt_clean",) + (("gt1",) if allow_gt1 else ()):
+        if store.image_path(key.scene, key.frame, name).exists():
+            return name, store.read_image(key.scene, key.frame, name, ["color"])[0]["color"]
+    return None
+
+
+def frame_groups(cfg: Config, store: Store) -> dict[str, list[FrameKey]]:
+    """{group: frames} with a complete frame record; the split must have GT_clean."""
+    groups: dict[str, list[FrameKey]] = {}
+    splits = store.manifest()["splits"]
+    if cfg.eval.split not in splits:
+        raise StoreError(f"{store.manifest_path}: no split {cfg.eval.split!r} (have {', '.join(splits)})")
+    wanted = [cfg.eval.split] + ([EXTERNAL] if splits.get(EXTERNAL) and cfg.eval.split != EXTERNAL else [])
+    for split in wanted:
+        keys = [k for k in store.frames(split) if store.frame_record(k.scene, k.frame) is not None]
+        if split != EXTERNAL:
+            with_clean = [k for k in keys if store.image_path(k.scene, k.frame, "gt_clean").exists()]
+            if keys and not with_clean:
+                raise StoreError(f"{store.root}: no {split} frame has gt_clean.exr; run `make gt-clean` first")
+            keys = with_clean
+        if cfg.eval.frames > 0:
+            keys = keys[:cfg.eval.frames]
+        if keys:
+            groups[split] = keys
+    if not groups:
+        raise StoreError(f"{store.root}: no rendered frames in split {cfg.eval.split!r}")
+    return groups
+
+
+def _spp_problem(store: Store, keys: list[FrameKey], spp: int) -> str | None:
+    for scene in sorted({k.scene for k in keys}):
+        sm = store.scene_manifest(scene)
+        n, K = int(sm["stack_spp"]), int(sm["stacks"])
+        if spp % n or not 1 <= spp // n <= K:
+            return f"not in the store: {scene} has {K} stacks of {n} spp (pools {n}..{n * K} spp)"
+    return None
+
+
+def _summary(values: list[float]) -> dict:
+    if not values:
+        return {"median": None, "mean": None}
+    return {"median": float(np.median(values)), "mean": float(np.mean(values))}
+
+
+def _mean_metrics(rows: list[dict], names: list[str]) -> dict:
+    out = {}
+    for name in names:
+        vals = [r["metrics"][name] for r in rows if "metrics" in r]
+        out[name] = float(np.mean(vals)) if vals else None
+    return out
+
+
+def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], spps: list[int],
+                   loader: Loader, metric_names: list[str], out_dir: Path, quiet: bool) -> dict:
+    e = cfg.eval
+    opts = {"display": e.fvvdp_display}
+    refs, costs, curves = {}, {}, {}
+    for key in keys:
+        ref = _reference(store, key, allow_gt1=group == EXTERNAL)
+        if ref is None:
+            raise StoreError(f"{store.frame_dir(key.scene, key.frame)}: no reference image (gt_clean or gt1)")
+        refs[key] = ref
+        costs[key] = render_cost(store.frame_record(key.scene, key.frame))
+        curves[str(key)] = mc_curve(store, key, ref[1], costs[key], ref[0])
+    result = {"frames": [str(k) for k in keys], "reference": {str(k): refs[k][0] for k in keys},
+              "render_cost": {str(k): {"a": c.a, "b": c.b, "how": c.how} for k, c in costs.items()},
+              "mc_curve": curves, "mc_mean": mean_curve(curves), "spp": {}}
+    todo = [s for s in spps if _spp_problem(store, keys, s) is None]
+    bar = progress(total=len(todo) * len(keys), desc=f"eval {group}", unit="frame", disable=quiet)
+    for spp in spps:
+        problem = _spp_problem(store, keys, spp)
+        if problem:
+            result["spp"][str(spp)] = {"skipped": problem}
+            continue
+        methods, rows = {}, {}
+        for name in e.methods:
+            try:
+                methods[name] = loader.load(name, spp)
+                rows[name] = {"label": label(name), "available": True, "device": methods[name].device,
+                              "per_frame": []}
+            except MethodUnavailable as exc:
+                rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
+        _warm_up(methods, store, keys[0], spp)
+        crops = []
+        for i, key in enumerate(keys):
+            buffers = store.read(key.scene, key.frame, spp)
+            ref = refs[key][1]
+            outputs = {}
+            for name, method in methods.items():
+                method.set_frame(store, key)
+                oc = run_method(method, buffers)
+                rec = {"frame": str(key), "seconds": oc.seconds, "status": oc.status(),
+                       "input_repaired": int(sum(oc.input_repaired.values())), "output_nonfinite": oc.output_nonfinite}
+                if oc.output is not None:
+                    outputs[name] = finite_output(oc)
+                    rec["metrics"] = score(outputs[name], ref, metric_names, opts)
+                rows[name]["per_frame"].append(rec)
+            if i < e.crops:
+                crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
+            bar.update(1)
+        for name, row in rows.items():
+            if row["available"]:
+                pf = row["per_frame"]
+                row["metrics"] = _mean_metrics(pf, metric_names)
+                row["seconds"] = _summary([r["seconds"] for r in pf])
+                row["failed_frames"] = sum(r["status"] != "ok" for r in pf)
+                row["input_repaired"] = sum(r["input_repaired"] for r in pf)
+        entry = {"methods": rows, "equal_time": _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names,
+                                                            opts, quiet)}
+        entry["time_vs_error"] = _time_vs_error(spp, keys, rows, entry["equal_time"], costs, result["mc_mean"])
+        titles = [CROP_TITLES[m] for m in CROP_METHODS if m in e.methods] + [CROP_TITLES[refs[keys[0]][0]]]
+        if crops:
+            path = out_dir / f"crops_{group}_spp{spp}.png"
+            report.crop_figure(crops, titles, path, e.crop_size)
+            entry["crops"] = path.name
+        result["spp"][str(spp)] = entry
+    bar.close()
+    return result
+
+
+def _warm_up(methods: dict, store: Store, key: FrameKey, spp: int, side: int = 32) -> None:
+    """One untimed call per method on a small crop: library start-up (OIDN device, torch, kernels)
+    is not charged to the first frame's time."""
+    crop = {k: v[:side, :side] for k, v in store.read(key.scene, key.frame, spp).items()}
+    for method in methods.values():
+        run_method(method, crop)
+
+
+def _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names, opts, quiet) -> dict:
+    e = cfg.eval
+    out = {}
+    if e.equal_time == "none":
+        return out
+    for name in e.equal_time_methods:
+        row = rows.get(name)
+        if not row or not row["available"] or row["seconds"]["median"] is None:
+            continue
+        t_d = row["seconds"]["median"]
+        wanted = {k: equal_time_spp(spp, t_d, costs[k]) for k in keys}
+        images = equal_time_images(cfg, store, wanted, e.equal_time, e.equal_time_max_spp, quiet)
+        per_frame = []
+        for key in keys:
+            et = images[key]
+            rec = {"frame": str(key), "wanted_spp": et.wanted, "spp": et.spp, "capped": et.capped,
+                   "model_seconds": costs[key].seconds(et.spp), "measured_seconds": et.measured_seconds}
+            if et.image is not None:
+                rec["metrics"] = score(et.image, refs[key][1], metric_names, opts)
+            else:
+                rec["error"] = et.error
+            per_frame.append(rec)
+        out[name] = {"label": f"MC, equal time to {name}", "denoise_seconds": t_d, "mode": e.equal_time,
+                     "per_frame": per_frame, "metrics": _mean_metrics(per_frame, metric_names),
+                     "spp": float(np.mean([r["spp"] for r in per_frame])),
+                     "wanted_spp": float(np.mean([r["wanted_spp"] for r in per_frame])),
+                     "capped_frames": sum(r["capped"] for r in per_frame),
+                     "failed_frames": sum("error" in r for r in per_frame)}
+    return out
+
+
+def _time_vs_error(spp, keys, rows, equal, costs, mc_mean) -> list[dict]:
+    """One point per method: render + denoise seconds, L1, PSNR and the MC spp of equal error."""
+    render_s = float(np.mean([costs[k].seconds(spp) for k in keys]))
+    curve_spp = [p["spp"] for p in mc_mean]
+    points = []
+
+    def add(name, kind, seconds, m):
+        if m.get("l1") is None and m.get("psnr") is None:
+            return
+        pt = {"method": name, "kind": kind, "seconds": seconds, "l1": m.get("l1"), "psnr": m.get("psnr")}
+        if m.get("l1") is not None:
+            pt["spp_equivalent_l1"] = spp_equivalent(curve_spp, [p["l1"] for p in mc_mean], m["l1"])
+        if m.get("psnr") is not None:
+            pt["spp_equivalent_psnr"] = spp_equivalent(curve_spp, [psnr_to_mse(p["psnr"]) for p in mc_mean],
+                                                       psnr_to_mse(m["psnr"]))
+        points.append(pt)
+
+    for name, row in rows.items():
+        if row["available"] and row.get("metrics"):
+            family = parse_name(name)[0]
+            denoise = row["seconds"]["median"] if family != "noisy" else 0.0
+            add(name, family, render_s + denoise, row["metrics"])
+    for name, et in equal.items():
+        secs = float(np.mean([r["model_seconds"] for r in et["per_frame"]]))
+        add(f"mc_equal_{name}", "mc_equal_time", secs, et["metrics"])
+    return points
+
+
+def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | None = None, out: str | None = None,
+             quiet: bool = False) -> dict:
+    t0 = time.perf_counter()
+    e = cfg.eval
+    check_names(e.methods)
+    check_metrics(e.metrics)
+    spps = [int(s) for s in (spps or e.spp)]
+    if not spps or any(s < 1 for s in spps):
+        raise ConfigError(f"eval.spp: expected positive sample counts, got {spps!r}")
+    store = open_store(cfg) if not scenes else None
+    if scenes:
+        from pipeline.external import render_scene
+        for xml in scenes:
+            render_scene(xml, cfg.store, cfg)
+        store = open_store(cfg)
+    groups = frame_groups(cfg, store)
+    if scenes:
+        from pipeline.external import _scene_id
+        named = {_scene_id(x, None) for x in scenes}
+        groups[EXTERNAL] = [k for k in groups.get(EXTERNAL, []) if k.scene in named]
+    metric_names, missing = usable_metrics(e.metrics)
+    out_dir = report_dir(cfg, out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    loader = Loader(cfg)
+    result = {"meta": report.run_meta(cfg, spps), "metrics": metric_names,
+              "metrics_missing": {**missing, **NOT_COMPUTED}, "groups": {}}
+    for group, keys in groups.items():
+        result["groups"][group] = evaluate_group(cfg, store, group, keys, spps, loader, metric_names, out_dir, quiet)
+    result["meta"]["seconds"] = time.perf_counter() - t0
+    result["stability"] = report.load_stability(out_dir)
+    text = report.write_eval(result, out_dir)
+    if not quiet:
+        print(text)
+    n_frames = sum(len(g["frames"]) for g in result["groups"].values())
+    print(f"eval: {n_frames} frames in {len(result['groups'])} group(s) x spp {','.join(map(str, spps))} x "
+          f"{len(e.methods)} methods in {result['meta']['seconds']:.1f} s -> {out_dir}/eval.md", flush=True)
+    return result

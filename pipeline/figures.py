@@ -1,0 +1,67 @@
+"""Figures shared by the reports: the crop grid that compares images side by side.
+
+``crop_grid`` draws one row per frame and one column per image (e.g. GT1 / GT_clean / GT2 for
+the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row shows the same
+``size``² window of every image, picked where the row's reference image has the most gradient
+energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
+``pipeline.color.gamma_compress``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .color import gamma_compress
+
+
+def detail_crop(img: np.ndarray, size: int) -> tuple[int, int]:
+    """Top-left corner of the ``size``² window with the most gradient energy (where blur shows)."""
+    lum = img.mean(axis=2)
+    g = np.abs(np.diff(lum, axis=0))[:, :-1] + np.abs(np.diff(lum, axis=1))[:-1, :]
+    h, w = g.shape
+    size = min(size, h, w)
+    best, corner = -1.0, (0, 0)
+    step = max(1, size // 4)
+    for y in range(0, h - size + 1, step):
+        for x in range(0, w - size + 1, step):
+            e = float(g[y:y + size, x:x + size].sum())
+            if e > best:
+                best, corner = e, (y, x)
+    return corner
+
+
+def crop_grid(rows: list[tuple[str, list[np.ndarray | None]]], titles: list[str], path: Path, size: int = 64,
+              reference: int = -1) -> None:
+    """Save a grid of crops: ``rows`` = [(row label, [HDR image (H, W, 3) or None per column])].
+
+    The crop window of a row is chosen on its image number ``reference`` (default: the last
+    column, the ground truth). A ``None`` cell is left blank with "n/a" (a method that did not run).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        return
+    cols = len(titles)
+    fig, axes = plt.subplots(len(rows), cols, figsize=(2.5 * cols, 2.6 * len(rows)), squeeze=False)
+    for r, (label, imgs) in enumerate(rows):
+        ref = imgs[reference]
+        y, x = detail_crop(ref, size) if ref is not None else (0, 0)
+        for c, (name, img) in enumerate(zip(titles, imgs)):
+            ax = axes[r][c]
+            if img is None:
+                ax.text(0.5, 0.5, "n/a", ha="center", va="center", transform=ax.transAxes)
+            else:
+                crop = np.clip(gamma_compress(img[y:y + size, x:x + size]), 0, 1)
+                ax.imshow(crop, interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+            if r == 0:
+                ax.set_title(name, fontsize=9)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
