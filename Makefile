@@ -1,6 +1,7 @@
 # mcdenoise: Monte Carlo denoising dataset -> GT cleaner -> diffusion denoiser -> evaluation.
 #
-#   make demo                 the main job on configs/default.yaml (sets itself up)
+#   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik
+#                             baseline and the diffusion denoiser at SPP=4, evaluation (sets itself up)
 #   make test                 the test suite (sets itself up)
 #   make dataset [CONFIG=...] [key=value ...]
 #
@@ -24,7 +25,7 @@ RUN        := $(PY) -m pipeline
 .PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect bench test clean distclean
 
 help:
-	@sed -n '1,12p' Makefile
+	@sed -n '1,9p' Makefile
 
 # ---- set-up -------------------------------------------------------------------------------
 setup: $(STAMP) llvm
@@ -54,6 +55,9 @@ demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
 	$(RUN) clean-report --config $(CONFIG) $(OVERRIDES)
+	$(RUN) train --model isik --spp $(SPP) --config $(CONFIG) clean.epochs=10 $(OVERRIDES)
+	$(RUN) train --model diffusion --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
+	$(RUN) eval --config $(CONFIG) $(OVERRIDES) --spp $(SPP)
 
 # `make dataset` renders, then cleans the ground truth (the cleaner trains on the whole train
 # split, so with SHARD= only the rendering runs; run `make gt-clean` once all shards are done).
@@ -96,6 +100,7 @@ inspect: setup
 
 bench: setup
 	$(RUN) bench --config $(CONFIG) $(OVERRIDES)
+	$(RUN) bench-denoise --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
 
 # ---- tests --------------------------------------------------------------------------------
 test: setup

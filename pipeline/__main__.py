@@ -109,6 +109,12 @@ def cmd_config(args) -> int:
     return 0
 
 
+def cmd_bench_denoise(args) -> int:
+    from train.bench import run
+    run(_config(args), spp=args.spp, side=args.side, out=args.out)
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_bench
     run_bench(_config(args), out=args.out)
@@ -197,6 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     p = with_config(sub.add_parser("bench", help="integrator vs path, dataset time shares, savings of omitted channels"))
     p.add_argument("--out", default="reports/bench", help="folder for bench results (JSON, Markdown)")
     p.set_defaults(fn=cmd_bench)
+
+    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 27/15/9 steps, 256² and per MP"))
+    p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
+    p.add_argument("--side", type=int, default=256, help="frame side of the per-frame timing")
+    p.add_argument("--out", default="reports/bench")
+    p.set_defaults(fn=cmd_bench_denoise)
 
     args = parser.parse_args(argv)
     try:

@@ -112,3 +112,11 @@ def test_eval_runs_the_trained_model(setup, tmp_path):
         l1, psnr_db = (float(c.strip(" *")) for c in row.split("|")[2:4])
         assert 0 <= l1 < 6 and 0 < psnr_db < 100, row
     assert (tmp_path / "rep" / "crops_train_spp4.png").stat().st_size > 1000
+
+
+def test_bench_denoise_reports_every_step_count(setup, tmp_path):
+    tmp, keys = setup
+    run("bench-denoise", *keys, "diffusion.tile=32", "diffusion.tile_overlap=8", "--side", 32, "--out", tmp_path)
+    rows = json.loads((tmp_path / "denoise.json").read_text())["rows"]
+    assert [r["steps"] for r in rows] == [27, 15, 9]
+    assert all(r["side"] == 32 and r["seconds_frame"] > 0 and r["seconds_per_megapixel"] > 0 for r in rows)
