@@ -168,8 +168,8 @@ class EvalConfig:
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
                         "ours, ours_skipN (N of the 27 steps skipped), base_only[_skipN] (the base without the "
                         "Control Module). A method whose model is missing is listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip12", "ours_skip18", "ours_skip24",
-                                         "base_only"])
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip12", "ours_skip18",
+                                         "ours_skip24", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (external scenes are always reported separately).", "test")
