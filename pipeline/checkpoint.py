@@ -83,9 +83,9 @@ def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title:
     handles, labels = ax.get_legend_handles_labels()
     if right:
         ax2 = ax.twinx()
-        for name, pts in right.items():
+        for i, (name, pts) in enumerate(right.items()):
             if pts:
-                ax2.plot(*zip(*pts), "s--", color="C3", label=name, markersize=3)
+                ax2.plot(*zip(*pts), "s--" if i == 0 else ":", color=f"C{3 + i}", label=name, markersize=3)
         ax2.set_ylabel(right_label)
         h2, l2 = ax2.get_legend_handles_labels()
         handles, labels = handles + h2, labels + l2
