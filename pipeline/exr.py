@@ -84,6 +84,8 @@ def atomic_write_bytes(path: Path, writer) -> None:
         writer(tmp)
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
+        # mkstemp creates the file 0600; a store is shared (cluster, other users): honour the umask.
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException as exc:
         try:
@@ -97,6 +99,8 @@ def atomic_write_bytes(path: Path, writer) -> None:
         raise
 
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
 _IO_WORDS = re.compile(r"No space left|Disk quota|Read-only file system|Permission denied|File too large|"
                        r"Input/output error|Failed to write|Cannot open")
 
