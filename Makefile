@@ -20,7 +20,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report train inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report train inspect verify plan bench test clean distclean
 
 help:
 	@sed -n '1,12p' Makefile
@@ -74,6 +74,14 @@ train: setup
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+# Check every file of the store (channels, shapes, checksums, manifests, gt_clean hashes); exit 1 on problems.
+verify: setup
+	$(RUN) verify $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+# What the dataset of CONFIG costs (core-hours, disk, wall time per core count), before running it.
+plan: setup
+	$(RUN) plan --config $(CONFIG) $(OVERRIDES)
 
 bench: setup
 	$(RUN) bench --config $(CONFIG) $(OVERRIDES)

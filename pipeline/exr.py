@@ -113,7 +113,8 @@ def _reason(exc: BaseException) -> str:
         elif exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
             text += ": the store is not writable"
         return text
-    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text + (": the disk is full" if "No space left" in text else "")
 
 
 def atomic_write_json(path: Path, data: Any) -> None:

@@ -323,3 +323,131 @@ def test_worker_killed_mid_frame_is_retried(kind, slow_reference, tmp_path, caps
     assert frame["reused_images"] >= 1        # the retried task resumed from the images written
     assert_same_store(slow_reference, root)
     assert_verified(root)
+
+
+# ---- full disk, read-only store -------------------------------------------------------------------
+
+def _fail_mid_write(monkeypatch, err: int = 28):
+    """Make every atomic write fail half-way: the writer writes some bytes, then the OS says ENOSPC."""
+    import pipeline.exr as exr
+
+    real = exr.atomic_write_bytes
+
+    def failing(path, writer):
+        def half(tmp):
+            writer(tmp)
+            with open(tmp, "r+b") as f:
+                f.truncate(max(1, os.path.getsize(tmp) // 2))
+            raise OSError(err, os.strerror(err), tmp)
+        return real(path, half)
+
+    monkeypatch.setattr(exr, "atomic_write_bytes", failing)
+
+
+@pytest.mark.parametrize("what", ["image", "manifest", "checkpoint"])
+def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
+    import numpy as np
+
+    import pipeline.exr as exr
+    from clean import train as clean_train
+    from pipeline import schema
+    from pipeline.store import Store
+
+    store = Store(tmp_path / "store")
+    store.write_manifest({"scenes": [], "splits": {}})
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    _fail_mid_write(monkeypatch)
+    monkeypatch.setattr(clean_train, "atomic_write_bytes", exr.atomic_write_bytes)
+    arrays = {k: np.ones((4, 5, schema.BY_NAME[k.removesuffix(".variance")].size), np.float32) for k in schema.all_keys()}
+    target = {"image": tmp_path / "store/scenes/s0/000/gt1.exr", "manifest": store.manifest_path,
+              "checkpoint": tmp_path / "runs/last.safetensors"}[what]
+    with pytest.raises(exr.StoreWriteError, match=rf"{target.name}: writing failed, nothing was written "
+                                                  r"\(No space left on device: the disk is full\)"):
+        if what == "image":
+            store.write_image("s0", 0, "gt1", arrays)
+        elif what == "manifest":
+            store.write_manifest({"scenes": ["s0"], "splits": {"train": ["s0"]}})
+        else:
+            clean_train._save_safetensors(target, {"w": torch.ones(3)}, {"format": "x"})
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert after == before            # the old manifest intact, no partial or temporary file
+
+
+def _limit_file_size(limit: int):
+    def preexec():
+        import resource
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return preexec
+
+
+def test_dataset_on_a_full_disk_fails_clearly_and_writes_no_partial_file(tmp_path):
+    """A real file-system refusal: RLIMIT_FSIZE makes every write past 40 kB fail (EFBIG), as a
+    full disk would, in the CLI and its worker processes. Manifests fit, images do not."""
+    root = tmp_path / "store"
+    # drjit's kernel cache (~/.drjit) would hit the limit too: give this run its own.
+    env = {**os.environ, "HOME": str(tmp_path / "home")}
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "dataset", "--config", str(TINY), f"store={root}",
+                           "dataset.scenes=1", "dataset.frames=1", "--quiet"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300, preexec_fn=_limit_file_size(40_000), env=env)
+    assert proc.returncode == 1, proc.stderr
+    out = proc.stdout + proc.stderr
+    assert f"FAILED frame s00000/000: {root}/scenes/s00000/000/gt1.exr: writing failed, nothing was written" in out
+    assert "File too large" in out
+    assert "Traceback" not in out
+    assert not list(root.rglob("*.tmp")) and not list(root.rglob("*.exr"))
+    report = verify_store(root)          # the store says what is missing, nothing is damaged
+    assert report.incomplete == 1 and all("incomplete" in p for p in report.problems)
+
+
+def _read_only_preexec():
+    """Run a command that may not write where the permission bits say so, even as root:
+    root drops CAP_DAC_OVERRIDE/CAP_DAC_READ_SEARCH from its bounding set before exec."""
+    def preexec():
+        if os.geteuid() == 0:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            for cap in (1, 2):
+                if libc.prctl(24, cap, 0, 0, 0) != 0:       # PR_CAPBSET_DROP
+                    raise OSError(ctypes.get_errno(), "prctl(PR_CAPBSET_DROP)")
+    return preexec
+
+
+def test_read_only_store_is_a_clear_error_naming_the_path(tiny_store, tmp_path):
+    reference, _ = tiny_store
+    root = tmp_path / "store"
+    shutil.copytree(reference, root)
+    before = {p: p.stat().st_mtime_ns for p in root.rglob("*")}
+    subprocess.run(["chmod", "-R", "a-w", str(root)], check=True)
+    try:
+        run = lambda *a: subprocess.run([sys.executable, "-m", "pipeline", *a], cwd=ROOT, capture_output=True,
+                                        text=True, timeout=300, preexec_fn=_read_only_preexec())
+        proc = run("dataset", "--config", str(TINY), f"store={root}", "--quiet")
+        assert proc.returncode == 2, proc.stderr
+        assert f"error: {root / 'dataset.json'}: cannot write into {root} (Permission denied: the store is not writable)" \
+            in proc.stderr
+        assert "Traceback" not in proc.stderr
+        assert run("verify", str(root)).returncode == 0      # reading a read-only store is fine
+    finally:
+        subprocess.run(["chmod", "-R", "u+w", str(root)], check=True)
+    assert {p: p.stat().st_mtime_ns for p in root.rglob("*")} == before
+
+
+# ---- the training history after a kill at the last epoch's commit point ------------------------------
+
+def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_path):
+    """Regression: train.json and loss.png were written after last.safetensors, so a kill between
+    them on the last epoch left a history one epoch short that no rerun repaired."""
+    from clean.train import run_dir, train
+    from tests.test_clean_train import make_store, tiny_cfg
+
+    make_store(tmp_path / "store")
+    cfg = tiny_cfg(tmp_path, epochs=2)
+    train(cfg, "cleaner", quiet=True)
+    folder = run_dir(cfg, "cleaner")
+    full = json.loads((folder / "train.json").read_text())
+    assert len(full["history"]) == 2
+    # What the old order left behind after such a kill: the checkpoint says 2 epochs, the history 1.
+    (folder / "train.json").write_text(json.dumps({**full, "history": full["history"][:1]}))
+    summary = train(cfg, "cleaner", quiet=True)
+    assert summary["trained_epochs"] == 0
+    assert json.loads((folder / "train.json").read_text()) == full
