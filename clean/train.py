@@ -216,6 +216,9 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     best: dict | None = None
     start = 0
     last = folder / "last.safetensors"
+    # Temporary files of a write a kill interrupted (one trainer per run folder: all stale).
+    for tmp in folder.glob(".*.tmp") if folder.is_dir() else ():
+        tmp.unlink(missing_ok=True)
     if last.exists():
         record = load_last(last, model, opt, device)
         if record.get("fingerprint") != fp:

@@ -451,3 +451,24 @@ def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_pa
     summary = train(cfg, "cleaner", quiet=True)
     assert summary["trained_epochs"] == 0
     assert json.loads((folder / "train.json").read_text()) == full
+
+
+def test_stale_temporary_files_of_a_killed_clean_run_are_removed(tmp_path):
+    """A kill mid-write leaves ``.<name>.*.tmp``; the next run of the stage removes its own."""
+    from clean.cli import cmd_gt_clean
+    from clean.train import run_dir
+    from pipeline.store import Store
+    from tests.test_clean_train import make_store, tiny_cfg
+
+    make_store(tmp_path / "store")
+    cfg = tiny_cfg(tmp_path, epochs=1)
+    store = Store(cfg.store)
+    key = store.frames()[0]
+    stale_image = store.frame_dir(key.scene, key.frame) / ".gt_clean.exr.abc123.tmp"
+    stale_ckpt = run_dir(cfg, "cleaner") / ".last.safetensors.xyz789.tmp"
+    for p in (stale_image, stale_ckpt):
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(b"half")
+    assert cmd_gt_clean(cfg, quiet=True) == 0
+    assert not stale_image.exists() and not stale_ckpt.exists()
+    assert not list(Path(cfg.store).rglob("*.tmp"))
