@@ -133,8 +133,8 @@ def read_json(path: Path, what: str = "manifest") -> dict:
             data = json.load(f)
     except FileNotFoundError:
         raise StoreError(f"{path}: {what} is missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise StoreError(f"{path}: {what} is not valid JSON ({exc})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise StoreError(f"{path}: {what} is not valid JSON ({str(exc)[:200]})") from None
     if not isinstance(data, dict):
         raise StoreError(f"{path}: {what} must be a JSON object")
     return data

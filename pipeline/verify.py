@@ -140,7 +140,8 @@ def _check_frame(store: Store, scene: str, f: int, sm: dict, cleaner: dict | Non
     images = list(sm.get("images") or [])
     if rec is None:
         report.incomplete += 1
-        report.add(fdir, "frame is incomplete (no frame.json); rerun make dataset")
+        again = "python -m pipeline render-scene" if sm.get("split") == "external" else "make dataset"
+        report.add(fdir, f"frame is incomplete (no frame.json); rerun {again}")
         known.update(fdir / f"{n}.exr" for n in images)
         return
     if rec.get("scene") not in (None, scene) or rec.get("frame") not in (None, f):

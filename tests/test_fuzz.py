@@ -402,3 +402,14 @@ def test_version_1_images_without_checksum_still_read(original, tmp_path):
     _rewrite(original["path"], v2, header_fn=lambda h: {**h, "mcdenoise": json.dumps(record)})
     with pytest.raises(StoreError, match=r"v2\.exr: header record has no checksum"):
         read_image(v2)
+
+
+@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, '{"a": ' * 50_000 + "1" + "}" * 50_000,
+                                  "\udcff", "NaN", "\x00" * 10])
+def test_pathological_json_is_a_store_error(tmp_path, text):
+    """Deep nesting (RecursionError in the json module), bad encodings, bare constants."""
+    root = tmp_path / "store"
+    root.mkdir()
+    (root / "dataset.json").write_bytes(text.encode("utf-8", "surrogateescape"))
+    with pytest.raises(StoreError, match=r"dataset\.json"):
+        Store(root).manifest()
