@@ -75,7 +75,7 @@ def cmd_bench(args) -> int:
 
 def cmd_verify(args) -> int:
     from .verify import run_verify
-    return run_verify(args.store, quiet=args.quiet, pixels=not args.headers_only)
+    return run_verify(args.store, quiet=args.quiet, pixels=not args.headers_only, jobs=args.jobs)
 
 
 def cmd_plan(args) -> int:
@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                                       "manifests, gt_clean hashes, leftover .tmp); exit 1 on any problem")
     p.add_argument("store")
     p.add_argument("--headers-only", action="store_true", help="skip pixel data and checksums (fast)")
+    p.add_argument("--jobs", type=int, default=1, help="check scenes in this many processes")
     p.add_argument("--quiet", action="store_true", help="only the summary line")
     p.set_defaults(fn=cmd_verify)
 

@@ -49,6 +49,11 @@ class Report:
     def add(self, path, message: str) -> None:
         self.problems.append(f"{path}: {message}")
 
+    def merge(self, other: "Report") -> None:
+        self.problems += other.problems
+        for key in ("scenes", "frames", "incomplete", "images", "bytes"):
+            setattr(self, key, getattr(self, key) + getattr(other, key))
+
     def summary(self, seconds: float, pixels: bool) -> str:
         what = "headers, pixels and checksums" if pixels else "headers only"
         return (f"verify {self.root}: {self.scenes} scenes, {self.frames} frames ({self.incomplete} incomplete), "
@@ -56,7 +61,8 @@ class Report:
                 f"{len(self.problems)} problem{'s' if len(self.problems) != 1 else ''}")
 
 
-def verify_store(root: str | Path, pixels: bool = True) -> Report:
+def verify_store(root: str | Path, pixels: bool = True, jobs: int = 1) -> Report:
+    """Check the whole store; ``jobs`` > 1 checks scenes in that many worker processes."""
     store = Store(root)
     report = Report(Path(root))
     if not store.root.is_dir():
@@ -66,25 +72,45 @@ def verify_store(root: str | Path, pixels: bool = True) -> Report:
         manifest = store.manifest()
     except StoreError as exc:
         report.problems.append(str(exc))
-        _leftovers(store, report, set())
+        _leftovers(store.root, report, None, recursive=True)
         return report
     _check_splits(store, manifest, report)
-    known: set[Path] = {store.manifest_path, store.root / CLEANER_MANIFEST}
     cleaner = _cleaner_manifest(store, report)
-    for scene in manifest["scenes"]:
-        report.scenes += 1
-        try:
-            sm = store.scene_manifest(scene)
-        except StoreError as exc:
-            report.problems.append(str(exc))
-            continue
-        known.add(store.scene_dir(scene) / "scene.json")
-        for f in range(sm["frames"]):
-            report.frames += 1
-            _check_frame(store, scene, f, sm, cleaner, report, known, pixels)
+    args = [(str(store.root), scene, cleaner, pixels) for scene in manifest["scenes"]]
+    if jobs > 1 and len(args) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            parts = list(pool.map(_verify_scene, args, chunksize=max(1, len(args) // (8 * jobs))))
+    else:
+        parts = [_verify_scene(a) for a in args]
+    for part in parts:
+        report.merge(part)
     if cleaner is not None:
         _check_cleaner_frames(store, cleaner, report)
-    _leftovers(store, report, known)
+    # Top level: only the manifests; every listed scene folder was checked by its worker.
+    _leftovers(store.root, report, {store.manifest_path, store.root / CLEANER_MANIFEST}, recursive=False)
+    scenes_dir = store.root / "scenes"
+    if scenes_dir.is_dir():
+        _leftovers(scenes_dir, report, set(), recursive=False)   # unlisted scene folders: _check_splits
+    return report
+
+
+def _verify_scene(args) -> Report:
+    root, scene, cleaner, pixels = args
+    store = Store(root)
+    report = Report(store.root)
+    report.scenes = 1
+    try:
+        sm = store.scene_manifest(scene)
+    except StoreError as exc:
+        report.problems.append(str(exc))
+        return report
+    known: set[Path] = {store.scene_dir(scene) / "scene.json"}
+    for f in range(sm["frames"]):
+        report.frames += 1
+        _check_frame(store, scene, f, sm, cleaner, report, known, pixels)
+    _leftovers(store.scene_dir(scene), report, known, recursive=True)
     return report
 
 
@@ -104,7 +130,7 @@ def _check_splits(store: Store, manifest: dict, report: Report) -> None:
     scenes_dir = store.root / "scenes"
     if scenes_dir.is_dir():
         for d in sorted(scenes_dir.iterdir()):
-            if d.name not in manifest["scenes"] and not d.name.endswith(".tmp"):
+            if d.is_dir() and d.name not in manifest["scenes"]:
                 report.add(d, "scene folder is not listed in dataset.json")
 
 
@@ -252,19 +278,20 @@ def _check_cleaner_frames(store: Store, cleaner: dict, report: Report) -> None:
             report.add(path, f"listed in {CLEANER_MANIFEST} but missing")
 
 
-def _leftovers(store: Store, report: Report, known: set) -> None:
-    for path in sorted(store.root.rglob("*")):
-        if path.is_dir():
+def _leftovers(folder: Path, report: Report, known: set | None, recursive: bool) -> None:
+    """Temporary files, and (where ``known`` is given) files nobody expects, in ``folder``."""
+    for path in sorted(folder.rglob("*") if recursive else folder.iterdir()):
+        if not path.is_file():
             continue
         if path.name.endswith(".tmp"):
             report.add(path, "temporary file left by an interrupted write (delete it, or rerun the stage)")
-        elif known and path not in known:
+        elif known is not None and path not in known:
             report.add(path, "unexpected file in the store")
 
 
-def run_verify(root: str, quiet: bool = False, pixels: bool = True) -> int:
+def run_verify(root: str, quiet: bool = False, pixels: bool = True, jobs: int = 1) -> int:
     t0 = time.perf_counter()
-    report = verify_store(root, pixels=pixels)
+    report = verify_store(root, pixels=pixels, jobs=jobs)
     if not quiet:
         for line in report.problems:
             print(line)

@@ -128,3 +128,15 @@ def test_cli_exits_1_and_names_the_file(store):
 def test_missing_store_is_an_error(tmp_path):
     proc = cli("verify", tmp_path / "nothing", check=False)
     assert proc.returncode == 1 and "store folder does not exist" in proc.stdout
+
+
+def test_parallel_verify_reports_the_same(store):
+    (store / FRAME / "gt2.exr").unlink()
+    _flip(store / "scenes/s00001/001/s02.exr")
+    (store / "scenes" / "stray.txt").write_text("x")
+    one, two = verify_store(store), verify_store(store, jobs=2)
+    # the flipped file fails two checks: its SHA-256 and its decoding
+    assert sorted(one.problems) == sorted(two.problems) and len(one.problems) == 4
+    assert (one.frames, one.images, one.bytes) == (two.frames, two.images, two.bytes)
+    proc = cli("verify", store, "--jobs", "2", check=False)
+    assert proc.returncode == 1 and proc.stdout.strip().endswith(": 4 problems")
