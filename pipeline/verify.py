@@ -1,4 +1,5 @@
-"""``python -m pipeline verify STORE``: check every file of a store; exit 1 on any problem.
+"""``python -m pipeline verify STORE [--jobs N] [--headers-only]``: check every file of a store;
+exit 1 on any problem.
 
 What is checked (each problem is reported as ``PATH: what is wrong``):
 

@@ -34,7 +34,7 @@ from pipeline.store import Store
 ROOT = Path(__file__).resolve().parents[1]
 CASE_TIMEOUT_S = 30
 FUZZ = settings(derandomize=True, deadline=None, database=None,
-                suppress_health_check=list(HealthCheck), max_examples=400)
+                suppress_health_check=list(HealthCheck), max_examples=700)
 
 
 # ---- the reader process -----------------------------------------------------------------------
