@@ -22,7 +22,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a)))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect verify plan bench test clean distclean
 
 help:
 	@sed -n '1,9p' Makefile
@@ -97,6 +97,14 @@ stability: setup
 
 inspect: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+# Check every file of the store (channels, shapes, checksums, manifests, gt_clean hashes); exit 1 on problems.
+verify: setup
+	$(RUN) verify $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
+
+# What the dataset of CONFIG costs (core-hours, disk, wall time per core count), before running it.
+plan: setup
+	$(RUN) plan --config $(CONFIG) $(OVERRIDES)
 
 bench: setup
 	$(RUN) bench --config $(CONFIG) $(OVERRIDES)

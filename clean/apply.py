@@ -85,6 +85,10 @@ def apply_cleaner(cfg: Config, quiet: bool = False) -> dict:
         if not store.is_frame_complete(key.scene, key.frame, ["gt1"]):
             stats["incomplete"] += 1
             continue
+        # A kill during a previous run's write leaves its temporary file; only this stage
+        # writes gt_clean, so any such file is stale.
+        for tmp in store.frame_dir(key.scene, key.frame).glob(".gt_clean.exr.*.tmp"):
+            tmp.unlink(missing_ok=True)
         if _current(store, key, digest):
             stats["skipped"] += 1
             frames_done[str(key)] = digest

@@ -182,12 +182,20 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Af
 
     ``path`` is the .safetensors file or the run folder holding ``model.safetensors``.
     """
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
+
+    from pipeline.exr import StoreError, read_json
 
     path = Path(path)
     if path.is_dir():
         path = path / "model.safetensors"
-    meta = json.loads(path.with_suffix(".json").read_text())
-    model = AffinityDenoiser(**meta["hparams"])
-    model.load_state_dict(load_file(str(path), device=str(device)))
+    meta = read_json(path.with_suffix(".json"), "model sidecar")
+    try:
+        model = AffinityDenoiser(**meta["hparams"])
+        # safetensors only: a pickle (torch.save) checkpoint is refused here, never unpickled.
+        model.load_state_dict(load_file(str(path), device=str(device)))
+    except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise StoreError(f"{path}: not a usable safetensors checkpoint of this model ({first})") from None
     return model.to(device).eval(), meta

@@ -163,6 +163,9 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     best: dict | None = None
     start = 0
     last = folder / "last.safetensors"
+    # Temporary files of a write a kill interrupted (one trainer per run folder: all stale).
+    for tmp in folder.glob(".*.tmp") if folder.is_dir() else ():
+        tmp.unlink(missing_ok=True)
     if last.exists():
         record = load_last(last, model, opt, device)
         if record.get("fingerprint") != fp:
@@ -170,14 +173,16 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
             raise TrainError(f"{last}: made with different settings ({', '.join(changed)}); delete {folder} "
                              f"or set another 'runs' folder to start over")
         start, history, best = int(record["epoch"]), record["history"], record["best"]
+    title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
     if start >= c.epochs:
+        if history:
+            _write_history(folder, mode, spp, history, best, title, only_if_changed=True)
         summary = _summary(folder, mode, spp, history, best, 0, time.perf_counter() - t_start)
         if not quiet:
             print(f"{folder.name}: already trained ({start} epochs); {summary['line']}")
         return summary
 
     train_ds, val_ds = datasets(cfg, mode, spp)
-    title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
     trained = 0
     for epoch in range(start, c.epochs):
         train_ds.set_epoch(epoch)
@@ -209,10 +214,11 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
                                       "input_channels": channel_names(), "epoch": epoch + 1,
                                       "metrics": entry["val"], "train_loss": entry["train_loss"],
                                       "smape_eps": c.smape_eps, "store": str(cfg.store), "clean": vars(c).copy()})
+        # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
+        # reruns the epoch (same result) and rewrites the files above.
+        _write_history(folder, mode, spp, history, best, title)
         save_last(last, model, opt, {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": fp},
                   FORMAT)
-        plot_curve(folder / "loss.png", history, title)
-        atomic_write_json(folder / "train.json", {"mode": mode, "spp": spp, "history": history, "best": best})
         if not quiet:
             val = entry["val"]
             print(f"{folder.name} epoch {epoch + 1}: train SMAPE {entry['train_loss']:.4f}"
@@ -227,6 +233,21 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     if not quiet:
         print(summary["line"], flush=True)
     return summary
+
+
+def _write_history(folder: Path, mode: str, spp, history: list, best, title: str,
+                   only_if_changed: bool = False) -> None:
+    """train.json and loss.png from the history (repaired if a kill left them an epoch behind)."""
+    record = {"mode": mode, "spp": spp, "history": history, "best": best}
+    path = folder / "train.json"
+    if only_if_changed and path.exists():
+        try:
+            if json.loads(path.read_text()) == record:
+                return
+        except (OSError, ValueError):
+            pass
+    plot_curve(folder / "loss.png", history, title)
+    atomic_write_json(path, record)
 
 
 def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:

@@ -121,6 +121,25 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_verify(args) -> int:
+    from .verify import run_verify
+    return run_verify(args.store, quiet=args.quiet, pixels=not args.headers_only, jobs=args.jobs)
+
+
+def cmd_plan(args) -> int:
+    from .plan import measure, run_plan
+    cfg = _config(args)
+    if args.measure:
+        print(json.dumps(measure(cfg), indent=1))
+        return 0
+    try:
+        workers = tuple(int(v) for v in args.workers.split(","))
+    except ValueError:
+        raise ConfigError(f"--workers {args.workers!r}: expected comma-separated core counts, e.g. 1,16,256") from None
+    run_plan(cfg, title=args.config or "defaults", store=args.store, workers=workers, as_json=args.json)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -209,6 +228,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--side", type=int, default=256, help="frame side of the per-frame timing")
     p.add_argument("--out", default="reports/bench")
     p.set_defaults(fn=cmd_bench_denoise)
+
+    p = sub.add_parser("verify", help="check every file of a store (readable, channels, shapes, checksums, "
+                                      "manifests, gt_clean hashes, leftover .tmp); exit 1 on any problem")
+    p.add_argument("store")
+    p.add_argument("--headers-only", action="store_true", help="skip pixel data and checksums (fast)")
+    p.add_argument("--jobs", type=int, default=1, help="check scenes in this many processes")
+    p.add_argument("--quiet", action="store_true", help="only the summary line")
+    p.set_defaults(fn=cmd_verify)
+
+    p = with_config(sub.add_parser("plan", help="estimate CPU core-hours, disk and wall time of the dataset stage"))
+    p.add_argument("--store", default=None, help="calibrate rate and bytes on an existing store's frames")
+    p.add_argument("--workers", default="1,2,16,64,256,1024", help="core counts for the wall-time column")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--measure", action="store_true", help="measure the model's constants on this machine "
+                                                           "(prints JSON for pipeline/plan.py)")
+    p.set_defaults(fn=cmd_plan)
 
     args = parser.parse_args(argv)
     try:

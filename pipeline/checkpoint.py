@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from .exr import atomic_write_bytes
+from .exr import StoreError, atomic_write_bytes
 
 
 def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
@@ -42,10 +42,14 @@ def save_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, re
 def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, device,
               extra: dict[str, torch.Tensor] | None = None) -> dict:
     """Restore ``model``, ``opt``, the torch RNG (and fill ``extra`` with saved extras); return the record."""
-    from safetensors import safe_open
-    with safe_open(str(path), framework="pt") as f:
-        record = json.loads(f.metadata()["state"])
-        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    from safetensors import SafetensorError, safe_open
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            record = json.loads((f.metadata() or {})["state"])
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError, KeyError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise StoreError(f"{path}: not a checkpoint this trainer wrote ({first}); delete it to start over") from None
     model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
     state: dict[int, dict] = {}
     for k, v in tensors.items():

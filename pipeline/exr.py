@@ -8,12 +8,26 @@ sees a difference. Radiance and variance are float32; features are stored in the
 
 Every problem with a file raises ``StoreError`` naming the path and, where it applies, the
 channel and what was expected.
+
+Reading is defensive (tests/test_fuzz.py feeds it damaged files): ``scan_exr`` checks the file's
+structure in pure Python before OpenEXR sees it (magic, version, every header attribute's size,
+the channel list against the schema's names and storage types, a sane data window, lossless
+compression, and an offset table whose chunks all lie inside the file), so truncated files and
+absurd headers are refused without allocating or decoding anything. Version 2 images carry a
+``checksum`` in their record: a CRC-32 over the record (without wall-clock fields such as
+``render_seconds``) and every stored channel's bytes, verified on every full read, so a bit flip
+in pixel data or in a recorded constant is an error, never silently different data.
+Version 1 images (written before the checksum existed) are still read, without that check.
 """
 from __future__ import annotations
 
+import errno
 import json
+import math
 import os
+import re
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -24,37 +38,83 @@ from . import schema
 from .numerics import constant_value
 
 FORMAT = "mcdenoise-image"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)          # 1: no checksum
 META_KEY = "mcdenoise"
-# Refuse absurd headers before allocating: 16k x 16k is far above any frame we render.
+# Refuse absurd headers before allocating: 16k pixels a side, 4096² pixels in all (an image of
+# every schema channel at that size decodes to ~3 GB) are far above any frame we render.
 MAX_SIDE = 16384
+MAX_PIXELS = 4096 * 4096
+# The header is read whole for the structural check; ours are a few KiB.
+MAX_HEADER_BYTES = 1 << 20
+# Record fields that differ between two renders of the same image (wall-clock): not checksummed.
+VOLATILE_KEYS = ("render_seconds",)
+MAGIC = b"\x76\x2f\x31\x01"
+# EXR compression code -> (name, scanlines per chunk); only lossless ones are accepted.
+LOSSLESS = {0: ("NO", 1), 1: ("RLE", 1), 2: ("ZIPS", 1), 3: ("ZIP", 16), 4: ("PIZ", 32)}
+PIXEL_TYPES = {1: np.dtype(np.float16), 2: np.dtype(np.float32)}   # 0 (uint) is never written
 
 
 class StoreError(RuntimeError):
     """Something in the store is missing, corrupt or not what the schema expects."""
 
 
+class StoreWriteError(StoreError, OSError):
+    """Writing into the store failed (full disk, read-only folder, ...); nothing was left behind.
+
+    Also an ``OSError``, so code that handles I/O errors generically still catches it."""
+
+
 def atomic_write_bytes(path: Path, writer) -> None:
     """Call ``writer(tmp_path)`` then rename onto ``path``: readers never see a partial file.
 
     The temporary file lives in the same directory (rename is atomic within a file system) and
-    is removed if the writer fails for any reason, including a full disk.
+    is removed if the writer fails for any reason, including a full disk. A failure of the file
+    system (full disk, read-only or not writable folder, file size limit) is a ``StoreError``
+    naming the path; nothing is left behind.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise StoreWriteError(f"{path}: cannot write into {path.parent} ({_reason(exc)})") from None
     os.close(fd)
     try:
         writer(tmp)
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
+        # mkstemp creates the file 0600; a store is shared (cluster, other users): honour the umask.
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        # OpenEXR reports I/O failures as RuntimeError with the OS message in the text.
+        if isinstance(exc, OSError) or (isinstance(exc, RuntimeError) and not isinstance(exc, StoreError)
+                                        and _IO_WORDS.search(str(exc))):
+            raise StoreWriteError(f"{path}: writing failed, nothing was written ({_reason(exc)})") from None
         raise
+
+
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+_IO_WORDS = re.compile(r"No space left|Disk quota|Read-only file system|Permission denied|File too large|"
+                       r"Input/output error|Failed to write|Cannot open")
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.errno is not None:
+        text = os.strerror(exc.errno)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            text += ": the disk is full"
+        elif exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+            text += ": the store is not writable"
+        return text
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text + (": the disk is full" if "No space left" in text else "")
 
 
 def atomic_write_json(path: Path, data: Any) -> None:
@@ -73,8 +133,8 @@ def read_json(path: Path, what: str = "manifest") -> dict:
             data = json.load(f)
     except FileNotFoundError:
         raise StoreError(f"{path}: {what} is missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise StoreError(f"{path}: {what} is not valid JSON ({exc})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise StoreError(f"{path}: {what} is not valid JSON ({str(exc)[:200]})") from None
     if not isinstance(data, dict):
         raise StoreError(f"{path}: {what} must be a JSON object")
     return data
@@ -139,6 +199,7 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
         "height": int(shape[0]), "width": int(shape[1]),
         "constants": dict(sorted(omitted.items())), **(meta or {}),
     }
+    record["checksum"] = checksum(record, channels)
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
@@ -153,22 +214,175 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     return record
 
 
+def checksum(record: dict, channels: dict[str, np.ndarray]) -> str:
+    """CRC-32 of the record (less ``checksum`` and ``VOLATILE_KEYS``) and every stored channel."""
+    skip = {"checksum", *VOLATILE_KEYS}
+    text = json.dumps({k: v for k, v in record.items() if k not in skip}, sort_keys=True, allow_nan=False)
+    crc = zlib.crc32(text.encode())
+    for name in sorted(channels):
+        arr = np.ascontiguousarray(channels[name])
+        crc = zlib.crc32(f"{name}:{arr.dtype.str}:{arr.shape}".encode(), crc)
+        crc = zlib.crc32(memoryview(arr).cast("B"), crc)
+    return f"crc32:{crc:08x}"
+
+
 def read_header(path: Path) -> dict:
-    """The image's ``mcdenoise`` record, without reading pixels."""
+    """The image's ``mcdenoise`` record, without reading pixels (so without the checksum test)."""
     return _open(path, header_only=True)[0]
+
+
+def scan_exr(path: Path) -> dict:
+    """Check an EXR's structure without OpenEXR: ``{width, height, channels: {name: dtype}}``.
+
+    Refuses (``StoreError`` naming the path) anything this store never writes or cannot be
+    decoded safely: other magic/version, tiled/deep/multi-part files, truncated or oversized
+    header attributes, channels of unknown names, other storage types than the schema's, or
+    subsampled, a data window outside 1..``MAX_SIDE`` a side or above ``MAX_PIXELS``, lossy
+    compression, and chunk offsets/sizes that point outside the file.
+    """
+    path = Path(path)
+
+    def fail(msg: str):
+        raise StoreError(f"{path}: {msg}")
+
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(min(size, MAX_HEADER_BYTES))
+            if head[:4] != MAGIC:
+                fail("not an OpenEXR file (bad magic number)")
+            if len(head) < 8:
+                fail("corrupt or truncated EXR (no version field)")
+            version = int.from_bytes(head[4:8], "little")
+            if version & 0xFF != 2:
+                fail(f"EXR file version {version & 0xFF}, expected 2")
+            if version & ~0x4FF:
+                fail("tiled, deep or multi-part EXR: the store holds single-part scanline images only")
+            attrs, table = _attributes(head, 255 if version & 0x400 else 31, fail)
+            info = {**_header_info(attrs, fail), "table": table}
+            _check_chunks(f, size, info, fail)
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read ({_reason(exc)})") from None
+    return info
+
+
+def _attributes(head: bytes, max_name: int, fail) -> tuple[dict, int]:
+    """Header attributes ``{name: (type, value bytes)}`` and where the offset table starts."""
+    attrs: dict[str, tuple[str, bytes]] = {}
+    pos = 8
+
+    def cstr(what: str) -> str:
+        nonlocal pos
+        end = head.find(b"\0", pos, pos + max_name + 1)
+        if end < 0:
+            fail(f"corrupt or truncated EXR header ({what} at byte {pos} is not terminated)")
+        text = head[pos:end].decode("latin-1")
+        pos = end + 1
+        return text
+
+    while True:
+        if pos >= len(head):
+            fail("corrupt or truncated EXR header (no end marker)")
+        if head[pos] == 0:
+            return attrs, pos + 1
+        name = cstr("attribute name")
+        kind = cstr(f"type of attribute {name!r}")
+        if pos + 4 > len(head):
+            fail(f"corrupt or truncated EXR header (size of attribute {name!r})")
+        n = int.from_bytes(head[pos:pos + 4], "little", signed=True)
+        pos += 4
+        if n < 0 or pos + n > len(head):
+            fail(f"EXR header attribute {name!r} claims {n} bytes, beyond the end of the header")
+        if name in attrs:
+            fail(f"EXR header attribute {name!r} appears twice")
+        attrs[name] = (kind, head[pos:pos + n])
+        pos += n
+
+
+_REQUIRED = {"channels": ("chlist", None), "compression": ("compression", 1), "dataWindow": ("box2i", 16),
+             "displayWindow": ("box2i", 16), "lineOrder": ("lineOrder", 1), "pixelAspectRatio": ("float", 4),
+             "screenWindowCenter": ("v2f", 8), "screenWindowWidth": ("float", 4)}
+
+
+def _header_info(attrs: dict, fail) -> dict:
+    for name, (kind, n) in _REQUIRED.items():
+        if name not in attrs:
+            fail(f"EXR header lacks the required attribute {name!r}")
+        if attrs[name][0] != kind or (n is not None and len(attrs[name][1]) != n):
+            fail(f"EXR header attribute {name!r} is {attrs[name][0]!r} of {len(attrs[name][1])} bytes, "
+                 f"expected {kind!r}" + (f" of {n} bytes" if n else ""))
+    x0, y0, x1, y1 = (int.from_bytes(attrs["dataWindow"][1][i:i + 4], "little", signed=True) for i in range(0, 16, 4))
+    w, h = x1 - x0 + 1, y1 - y0 + 1
+    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE and w * h <= MAX_PIXELS):
+        fail(f"EXR data window {w}x{h} is not a valid size (1..{MAX_SIDE} a side, at most {MAX_PIXELS} pixels)")
+    comp = attrs["compression"][1][0]
+    if comp not in LOSSLESS:
+        fail(f"EXR compression {comp} is lossy or unknown (the store uses lossless ZIP)")
+    if attrs["lineOrder"][1][0] > 2:
+        fail(f"EXR line order {attrs['lineOrder'][1][0]} is not valid")
+    from . import schema
+    expected = {ch: np.dtype(schema.storage_dtype(ch)) for ch in schema.exr_channel_map()}
+    channels: dict[str, np.dtype] = {}
+    data, pos = attrs["channels"][1], 0
+    while True:
+        if pos >= len(data):
+            fail("EXR channel list is not terminated")
+        if data[pos] == 0:
+            break
+        end = data.find(b"\0", pos)
+        if end < 0 or end + 17 > len(data):
+            fail("EXR channel list is truncated")
+        name = data[pos:end].decode("latin-1")
+        ptype = int.from_bytes(data[end + 1:end + 5], "little", signed=True)
+        xs = int.from_bytes(data[end + 9:end + 13], "little", signed=True)
+        ys = int.from_bytes(data[end + 13:end + 17], "little", signed=True)
+        pos = end + 17
+        if name not in expected:
+            fail(f"channel {name!r} is not a channel of the schema")
+        if name in channels:
+            fail(f"channel {name!r} is listed twice")
+        if ptype not in PIXEL_TYPES:
+            fail(f"channel {name!r} has EXR pixel type {ptype}, expected {expected[name].name}")
+        if PIXEL_TYPES[ptype] != expected[name]:
+            fail(f"channel {name!r} is {PIXEL_TYPES[ptype].name}, expected {expected[name].name}")
+        if (xs, ys) != (1, 1):
+            fail(f"channel {name!r} is subsampled ({xs}x{ys}); the store never subsamples")
+        channels[name] = PIXEL_TYPES[ptype]
+    if not channels:
+        fail("EXR file has no channels")
+    lines = LOSSLESS[comp][1]
+    return {"width": w, "height": h, "y0": y0, "channels": channels, "compression": LOSSLESS[comp][0],
+            "lines": lines, "chunks": math.ceil(h / lines),
+            "row_bytes": w * sum(dt.itemsize for dt in channels.values())}
+
+
+def _check_chunks(f, size: int, info: dict, fail) -> None:
+    """Every chunk of the offset table lies inside the file, for the right lines, not oversized."""
+    n, table = info["chunks"], info["table"]
+    end = table + 8 * n
+    if end > size:
+        fail(f"corrupt or truncated EXR: the offset table of {n} chunks ends at byte {end}, the file has {size}")
+    f.seek(table)
+    offsets = np.frombuffer(f.read(8 * n), dtype="<u8")
+    for i, off in enumerate(offsets.tolist()):
+        if not end <= off <= size - 8:
+            fail(f"corrupt or truncated EXR: chunk {i} at byte {off} lies outside the file ({size} bytes)")
+        f.seek(off)
+        y = int.from_bytes(f.read(4), "little", signed=True)
+        nbytes = int.from_bytes(f.read(4), "little", signed=True)
+        rows = min(info["lines"], info["height"] - i * info["lines"])
+        if y != info["y0"] + i * info["lines"]:
+            fail(f"corrupt or truncated EXR: chunk {i} is for line {y}, expected {info['y0'] + i * info['lines']}")
+        if not 0 < nbytes <= rows * info["row_bytes"] or off + 8 + nbytes > size:
+            fail(f"corrupt or truncated EXR: chunk {i} claims {nbytes} bytes at byte {off} "
+                 f"(file {size} bytes, at most {rows * info['row_bytes']} expected)")
 
 
 def _open(path: Path, header_only: bool = False):
     path = Path(path)
     if not path.exists():
         raise StoreError(f"{path}: image is missing")
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(4)
-    except OSError as exc:
-        raise StoreError(f"{path}: cannot read ({exc.strerror})") from None
-    if magic != b"\x76\x2f\x31\x01":
-        raise StoreError(f"{path}: not an OpenEXR file (bad magic number)")
+    info = scan_exr(path)
     try:
         f = OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
         header = f.header()
@@ -178,20 +392,26 @@ def _open(path: Path, header_only: bool = False):
     if not isinstance(raw, str):
         raise StoreError(f"{path}: header attribute {META_KEY!r} is missing: not an image written by this pipeline")
     try:
-        record = json.loads(raw)
-    except json.JSONDecodeError as exc:
+        record = json.loads(raw, parse_constant=_no_constant)
+    except (json.JSONDecodeError, ValueError, RecursionError) as exc:
         raise StoreError(f"{path}: header attribute {META_KEY!r} is not valid JSON ({exc})") from None
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         raise StoreError(f"{path}: header attribute {META_KEY!r} is not a {FORMAT} record")
-    if record.get("version") != FORMAT_VERSION:
-        raise StoreError(f"{path}: image format version {record.get('version')!r}, this code reads {FORMAT_VERSION}")
+    if record.get("version") not in READ_VERSIONS:
+        raise StoreError(f"{path}: image format version {record.get('version')!r}, this code reads "
+                         f"{', '.join(map(str, READ_VERSIONS))}")
+    if record["version"] >= 2 and not isinstance(record.get("checksum"), str):
+        raise StoreError(f"{path}: header record has no checksum (format version {record['version']} requires one)")
     h, w = record.get("height"), record.get("width")
     if not (isinstance(h, int) and isinstance(w, int) and 0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
         raise StoreError(f"{path}: image size {w!r}x{h!r} is not a valid size (1..{MAX_SIDE})")
-    (x0, y0), (x1, y1) = header["dataWindow"]
-    if (int(y1 - y0 + 1), int(x1 - x0 + 1)) != (h, w):
-        raise StoreError(f"{path}: data window {x1 - x0 + 1}x{y1 - y0 + 1} disagrees with the recorded {w}x{h}")
+    if (info["height"], info["width"]) != (h, w):
+        raise StoreError(f"{path}: data window {info['width']}x{info['height']} disagrees with the recorded {w}x{h}")
     return record, f, header
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
 
 
 def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict]:
@@ -241,6 +461,14 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
                 else:
                     raise StoreError(f"{path}: channel {ch!r} of buffer {name!r} is missing (neither stored nor a recorded constant)")
             out[key] = arr
+    if "checksum" in record:
+        stored_channels = {name: ch.pixels for name, ch in channels.items()}
+        if any(p is None or p.shape != (h, w) for p in stored_channels.values()):
+            raise StoreError(f"{path}: a channel's pixel data does not have the shape {(h, w)}")
+        actual = checksum(record, stored_channels)
+        if actual != record["checksum"]:
+            raise StoreError(f"{path}: checksum mismatch (header {record['checksum']!r}, data {actual!r}): "
+                             f"the file is damaged")
     return out, record
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,9 @@ from .exr import StoreError, atomic_write_json, read_header, read_image, read_js
 STORE_FORMAT = "mcdenoise-store"
 STORE_VERSION = 1
 GT_IMAGES = ("gt1", "gt2")
+# Scene ids and image names become path components: nothing that could leave the store.
+NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+MAX_FRAMES = 1 << 20
 
 
 def stack_name(k: int) -> str:
@@ -111,38 +115,61 @@ class Store:
         return self.root / "dataset.json"
 
     def scene_dir(self, scene: str) -> Path:
-        return self.root / "scenes" / scene
+        return self.root / "scenes" / _name(scene, self.root, "scene id")
 
     def frame_dir(self, scene: str, frame: int) -> Path:
         return self.scene_dir(scene) / frame_name(frame)
 
     def image_path(self, scene: str, frame: int, image: str) -> Path:
-        return self.frame_dir(scene, frame) / f"{image}.exr"
+        return self.frame_dir(scene, frame) / f"{_name(image, self.root, 'image name')}.exr"
 
     # ---- manifests ---------------------------------------------------------------------
     def manifest(self) -> dict:
-        data = read_json(self.manifest_path, "dataset manifest")
+        path = self.manifest_path
+        data = read_json(path, "dataset manifest")
         if data.get("format") != STORE_FORMAT:
-            raise StoreError(f"{self.manifest_path}: not a {STORE_FORMAT} manifest")
+            raise StoreError(f"{path}: not a {STORE_FORMAT} manifest")
         if data.get("version") != STORE_VERSION:
-            raise StoreError(f"{self.manifest_path}: store version {data.get('version')!r}, this code reads {STORE_VERSION}")
+            raise StoreError(f"{path}: store version {data.get('version')!r}, this code reads {STORE_VERSION}")
         for key in ("scenes", "splits"):
             if key not in data:
-                raise StoreError(f"{self.manifest_path}: key {key!r} is missing")
+                raise StoreError(f"{path}: key {key!r} is missing")
+        _names(data["scenes"], path, "scenes", "scene id")
+        if not isinstance(data["splits"], dict):
+            raise StoreError(f"{path}: key 'splits' must map split names to lists of scene ids")
+        for split, ids in data["splits"].items():
+            _names(ids, path, f"splits.{split}", "scene id")
         return data
 
     def write_manifest(self, data: dict) -> None:
         atomic_write_json(self.manifest_path, {"format": STORE_FORMAT, "version": STORE_VERSION, **data})
 
     def scene_manifest(self, scene: str) -> dict:
-        return read_json(self.scene_dir(scene) / "scene.json", "scene manifest")
+        path = self.scene_dir(scene) / "scene.json"
+        data = read_json(path, "scene manifest")
+        for key in ("frames", "gt_spp", "stack_spp", "stacks"):
+            _count(data, key, path, MAX_FRAMES if key == "frames" else 1 << 24)
+        if "images" in data:
+            _names(data["images"], path, "images", "image name")
+        res = data.get("resolution")
+        if res is not None and not (isinstance(res, list) and len(res) == 2
+                                    and all(type(v) is int and 0 < v <= 1 << 14 for v in res)):
+            raise StoreError(f"{path}: key 'resolution' must be [width, height] or null, got {res!r}")
+        return data
 
     def write_scene_manifest(self, scene: str, data: dict) -> None:
         atomic_write_json(self.scene_dir(scene) / "scene.json", data)
 
     def frame_record(self, scene: str, frame: int) -> dict | None:
         path = self.frame_dir(scene, frame) / "frame.json"
-        return read_json(path, "frame record") if path.exists() else None
+        if not path.exists():
+            return None
+        data = read_json(path, "frame record")
+        images = data.get("images")
+        if not isinstance(images, dict) or not all(isinstance(v, dict) for v in images.values()):
+            raise StoreError(f"{path}: key 'images' must map image names to records")
+        _names(list(images), path, "images", "image name")
+        return data
 
     def write_frame_record(self, scene: str, frame: int, data: dict) -> None:
         atomic_write_json(self.frame_dir(scene, frame) / "frame.json", data)
@@ -208,6 +235,27 @@ class Store:
             raise StoreError(f"spp {spp} needs {k} stacks, got {len(stacks)}")
         images = [self.read_image(scene, frame, stack_name(i), buffers)[0] for i in stacks]
         return combine_stacks(images, n)
+
+
+def _name(value, path: Path, what: str) -> str:
+    if not isinstance(value, str) or not NAME_RE.fullmatch(value):
+        raise StoreError(f"{path}: {what} {value!r} is not 1-64 letters, digits, '_' or '-'")
+    return value
+
+
+def _names(values, path: Path, key: str, what: str) -> list:
+    if not isinstance(values, list):
+        raise StoreError(f"{path}: key {key!r} must be a list of {what}s, got {type(values).__name__}")
+    for v in values:
+        _name(v, path, f"{key}: {what}")
+    return values
+
+
+def _count(data: dict, key: str, path: Path, top: int) -> int:
+    value = data.get(key)
+    if type(value) is not int or not 1 <= value <= top:
+        raise StoreError(f"{path}: key {key!r} must be an integer in 1..{top}, got {value!r}")
+    return value
 
 
 def describe(record: dict) -> str:

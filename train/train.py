@@ -197,10 +197,12 @@ def fit(job: Job, quiet: bool = False) -> dict:
             if best is None or score > best["score"]:
                 best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
                 job.save_best({"epoch": epoch + 1, "metrics": entry["val"], "train_loss": entry["train_loss"]})
-            save_last(last, job.trainable, opt, {"epoch": epoch + 1, "history": history, "best": best,
-                                                 "fingerprint": job.fingerprint}, job.fmt)
+            # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
+            # reruns the epoch (same result) and rewrites the files above.
             _plot(job, history)
             atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best})
+            save_last(last, job.trainable, opt, {"epoch": epoch + 1, "history": history, "best": best,
+                                                 "fingerprint": job.fingerprint}, job.fmt)
             if not quiet:
                 v = entry["val"]
                 print(f"{job.name} epoch {epoch + 1}: loss {entry['train_loss']:.4f} (mse {entry['mse']:.4f}, "

@@ -1,0 +1,353 @@
+"""``python -m pipeline plan --config FILE``: what a config costs before anything runs.
+
+A cost model of the dataset stage from the config alone, with constants measured on a real
+machine by ``python -m pipeline plan --measure`` (kept below with the date and the machine):
+
+- **render time** of one image = ``overhead + samples / rate``, in CPU-core-seconds. ``rate`` is
+  the renderer's samples per second per core (``render.buffers.render_image``: the split
+  integrator with every feature and the per-pixel moments), fitted per resolution from a low
+  and a high sample count (so the fixed cost per image, which dominates 4 spp stacks, is not
+  taken for sampling). The cost per sample grows with ``render.max_depth``: measured at two
+  depths and interpolated linearly (extrapolated, floored at a quarter of the shallow cost,
+  outside them). Other resolutions use the nearest measured one, scaling the overhead by the
+  pixel count.
+- **writing** an image (EXR ZIP, atomic rename, SHA-256) costs ``write_s_per_mpx`` per
+  megapixel; building the scene once per frame ``build_s``.
+- **disk** per image from the channel schema (``pipeline.schema``: float32 radiance and
+  variances, half features), times the ZIP ratio measured on real frames (ground truths
+  compress better than 4 spp stacks); ``gt_clean`` is one float32 RGB image.
+
+``--store STORE`` replaces the measured rate by one fitted to the frames of an existing store
+(their ``frame.json`` render seconds, spp and resolution; the store's ``render.threads`` and
+``executor.workers`` tell how many cores one render used) and its bytes per image, so a plan for a
+cluster can be calibrated on a pilot run there.
+
+Wall time for N workers assumes perfect scaling over frames (frames are independent; measured
+Ray 1→2 workers on this machine in docs/scaling.md).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import schema
+from .config import Config
+from .exr import StoreError
+
+# Measured by `python -m pipeline plan --measure` (see measure()). Re-measure on the target
+# machine and paste the printed JSON here, or calibrate with --store.
+MEASURED: dict = {
+ "date": "2026-11-22",
+ "machine": "AMD EPYC, 2 cores, 1 render thread(s), CPU time (load average 6.5)",
+ "source": "measured",
+ "render": {
+  "128": {
+   "5": {
+    "rate": 1729362,
+    "overhead_s": 0.0401
+   },
+   "8": {
+    "rate": 1558756,
+    "overhead_s": 0.037
+   }
+  },
+  "256": {
+   "5": {
+    "rate": 1760346,
+    "overhead_s": 0.0805
+   },
+   "8": {
+    "rate": 1529299,
+    "overhead_s": 0.1025
+   }
+  }
+ },
+ "build_s": 0.22,
+ "write_s_per_mpx": 1.579,
+ "zip_ratio": {
+  "gt": 0.48,
+  "stack": 0.453,
+  "gt_clean": 0.879
+ },
+ "gt_spp_for_ratio": 1024
+}
+
+GB = 1e9
+DEFAULT_WORKERS = (1, 2, 16, 64, 256, 1024)
+
+
+# ---- bytes -------------------------------------------------------------------------------------
+
+def raw_bytes_per_pixel(omit: tuple[str, ...] = ()) -> int:
+    """Uncompressed bytes per pixel of a complete image: every buffer and its variance."""
+    total = 0
+    for b in schema.BUFFERS:
+        if b.name in omit:
+            continue
+        total += b.size * np.dtype(b.dtype).itemsize + b.size * 4
+    return total
+
+
+# ---- the model ---------------------------------------------------------------------------------
+
+def _nearest(table: dict, res: int) -> dict:
+    key = min(table, key=lambda r: abs(math.log(int(r) / res)))
+    return table[key], int(key)
+
+
+def seconds_per_sample(constants: dict, resolution: int, max_depth: int) -> tuple[float, float]:
+    """(core-seconds per sample, core-seconds of fixed cost per image) at this side and depth."""
+    per_res, res = _nearest(constants["render"], resolution)
+    depths = sorted(per_res, key=int)
+    lo, hi = per_res[depths[0]], per_res[depths[-1]]
+    d0, d1 = int(depths[0]), int(depths[-1])
+    c0, c1 = 1.0 / lo["rate"], 1.0 / hi["rate"]
+    cost = c0 if d1 == d0 else c0 + (c1 - c0) * (max_depth - d0) / (d1 - d0)
+    cost = max(cost, 0.25 * c0)
+    overhead = float(np.mean([v["overhead_s"] for v in per_res.values()])) * (resolution / res) ** 2
+    return cost, max(overhead, 0.0)
+
+
+def estimate(cfg: Config, constants: dict | None = None) -> dict:
+    """Per-frame and total cost of the config's dataset stage (see the module docstring)."""
+    from render.stress import STRESS_PRESETS
+
+    c = constants or MEASURED
+    d = cfg.dataset
+    w, h = (int(v) for v in d.resolution)
+    px = w * h
+    side = math.sqrt(px)
+    stress = len(STRESS_PRESETS) if d.stress in ("all", ["all"]) else len(d.stress)
+    frames = (d.scenes + stress) * d.frames
+    cost, overhead = seconds_per_sample(c, side, cfg.render.max_depth)
+    write = c["write_s_per_mpx"] * px / 1e6
+    raw = raw_bytes_per_pixel() * px
+    parts = {
+        "gt": {"images": 2, "spp": d.gt_spp,
+               "core_s": 2 * (overhead + px * d.gt_spp * cost + write),
+               "bytes": 2 * raw * c["zip_ratio"]["gt"]},
+        "stacks": {"images": d.stacks, "spp": d.stack_spp,
+                   "core_s": d.stacks * (overhead + px * d.stack_spp * cost + write),
+                   "bytes": d.stacks * raw * c["zip_ratio"]["stack"]},
+        "gt_clean": {"images": 1, "spp": None, "core_s": None,
+                     "bytes": px * 3 * 4 * c["zip_ratio"]["gt_clean"]},
+    }
+    frame_core_s = parts["gt"]["core_s"] + parts["stacks"]["core_s"] + c["build_s"]
+    frame_bytes = sum(p["bytes"] for p in parts.values())
+    return {
+        "frames": frames, "scenes": d.scenes, "stress_scenes": stress, "resolution": [w, h],
+        "max_depth": cfg.render.max_depth, "samples_per_frame": px * (2 * d.gt_spp + d.stacks * d.stack_spp),
+        "seconds_per_sample": cost, "overhead_s": overhead, "build_s": c["build_s"], "parts": parts,
+        "frame_core_s": frame_core_s, "frame_bytes": frame_bytes,
+        "total_core_h": frame_core_s * frames / 3600, "total_bytes": frame_bytes * frames,
+        "source": c.get("source", "measured"), "measured": {k: c.get(k) for k in ("date", "machine")},
+    }
+
+
+def _duration(seconds: float) -> str:
+    for unit, size in (("d", 86400), ("h", 3600), ("min", 60)):
+        if seconds >= size:
+            return f"{seconds / size:.1f} {unit}"
+    return f"{seconds:.1f} s"
+
+
+def format_table(est: dict, workers: tuple[int, ...] = DEFAULT_WORKERS, title: str = "") -> str:
+    p, n = est["parts"], est["frames"]
+    w, h = est["resolution"]
+    lines = [
+        f"plan{(' for ' + title) if title else ''}: {est['scenes']} scenes + {est['stress_scenes']} stress "
+        f"= {n} frames at {w}x{h}, max_depth {est['max_depth']}, "
+        f"{est['samples_per_frame'] / 1e6:.1f} M samples per frame",
+        f"  cost model: {est['seconds_per_sample'] * 1e9:.0f} core-ns per sample + {est['overhead_s'] * 1e3:.0f} ms "
+        f"per image + {est['build_s']:.2f} s scene build per frame ({est['source']}; "
+        f"{est['measured']['date']}, {est['measured']['machine']})",
+        "",
+        "| part | per frame: CPU | per frame: disk | total: CPU | total: disk |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+
+    def row(name, core_s, nbytes):
+        cpu = f"{core_s:,.1f} core-s" if core_s is not None else "not modelled"
+        tot = f"{core_s * n / 3600:,.1f} core-h" if core_s is not None else "-"
+        lines.append(f"| {name} | {cpu} | {nbytes / 2**20:,.1f} MiB | {tot} | {nbytes * n / GB:,.2f} GB |")
+
+    row(f"GT ({p['gt']['images']} x {p['gt']['spp']} spp)", p["gt"]["core_s"], p["gt"]["bytes"])
+    row(f"stacks ({p['stacks']['images']} x {p['stacks']['spp']} spp)", p["stacks"]["core_s"], p["stacks"]["bytes"])
+    row("scene build", est["build_s"], 0)
+    row("gt_clean (1 image)", None, p["gt_clean"]["bytes"])
+    row("**all**", est["frame_core_s"], est["frame_bytes"])
+    lines += ["", "Disk per frame in MiB (2^20 B), totals in GB (10^9 B). gt_clean's compute (the cleaner's "
+              "training and inference) is not modelled: see docs/scaling.md.",
+              "", "| CPU cores | wall time (perfect scaling over frames) |", "| ---: | ---: |"]
+    for k in workers:
+        lines.append(f"| {k} | {_duration(est['frame_core_s'] * n / k)} |")
+    return "\n".join(lines)
+
+
+# ---- measuring and calibrating ------------------------------------------------------------------
+
+def _fit(points: list[tuple[float, float]]) -> tuple[float, float]:
+    """Least squares t = a + b·samples over (samples, seconds): (a, b), a >= 0, b > 0."""
+    x = np.array([p[0] for p in points], float)
+    y = np.array([p[1] for p in points], float)
+    if len(set(x.tolist())) < 2:
+        b = float(np.sum(y) / np.sum(x))
+        return 0.0, b
+    b, a = np.polyfit(x, y, 1)
+    if a < 0:   # noise at the low end: no fixed cost rather than a negative one
+        a, b = 0.0, float(np.sum(x * y) / np.sum(x * x))
+    return float(a), float(b)
+
+
+def _cpu_seconds(fn) -> float:
+    """CPU time of this process (all threads) spent in ``fn``: core-seconds, whatever else the
+    machine runs at the same time (wall time on a shared machine would count the waiting)."""
+    t0 = time.process_time()
+    fn()
+    return time.process_time() - t0
+
+
+def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), scenes: int = 2,
+            threads: int = 1, gt_spp: int = 1024, repeats: int = 2) -> dict:
+    """Measure the constants of the model on this machine (about two minutes on 2 cores)."""
+    import drjit as dr
+
+    from render.buffers import needed_features, render_image
+    from render.scene import build_scene, build_sensor, random_scene
+    from .exr import write_image
+    from .mitsuba_env import import_mitsuba
+    from .store import sha256
+
+    mi = import_mitsuba(cfg.render.variant, threads)
+    used_threads = dr.thread_count()
+    timings: dict = {}
+    builds, writes, ratios = [], [], {"gt": [], "stack": [], "gt_clean": []}
+    tmp = Path(tempfile.mkdtemp(prefix="plan-measure-"))
+    try:
+        for i in range(scenes):
+            desc = random_scene(cfg.scene, cfg.seed, i, 1)
+            t0 = time.process_time()
+            scene = build_scene(mi, desc)
+            features = needed_features(mi, scene)
+            builds.append(time.process_time() - t0)
+            for res in resolutions:
+                sensor = build_sensor(mi, desc, 0, res, res)
+                for depth in depths:
+                    kw = dict(features=features, max_depth=depth, rr_depth=cfg.render.rr_depth)
+                    render_image(mi, scene, sensor, spp=spps[0], seed=99, **kw)   # compile
+                    for spp in spps:
+                        best = min(_cpu_seconds(lambda: render_image(mi, scene, sensor, spp=spp, seed=r, **kw))
+                                   for r in range(repeats))
+                        timings.setdefault(str(res), {}).setdefault(str(depth), []).append((res * res * spp, best))
+                # bytes and write time of a stack and a ground truth at the largest depth
+                raw = raw_bytes_per_pixel() * res * res
+                for kind, spp in (("stack", cfg.dataset.stack_spp), ("gt", gt_spp)):
+                    if kind == "gt" and res != min(resolutions):
+                        continue   # the 1024 spp reference only at the small size (time)
+                    result = render_image(mi, scene, sensor, spp=spp, seed=7, features=features,
+                                          max_depth=max(depths), rr_depth=cfg.render.rr_depth)
+                    path = tmp / f"{kind}{i}_{res}.exr"
+                    t0 = time.process_time()
+                    write_image(path, result.buffers, result.constants)
+                    sha256(path)
+                    writes.append((time.process_time() - t0) / (res * res / 1e6))
+                    ratios[kind].append(path.stat().st_size / raw)
+                    if kind == "gt":
+                        clean = tmp / f"clean{i}.exr"
+                        color = result.buffers["color"]
+                        write_image(clean, {"color": color, "color.variance": np.zeros_like(color)})
+                        ratios["gt_clean"].append(clean.stat().st_size / (res * res * 12))
+            del scene
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    render = {}
+    for res, per_depth in timings.items():
+        for depth, points in per_depth.items():
+            a, b = _fit(points)
+            render.setdefault(res, {})[depth] = {"rate": round(1.0 / b), "overhead_s": round(a, 4)}
+    return {
+        "date": time.strftime("%Y-%m-%d"),
+        "machine": f"{_cpu_name()}, {os.cpu_count()} cores, {used_threads} render thread(s), "
+                   f"CPU time (load average {os.getloadavg()[0]:.1f})",
+        "source": "measured",
+        "render": render,
+        "build_s": round(float(np.mean(builds)), 3),
+        "write_s_per_mpx": round(float(np.mean(writes)), 3),
+        "zip_ratio": {k: round(float(np.mean(v)), 3) for k, v in ratios.items()},
+        "gt_spp_for_ratio": gt_spp,
+    }
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
+    """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
+    from .store import Store
+
+    c = json.loads(json.dumps(constants or MEASURED))
+    store = Store(root)
+    m = store.manifest()
+    conf = m.get("config", {})
+    threads = int(conf.get("render", {}).get("threads", 0) or 0)
+    workers = int(conf.get("executor", {}).get("workers", 1) or 1)
+    cpus = os.cpu_count() or 1
+    cores = min(threads, cpus / workers) if threads > 0 else cpus / workers
+    depth = int(conf.get("render", {}).get("max_depth", 8))
+    points, gt_ratio, stack_ratio, sizes = [], [], [], []
+    frames = 0
+    for key in store.frames():
+        rec = store.frame_record(key.scene, key.frame)
+        if rec is None:
+            continue
+        px = int(rec["width"]) * int(rec["height"])
+        sizes.append(math.sqrt(px))
+        for name, img in rec["images"].items():
+            if img.get("render_seconds") is None or img.get("reused"):
+                continue
+            points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
+            (gt_ratio if name.startswith("gt") else stack_ratio).append(
+                int(img["bytes"]) / (raw_bytes_per_pixel() * px))
+        frames += 1
+        if frames >= max_frames:
+            break
+    if not points:
+        raise StoreError(f"{store.root}: no rendered frame with render times to calibrate from")
+    a, b = _fit(points)
+    side = int(round(float(np.median(sizes))))
+    # Keep the measured depth dependence: scale every measured depth of the nearest size.
+    base, res = _nearest(c["render"], side)
+    measured_cost, _ = seconds_per_sample(c, side, depth)
+    scale = b / measured_cost
+    c["render"] = {str(side): {d: {"rate": v["rate"] / scale, "overhead_s": a} for d, v in base.items()}}
+    if gt_ratio:
+        c["zip_ratio"]["gt"] = float(np.mean(gt_ratio))
+    if stack_ratio:
+        c["zip_ratio"]["stack"] = float(np.mean(stack_ratio))
+    c["source"] = (f"calibrated on {frames} frames of {store.root} ({cores:g} cores per render, "
+                   f"max_depth {depth}; {1 / b / 1e6:.2f} M samples/core-s there)")
+    return c
+
+
+def run_plan(cfg: Config, title: str = "", store: str | None = None,
+             workers: tuple[int, ...] = DEFAULT_WORKERS, as_json: bool = False) -> dict:
+    constants = calibrate_from_store(store) if store else MEASURED
+    est = estimate(cfg, constants)
+    print(json.dumps(est, indent=1) if as_json else format_table(est, workers, title))
+    return est
