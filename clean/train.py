@@ -22,6 +22,7 @@ No pickle anywhere: everything is safetensors or JSON.
 """
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
