@@ -265,7 +265,10 @@ class TrainCase:
 
 TRAIN_CASES = [
     pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY), id="isik"),
-    # pytest.param(TrainCase("diffusion", 4, "diffusion_spp4", [...tiny diffusion overrides...]), id="diffusion"),
+    pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
+                           ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
+                            "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2"],
+                           best="control.safetensors"), id="diffusion"),
 ]
 
 
