@@ -370,7 +370,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     import numpy as np
 
     import pipeline.exr as exr
-    from clean import train as clean_train
+    from pipeline import checkpoint
     from pipeline import schema
     from pipeline.store import Store
 
@@ -378,7 +378,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     store.write_manifest({"scenes": [], "splits": {}})
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     _fail_mid_write(monkeypatch)
-    monkeypatch.setattr(clean_train, "atomic_write_bytes", exr.atomic_write_bytes)
+    monkeypatch.setattr(checkpoint, "atomic_write_bytes", exr.atomic_write_bytes)
     arrays = {k: np.ones((4, 5, schema.BY_NAME[k.removesuffix(".variance")].size), np.float32) for k in schema.all_keys()}
     target = {"image": tmp_path / "store/scenes/s0/000/gt1.exr", "manifest": store.manifest_path,
               "checkpoint": tmp_path / "runs/last.safetensors"}[what]
@@ -389,7 +389,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
         elif what == "manifest":
             store.write_manifest({"scenes": ["s0"], "splits": {"train": ["s0"]}})
         else:
-            clean_train._save_safetensors(target, {"w": torch.ones(3)}, {"format": "x"})
+            checkpoint.save_safetensors(target, {"w": torch.ones(3)}, {"format": "x"})
     after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     assert after == before            # the old manifest intact, no partial or temporary file
 

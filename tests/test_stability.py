@@ -41,7 +41,8 @@ def test_every_case_every_method(tmp_path):
             assert cell["status"] == "ok", (case, name, cell)
             assert cell["seconds"] >= 0 and np.isfinite([cell["out_min"], cell["out_max"], cell["out_mean"]]).all()
         assert row["ours"] == {"status": "not available"}
-    assert "train.infer" in data["unavailable"]["ours"]
+    assert "no diffusion checkpoint" in data["unavailable"]["ours"]   # and the reason says how to make one
+    assert "make train SPP=4" in data["unavailable"]["ours"]
     # shapes kept, including odd and non-square sizes
     assert data["results"]["size_33x17"]["isik"]["shape"] == [17, 33, 3]
     assert data["results"]["size_64x24"]["oidn"]["shape"] == [24, 64, 3]
