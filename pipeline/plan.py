@@ -203,7 +203,9 @@ def _fit(points: list[tuple[float, float]]) -> tuple[float, float]:
         b = float(np.sum(y) / np.sum(x))
         return 0.0, b
     b, a = np.polyfit(x, y, 1)
-    if a < 0:   # noise at the low end: no fixed cost rather than a negative one
+    # Timing noise (a loaded machine, tiny renders) can give a negative intercept or even a
+    # non-positive slope: fall back to a line through the origin, whose slope is always > 0.
+    if a < 0 or b <= 0:
         a, b = 0.0, float(np.sum(x * y) / np.sum(x * x))
     return float(a), float(b)
 

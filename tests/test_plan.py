@@ -102,3 +102,11 @@ def test_measure_gives_constants_the_model_uses():
     assert all(0 < r < 2 for r in c["zip_ratio"].values())
     est = estimate(cfg, c)
     assert math.isfinite(est["frame_core_s"]) and est["frame_core_s"] > 0
+
+
+def test_fit_survives_timing_noise():
+    from pipeline.plan import _fit
+    a, b = _fit([(100, 0.020), (800, 0.015)])    # the larger render measured faster: noise
+    assert a == 0.0 and b > 0
+    a, b = _fit([(100, 0.010), (800, 0.080)])
+    assert b == pytest.approx(1e-4) and a == pytest.approx(0.0, abs=1e-9)
