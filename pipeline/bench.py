@@ -25,7 +25,8 @@ from .store import Store
 from .versions import package_versions
 
 
-def _time(fn, repeats: int) -> float:
+def best_time(fn, repeats: int) -> float:
+    """Best wall time of ``repeats`` calls of ``fn`` (seconds)."""
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -67,9 +68,9 @@ def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeat
         needed = needed_features(mi, scene)
         for fn in (run_path, run_ours(set(schema.OPTIONAL_FEATURES)), run_ours(needed)):
             fn()  # warm-up: kernel compilation is not what we compare
-        t_path = _time(run_path, repeats)
-        t_all = _time(run_ours(set(schema.OPTIONAL_FEATURES)), repeats)
-        t_needed = _time(run_ours(needed), repeats)
+        t_path = best_time(run_path, repeats)
+        t_all = best_time(run_ours(set(schema.OPTIONAL_FEATURES)), repeats)
+        t_needed = best_time(run_ours(needed), repeats)
         samples = resolution * resolution * spp
         rows.append({"scene": name, "resolution": resolution, "spp": spp, "path_s": t_path,
                      "ours_all_s": t_all, "ours_needed_s": t_needed, "needed_features": sorted(needed),

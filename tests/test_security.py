@@ -48,6 +48,10 @@ def _kw(call: ast.Call, name: str):
     return None
 
 
+def _shown(path: Path) -> str:
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
 def unsafe_calls(path: Path) -> list[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
     found = []
@@ -56,11 +60,11 @@ def unsafe_calls(path: Path) -> list[str]:
             names = [a.name for a in node.names] + ([node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
             for n in names:
                 if n.split(".")[0] in ("pickle", "cPickle", "dill", "shelve", "marshal", "joblib", "cloudpickle"):
-                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}: imports {n}")
+                    found.append(f"{_shown(path)}:{node.lineno}: imports {n}")
         if not isinstance(node, ast.Call):
             continue
         name = _dotted(node.func)
-        where = f"{path.relative_to(ROOT)}:{node.lineno}: {name}"
+        where = f"{_shown(path)}:{node.lineno}: {name}"
         if name.endswith("torch.load"):
             if _kw(node, "weights_only") is not True:
                 found.append(f"{where} without weights_only=True")
@@ -81,14 +85,13 @@ def test_code_base_never_unpickles():
 
 
 def test_the_checker_catches_what_it_should(tmp_path):
-    bad = ROOT / "pipeline" / "_security_probe_tmp.py"
-    try:
-        bad.write_text("import torch, yaml, pickle\nimport numpy as np\n"
-                       "torch.load('x')\ntorch.load('x', weights_only=False)\nyaml.load('a')\n"
-                       "np.load('x', allow_pickle=True)\npickle.loads(b'')\ntorch.load('x', weights_only=True)\n")
-        found = unsafe_calls(bad)
-    finally:
-        bad.unlink()
+    # Source text only: parsed by the checker, never imported or run. Written to tmp_path so the
+    # repository's tree is never touched by a test.
+    bad = tmp_path / "probe.py"
+    bad.write_text("import torch, yaml, pickle\nimport numpy as np\n"
+                   "torch.load('x')\ntorch.load('x', weights_only=False)\nyaml.load('a')\n"
+                   "np.load('x', allow_pickle=True)\npickle.loads(b'')\ntorch.load('x', weights_only=True)\n")
+    found = unsafe_calls(bad)
     assert len(found) == 6, found      # the import, 2 torch.load, yaml.load, np.load, pickle.loads
 
 

@@ -10,11 +10,11 @@ best of ``repeats``; the per-megapixel time is measured on a frame of ``tile``-s
 from __future__ import annotations
 
 import platform
-import time
 from pathlib import Path
 
 import torch
 
+from pipeline.bench import best_time
 from pipeline.config import Config
 from pipeline.exr import atomic_write_json
 
@@ -24,15 +24,6 @@ from .sampler import sample, sample_tiled
 from .train import autocast_dtype, pick_device
 
 SKIPS = (0, 12, 18)
-
-
-def _best(fn, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def run(cfg: Config, spp: int = 4, side: int = 256, repeats: int = 2, out: str = "reports/bench") -> dict:
@@ -50,8 +41,8 @@ def run(cfg: Config, spp: int = 4, side: int = 256, repeats: int = 2, out: str =
     sample(model, noisy[..., :64, :64], aux[..., :64, :64], skip=26, autocast_dtype=ac)   # warm-up
     rows = []
     for skip in SKIPS:
-        t = _best(lambda: sample(model, noisy, aux, skip=skip, autocast_dtype=ac), repeats)
-        tb = _best(lambda: sample_tiled(model, noisy_big, aux_big, tile=f.tile, overlap=f.tile_overlap, skip=skip,
+        t = best_time(lambda: sample(model, noisy, aux, skip=skip, autocast_dtype=ac), repeats)
+        tb = best_time(lambda: sample_tiled(model, noisy_big, aux_big, tile=f.tile, overlap=f.tile_overlap, skip=skip,
                                         autocast_dtype=ac), 1)
         rows.append({"steps": 27 - skip, "skip": skip, "side": side, "seconds_frame": round(t, 3),
                      "seconds_per_megapixel": round(tb / (big * big / 1e6), 3),

@@ -13,13 +13,13 @@ import numpy as np
 import torch
 
 from pipeline.config import Config
-from pipeline.exr import StoreError, write_image
+from pipeline.exr import write_image
 from pipeline.metrics import psnr
 from pipeline.store import FrameKey, Store
 
 from . import base as base_lib
 from .data import DenoisePairs, from_model, frame_rotation
-from .model import FORMAT, base_folder, build, run_dir, save, trainable_state
+from .model import FORMAT, base_folder, build, run_dir, save
 from .pretrain import SuperResolutionPairs, gather_pictures
 from .sampler import sample
 from .train import Job, TrainError, autocast_dtype, fit, pick_device
@@ -196,5 +196,3 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
                               else ""), flush=True)
     return 0
 
-
-__all__ = ["cmd_train", "cmd_pretrain", "cmd_denoise", "trainable_state", "StoreError"]

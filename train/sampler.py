@@ -50,7 +50,7 @@ def sample(model, noisy: torch.Tensor, aux: torch.Tensor | None, skip: int = 0, 
         tt = t.to(device).expand(noisy_p.shape[0])
         with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
             out = model(z, noisy_p, aux_p, tt)
-        z = sched.step(out.float().cpu(), t, z.cpu(), generator=gen).prev_sample.to(device)
+        z = sched.step(out.float(), t, z, generator=gen).prev_sample   # noise drawn on the CPU generator
     return z[..., :H, :W].clamp(-1, 1)
 
 
