@@ -22,7 +22,7 @@ from .data import DenoisePairs, from_model, frame_rotation
 from .model import FORMAT, base_folder, build, run_dir, save
 from .pretrain import SuperResolutionPairs, gather_pictures
 from .sampler import sample
-from .train import Job, TrainError, autocast_dtype, fit, pick_device
+from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
 
 
 def _spp_choices(store: Store, spp) -> list[int]:
@@ -112,7 +112,10 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
               warmup_steps=f.warmup_steps, grad_clip=f.grad_clip, nan_limit=f.nan_limit,
               time_budget_s=f.time_budget_s, seed=cfg.seed, fingerprint=fp, device=device, autocast=autocast,
               fmt=FORMAT, title=f"Control Module, {spp} spp -> GT_clean")
-    fit(job, quiet=quiet)
+    try:
+        fit(job, quiet=quiet)
+    finally:
+        dist_shutdown()
     return 0
 
 

@@ -108,6 +108,14 @@ def dist_info() -> tuple[int, int]:
     return dist.get_rank(), world
 
 
+def dist_shutdown() -> None:
+    """Tear the process group down before the interpreter exits: gloo's threads otherwise abort the
+    process at exit now and then ("terminate called without an active exception", exit -6)."""
+    import torch.distributed as dist
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()   # no barrier: after an error on one rank it could hang
+
+
 def checksum(module: torch.nn.Module) -> float:
     return float(sum(p.detach().double().sum() for p in module.parameters()))
 
