@@ -35,8 +35,8 @@ from .model import AffinityDenoiser, load_model
 from .train import pick_device, run_dir
 
 MANIFEST = "cleaner.json"
-# Context around a tile: the three dilated 7×7 kernels alone reach 3·(1+2+4) = 21 pixels, the
-# U-Net further; 32 pixels make tile seams invisible in practice.
+# Context around a tile: the three dilated 7×7 kernels alone reach 3·(1+2+4) = 21 pixels (24 with
+# the range term's 3×3 patches), the U-Net further; 32 pixels make tile seams invisible in practice.
 TILE_MARGIN = 32
 
 

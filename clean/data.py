@@ -63,6 +63,9 @@ CHANNELS: tuple[tuple[str, int, str], ...] = (
     + tuple((schema.variance_name(b.name), 1, "relative_variance") for b in schema.BUFFERS)
 )
 IN_CHANNELS: int = sum(n for _, n, _ in CHANNELS)
+# Index of the filtered radiance's relative-variance feature among the input channels: the
+# affinity network's range term decodes the pixel variance from it (``decode_variance``).
+COLOR_VARIANCE_CHANNEL: int = IN_CHANNELS - len(schema.BUFFERS) + [b.name for b in schema.BUFFERS].index(RADIANCE)
 
 
 def channel_names() -> list[str]:
@@ -80,6 +83,20 @@ def relative_variance_feature(variance: np.ndarray, mean_square: np.ndarray) -> 
     """``1 + log10(v / (m² + 1e-2) + 1e-6) / 6``: 0 for a noise-free pixel, ~1 for relative variance 1."""
     rel = np.maximum(variance, 0.0) / (mean_square + VARIANCE_FLOOR)
     return (1.0 + np.log10(rel + RELATIVE_VARIANCE_MIN) / 6.0).astype(np.float32)
+
+
+def decode_variance(feature: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``relative_variance_feature``: the channel-mean variance (B, 1, H, W) of
+    ``radiance`` (B, 3, H, W) from its feature (B, 1, H, W).
+
+    Exact for relative variances above ``RELATIVE_VARIANCE_MIN`` (below it the log's floor makes
+    the result at most that floor too large: a conservative error, the filter then averages
+    less). The feature is clamped to [0, 2] first (relative variance <= 1e6), so any finite input
+    decodes to a finite variance.
+    """
+    rel = (10.0 ** (6.0 * (feature.clamp(0.0, 2.0) - 1.0)) - RELATIVE_VARIANCE_MIN).clamp(min=0.0)
+    mean_square = (radiance.clamp(-1e15, 1e15) ** 2).mean(1, keepdim=True)
+    return rel * (mean_square + VARIANCE_FLOOR)
 
 
 def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

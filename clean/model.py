@@ -6,7 +6,12 @@ neural features"), single-frame: the GT cleaner of the paper's section 3.1 and t
                                                                        bandwidth a >= 0,
                                                                        centre weight c > 0
     radiance (B, 3, H, W) ──► K dilated size×size kernels, iteration k:
-         out_p = Σ_q w_pq r_q / Σ_q w_pq,   w_pq = exp(−a_p ‖f_p − f_q‖²) (q ≠ p),   w_pp = c_p
+         out_p = Σ_q w_pq r_q / Σ_q w_pq,   w_pq = exp(−a_p ‖f_p − f_q‖² − b_p d²_pq) (q ≠ p),   w_pp = c_p
+
+d²_pq (optional, ``variance_channel``; on in the default config) is the variance-normalized
+NL-means distance of Rousselle et al. 2012 between the radiance at p and q (``range_distance``),
+b_p >= 0 its learned per-pixel weight. It is our addition to Isik et al.: it is what lets the
+cleaner tell 1024-spp noise from detail (see ``AffinityDenoiser``).
 
 The kernels filter the **HDR radiance** itself: the output is a convex combination of input
 radiances (weights are positive and normalized), so it stays HDR, non-negative for non-negative
@@ -38,31 +43,69 @@ from torch import nn
 # Inputs are range-compressed by clean.data to roughly [-20, 20]; this clamp only guards against
 # pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
 INPUT_CLAMP = 1e3
+# Added to the denominator of the range distance (radiance² units): two exactly noise-free pixels
+# (background, v = 0) then compare on their difference alone, far above any noise.
+RANGE_EPS = 1e-10
 
 
-def apply_affinity_kernel(radiance: torch.Tensor, features: torch.Tensor, bandwidth: torch.Tensor,
-                          log_centre: torch.Tensor, dilation: int = 1, size: int = 7) -> torch.Tensor:
-    """One normalized affinity filtering step.
-
-    radiance (B, C, H, W) HDR; features (B, F, H, W); bandwidth (B, 1, H, W) >= 0 (the a_p of
-    exp(−a_p ‖f_p − f_q‖²)); log_centre (B, 1, H, W), log of the centre weight c_p > 0.
-    Neighbours q = p + dilation·(i, j), |i|, |j| <= size // 2, inside the image.
-    Returns (B, C, H, W) = Σ_q w_pq r_q / Σ_q w_pq.
-    """
+def _offsets(size: int, dilation: int) -> list[tuple[int, int]]:
     if size % 2 != 1:
         raise ValueError(f"kernel size must be odd, got {size}")
-    B, _, H, W = radiance.shape
+    h = size // 2
+    return [(i * dilation, j * dilation) for i in range(-h, h + 1) for j in range(-h, h + 1)]
+
+
+def range_distance(radiance: torch.Tensor, variance: torch.Tensor, dy: int, dx: int, patch: int = 1) -> torch.Tensor:
+    """Variance-normalized distance between each pixel p and its neighbour q = p + (dy, dx).
+
+        d²_pq = box_patch( (mean_c (r_p − r_q)² − (v_p + min(v_p, v_q))) / (ε + v_p + v_q) ),  clamped >= 0
+
+    The NL-means distance of Rousselle et al. 2012 ("Adaptive rendering with non-local means
+    filtering"): v is the variance of the pixel estimate, so for two pixels with the same mean
+    E[(r_p − r_q)²] = v_p + v_q and d² ≈ 0; the subtracted term cancels the noise's own
+    contribution. ``patch`` > 0 averages the distance over a (2·patch+1)² patch (lower variance
+    of the distance itself). Neighbours outside the image see the border (replicate padding);
+    the caller excludes them anyway. Returns (B, 1, H, W), finite for finite inputs.
+    """
+    H, W = radiance.shape[-2:]
+    r = max(abs(dy), abs(dx))
+    pad = (r, r, r, r)
+    window = (..., slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+    rq = F.pad(radiance, pad, mode="replicate")[window]
+    vq = F.pad(variance, pad, mode="replicate")[window]
+    big = torch.finfo(radiance.dtype).max
+    diff = ((radiance - rq) ** 2).mean(1, keepdim=True).clamp(max=big)
+    d2 = (diff - (variance + torch.minimum(variance, vq))) / (RANGE_EPS + variance + vq)
+    if patch > 0:
+        d2 = F.avg_pool2d(d2, 2 * patch + 1, stride=1, padding=patch, count_include_pad=False)
+    return d2.clamp(min=0.0, max=big)
+
+
+def affinity_weights(features: torch.Tensor, bandwidth: torch.Tensor, log_centre: torch.Tensor,
+                     dilation: int = 1, size: int = 7, radiance: torch.Tensor | None = None,
+                     variance: torch.Tensor | None = None, range_weight: torch.Tensor | None = None,
+                     patch: int = 1) -> torch.Tensor:
+    """Normalized kernel weights (B, size², H, W), one channel per offset of ``_offsets``.
+
+        log w_pq = −a_p ‖f_p − f_q‖² − b_p d²_pq   (q ≠ p),   log w_pp = log c_p
+
+    with the range term b_p d²_pq (``range_distance``) only where ``range_weight`` b is given
+    (with the ``radiance`` and ``variance`` it measures). Neighbours outside the image get
+    log-weight −inf (excluded), never zero padding.
+    """
+    B, _, H, W = features.shape
+    offsets = _offsets(size, dilation)
     r = (size // 2) * dilation
     # a·‖Δf‖² with a = inf and ‖Δf‖² = 0 would be NaN: cap a at the largest finite value.
-    bandwidth = bandwidth.clamp(min=0.0, max=torch.finfo(bandwidth.dtype).max)
+    big = torch.finfo(features.dtype).max
+    bandwidth = bandwidth.clamp(min=0.0, max=big)
+    if range_weight is not None:
+        range_weight = range_weight.clamp(min=0.0, max=big)
     pad = (r, r, r, r)
     f_pad = F.pad(features, pad)
-    r_pad = F.pad(radiance, pad)
     sq = (features * features).sum(1, keepdim=True)
     sq_pad = F.pad(sq, pad)
-    inside = F.pad(torch.ones(1, 1, H, W, dtype=torch.bool, device=radiance.device), pad)
-    offsets = [(i * dilation, j * dilation) for i in range(-(size // 2), size // 2 + 1)
-               for j in range(-(size // 2), size // 2 + 1)]
+    inside = F.pad(torch.ones(1, 1, H, W, dtype=torch.bool, device=features.device), pad)
     logits = []
     for dy, dx in offsets:
         if dy == 0 and dx == 0:
@@ -73,14 +116,36 @@ def apply_affinity_kernel(radiance: torch.Tensor, features: torch.Tensor, bandwi
         # instead of one (B, F, H, W) difference per offset; clamp the round-off below 0.
         dist = (sq + sq_pad[window] - 2.0 * (features * f_pad[window]).sum(1, keepdim=True)).clamp(min=0.0)
         logit = -(bandwidth * dist)
+        if range_weight is not None:
+            logit = logit - range_weight * range_distance(radiance, variance, dy, dx, patch)
         logits.append(logit.masked_fill(~inside[window], float("-inf")))
     # Softmax = max-subtracted exp / sum: the centre logit is finite, so the max is finite and
     # the normalizer >= 1; underflowing affinities just become 0 weights.
-    weights = torch.softmax(torch.cat(logits, dim=1), dim=1)
-    out = torch.zeros_like(radiance)
-    for k, (dy, dx) in enumerate(offsets):
-        out = out + weights[:, k:k + 1] * r_pad[..., r + dy:r + dy + H, r + dx:r + dx + W]
+    return torch.softmax(torch.cat(logits, dim=1), dim=1)
+
+
+def apply_weights(x: torch.Tensor, weights: torch.Tensor, dilation: int = 1, size: int = 7) -> torch.Tensor:
+    """Σ_q w_pq x_q for x (B, C, H, W) and weights (B, size², H, W) from ``affinity_weights``."""
+    H, W = x.shape[-2:]
+    r = (size // 2) * dilation
+    x_pad = F.pad(x, (r, r, r, r))
+    out = torch.zeros_like(x)
+    for k, (dy, dx) in enumerate(_offsets(size, dilation)):
+        out = out + weights[:, k:k + 1] * x_pad[..., r + dy:r + dy + H, r + dx:r + dx + W]
     return out
+
+
+def apply_affinity_kernel(radiance: torch.Tensor, features: torch.Tensor, bandwidth: torch.Tensor,
+                          log_centre: torch.Tensor, dilation: int = 1, size: int = 7) -> torch.Tensor:
+    """One normalized affinity filtering step (no range term).
+
+    radiance (B, C, H, W) HDR; features (B, F, H, W); bandwidth (B, 1, H, W) >= 0 (the a_p of
+    exp(−a_p ‖f_p − f_q‖²)); log_centre (B, 1, H, W), log of the centre weight c_p > 0.
+    Neighbours q = p + dilation·(i, j), |i|, |j| <= size // 2, inside the image.
+    Returns (B, C, H, W) = Σ_q w_pq r_q / Σ_q w_pq.
+    """
+    weights = affinity_weights(features, bandwidth, log_centre, dilation, size)
+    return apply_weights(radiance, weights, dilation, size)
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -120,36 +185,58 @@ class UNet(nn.Module):
 
 
 class AffinityDenoiser(nn.Module):
-    """forward(inputs (B, C, H, W), radiance (B, 3, H, W) HDR) → denoised HDR radiance (B, 3, H, W)."""
+    """forward(inputs (B, C, H, W), radiance (B, 3, H, W) HDR) → denoised HDR radiance (B, 3, H, W).
+
+    ``variance_channel``: index in ``inputs`` of the radiance's relative-variance feature
+    (``clean.data.COLOR_VARIANCE_CHANNEL``). When given, every iteration adds the range term
+    −b_p d²_pq of ``range_distance`` to its log-weights, with b_p >= 0 predicted by the U-Net like
+    the bandwidth, and carries the variance through the filter (v' = Σ_q w_pq² v_q, exact for
+    independent pixel noise) so that the next iteration compares on the filtered image's noise.
+    Why: a 1024-spp ground truth is noisy at the 1e-3 level only, far below the feature edges the
+    affinities see. Learned features alone did not find that scale within a CPU training budget
+    and the cleaner converged to the identity; the variance-normalized distance tells exactly which
+    neighbours differ by more than noise.
+    """
 
     def __init__(self, in_channels: int, embed_channels: int = 32, channels: list[int] = (32, 48, 64),
-                 affinity_channels: int = 8, kernel_size: int = 7, dilations: list[int] = (1, 2, 4)):
+                 affinity_channels: int = 8, kernel_size: int = 7, dilations: list[int] = (1, 2, 4),
+                 variance_channel: int | None = None, range_patch: int = 1):
         super().__init__()
+        if variance_channel is not None and not 0 <= int(variance_channel) < int(in_channels):
+            raise ValueError(f"variance_channel {variance_channel} is not one of the {in_channels} input channels")
         self.hparams = {"in_channels": int(in_channels), "embed_channels": int(embed_channels),
                         "channels": [int(c) for c in channels], "affinity_channels": int(affinity_channels),
-                        "kernel_size": int(kernel_size), "dilations": [int(d) for d in dilations]}
+                        "kernel_size": int(kernel_size), "dilations": [int(d) for d in dilations],
+                        "variance_channel": None if variance_channel is None else int(variance_channel),
+                        "range_patch": int(range_patch)}
         self.kernel_size = int(kernel_size)
         self.dilations = [int(d) for d in dilations]
         self.affinity_channels = int(affinity_channels)
+        self.variance_channel = self.hparams["variance_channel"]
+        self.range_patch = int(range_patch)
         # Isik et al. embed each sample with a small MLP and average; we have per-pixel buffers,
         # so the embedding is a per-pixel MLP (1×1 convs).
         self.embed = nn.Sequential(nn.Conv2d(in_channels, embed_channels, 1), nn.LeakyReLU(0.1),
                                    nn.Conv2d(embed_channels, embed_channels, 1), nn.LeakyReLU(0.1))
-        per_iter = affinity_channels + 2          # features, bandwidth, log centre weight
-        self.unet = UNet(embed_channels, list(channels), per_iter * len(self.dilations))
+        # features, bandwidth, log centre weight (+ range weight)
+        self.per_iter = affinity_channels + 2 + (self.variance_channel is not None)
+        self.unet = UNet(embed_channels, list(channels), self.per_iter * len(self.dilations))
         # Guide: the raw inputs join the learned affinity features, weighted per iteration and
         # channel by learned scales (a cross-bilateral term). Without it, training on noisy
         # inputs collapsed within one epoch to identical learned features — a uniform blur where
         # ‖f_p − f_q‖ = 0 makes the features' gradient exactly zero, so it never left.
         self.guide_scale = nn.Parameter(torch.full((len(self.dilations), int(in_channels)), 0.1))
         with torch.no_grad():
-            # Start as a moderate smoother: bandwidth softplus(0.5) ≈ 1, centre weight e^0 = 1.
-            bias = self.unet.head.bias.view(len(self.dilations), per_iter)
+            # Start as a moderate smoother: bandwidth softplus(0.5) ≈ 1, centre weight e^0 = 1,
+            # range weight softplus(0.54) = 1 (the NL-means of Rousselle et al. with k = 1).
+            bias = self.unet.head.bias.view(len(self.dilations), self.per_iter)
             bias[:, affinity_channels] = 0.5
             bias[:, affinity_channels + 1] = 0.0
+            if self.variance_channel is not None:
+                bias[:, affinity_channels + 2] = 0.5413
 
-    def kernel_parameters(self, inputs: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-        """Per iteration (features, bandwidth, log_centre), each (B, ·, H, W) at the input size."""
+    def kernel_parameters(self, inputs: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
+        """Per iteration (features, bandwidth, log_centre, range_weight or None), each (B, ·, H, W)."""
         H, W = inputs.shape[-2:]
         m = self.unet.multiple
         ph, pw = (-H) % m, (-W) % m
@@ -160,17 +247,26 @@ class AffinityDenoiser(nn.Module):
         guide = inputs.clamp(-INPUT_CLAMP, INPUT_CLAMP)
         params = []
         n = self.affinity_channels
-        for k, chunk in enumerate(out.split(n + 2, dim=1)):
+        for k, chunk in enumerate(out.split(self.per_iter, dim=1)):
             feat = torch.cat([chunk[:, :n], guide * self.guide_scale[k].view(1, -1, 1, 1)], dim=1)
-            params.append((feat, F.softplus(chunk[:, n:n + 1]), chunk[:, n + 1:n + 2]))
+            rng = F.softplus(chunk[:, n + 2:n + 3]) if self.variance_channel is not None else None
+            params.append((feat, F.softplus(chunk[:, n:n + 1]), chunk[:, n + 1:n + 2], rng))
         return params
 
     def forward(self, inputs: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
         if inputs.shape[-2:] != radiance.shape[-2:]:
             raise ValueError(f"inputs {tuple(inputs.shape)} and radiance {tuple(radiance.shape)} differ in size")
         out = radiance
-        for (feat, bw, logc), d in zip(self.kernel_parameters(inputs), self.dilations):
-            out = apply_affinity_kernel(out, feat, bw, logc, dilation=d, size=self.kernel_size)
+        variance = None
+        if self.variance_channel is not None:
+            from .data import decode_variance
+            c = self.variance_channel
+            variance = decode_variance(inputs[:, c:c + 1], radiance)
+        for (feat, bw, logc, rng), d in zip(self.kernel_parameters(inputs), self.dilations):
+            w = affinity_weights(feat, bw, logc, d, self.kernel_size, out, variance, rng, self.range_patch)
+            out = apply_weights(out, w, d, self.kernel_size)
+            if variance is not None:
+                variance = apply_weights(variance, w * w, d, self.kernel_size)
         return out
 
 

@@ -37,7 +37,7 @@ from pipeline.exr import StoreError, atomic_write_json
 from pipeline.metrics import all_metrics
 from pipeline.store import Store
 
-from .data import IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
+from .data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
 from .losses import smape
 from .model import AffinityDenoiser
 
@@ -66,8 +66,7 @@ def pick_device(name: str) -> torch.device:
 
 
 def build_model(cfg: Config) -> AffinityDenoiser:
-    c = cfg.clean
-    return AffinityDenoiser(IN_CHANNELS, c.embed_channels, c.channels, c.affinity_channels, c.kernel_size, c.dilations)
+    return AffinityDenoiser(**build_model_hparams(cfg))
 
 
 def fingerprint(cfg: Config, mode: str, spp: int | None) -> dict:
@@ -82,7 +81,8 @@ def fingerprint(cfg: Config, mode: str, spp: int | None) -> dict:
 def build_model_hparams(cfg: Config) -> dict:
     c = cfg.clean
     return {"in_channels": IN_CHANNELS, "embed_channels": c.embed_channels, "channels": list(c.channels),
-            "affinity_channels": c.affinity_channels, "kernel_size": c.kernel_size, "dilations": list(c.dilations)}
+            "affinity_channels": c.affinity_channels, "kernel_size": c.kernel_size, "dilations": list(c.dilations),
+            "variance_channel": COLOR_VARIANCE_CHANNEL if c.range_term else None, "range_patch": c.range_patch}
 
 
 # ---- data ------------------------------------------------------------------------------------
