@@ -228,6 +228,35 @@ def test_baseline_trains_from_low_spp(cfg_dir):
     assert meta["mode"] == "baseline" and meta["spp"] == 4
 
 
+def test_clean_report_scores_and_draws(cfg_dir):
+    """clean-report: its GT1 and GT_clean rows are the metrics of the stored images against GT2,
+    the MSE ratio shows the gain, the crop grid is a picture; the tiny store has no test split,
+    which the baseline section says instead of failing."""
+    from pipeline.metrics import all_metrics, mse
+    from clean.report import run_report
+
+    cfg = tiny_cfg(cfg_dir, epochs=2)
+    assert cmd_gt_clean(cfg, quiet=True) == 0 and cmd_train_isik(cfg, 4, quiet=True) == 0
+    out = cfg_dir / "report"
+    r = run_report(cfg, out=str(out), spp=4)
+    store = Store(cfg.store)
+    keys = store.frames("val")
+    read = lambda k, n: store.read_image(k.scene, k.frame, n, ["color"])[0]["color"]
+    gt1_psnr = np.mean([all_metrics(read(k, "gt1"), read(k, "gt2"))["psnr"] for k in keys])
+    ratio = np.mean([mse(read(k, "gt_clean"), read(k, "gt2")) / mse(read(k, "gt1"), read(k, "gt2")) for k in keys])
+    assert r["val"]["frames"] == len(keys) == 2
+    assert r["val"]["gt1_vs_gt2"]["psnr"] == pytest.approx(gt1_psnr)
+    assert r["val"]["mse_ratio_mean"] == pytest.approx(ratio) and ratio < 0.8
+    assert r["val"]["clean_vs_gt2"]["psnr"] > r["val"]["gt1_vs_gt2"]["psnr"]
+    assert r["training"]["epochs"] == 2 and r["baseline"]["frames"] == 0
+    md = (out / "cleaner.md").read_text()
+    assert f"{ratio:.3f}" in md and "no test frame" in md
+    from PIL import Image
+    with Image.open(out / "cleaner_crops.png") as im:
+        assert im.size[0] > im.size[1] > 100          # 6 columns by 2 rows
+        assert np.asarray(im.convert("L")).std() > 5  # not blank
+
+
 def test_time_budget_stops_after_an_epoch_and_resumes(cfg_dir):
     cfg = tiny_cfg(cfg_dir, epochs=3, time_budget_s="0.000001")
     assert train(cfg, "cleaner", quiet=True)["epochs"] == 1
