@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import figures
+from pipeline.color import reinhard
 from pipeline.config import Config
 from pipeline.metrics import all_metrics, mse
 from pipeline.store import Store
@@ -32,7 +33,7 @@ def _mean_rows(rows: list[dict]) -> dict:
 
 
 def cleaner_metrics(store: Store, split: str, eps: float) -> dict:
-    rows_gt1, rows_clean, mse_ratio = [], [], []
+    rows_gt1, rows_clean, mse_ratio, tm_ratio = [], [], [], []
     for key in store.frames(split):
         if not store.image_path(key.scene, key.frame, "gt_clean").exists():
             continue
@@ -42,8 +43,10 @@ def cleaner_metrics(store: Store, split: str, eps: float) -> dict:
         rows_gt1.append(all_metrics(g1, g2, eps))
         rows_clean.append(all_metrics(gc, g2, eps))
         mse_ratio.append(mse(gc, g2) / max(mse(g1, g2), 1e-30))
+        tm_ratio.append(mse(reinhard(gc), reinhard(g2)) / max(mse(reinhard(g1), reinhard(g2)), 1e-30))
     return {"frames": len(rows_gt1), "gt1_vs_gt2": _mean_rows(rows_gt1), "clean_vs_gt2": _mean_rows(rows_clean),
-            "mse_ratio_mean": float(np.mean(mse_ratio)) if mse_ratio else None}
+            "mse_ratio_mean": float(np.mean(mse_ratio)) if mse_ratio else None,
+            "mse_ratio_tonemapped_mean": float(np.mean(tm_ratio)) if tm_ratio else None}
 
 
 def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -> dict:
@@ -74,8 +77,6 @@ def crop_grid(store: Store, split: str, path: Path, rows: int = 4, size: int = 6
     """GT1 / GT_clean / GT2 crops, then ×DIFF_GAIN absolute differences on the x/(1+x) scale:
     GT1−GT2 (noise of both), GT_clean−GT2 (what is left), GT_clean−GT1 (what the cleaner
     removed: it should look like noise, and any edge or texture in it is detail blurred away)."""
-    from pipeline.color import reinhard
-
     def diff(a, b):
         return DIFF_GAIN * np.abs(reinhard(a) - reinhard(b))
 
@@ -130,7 +131,8 @@ def format_markdown(r: dict) -> str:
         lines += [f"## {split} split: {s['frames']} frames, against an independent GT2", "",
                   "| image | PSNR dB (x/(1+x)) | L1 (HDR, [0,6]) | SMAPE |", "| --- | --- | --- | --- |",
                   row("GT1", s["gt1_vs_gt2"]), row("GT_clean", s["clean_vs_gt2"]), "",
-                  f"MSE(GT_clean, GT2) / MSE(GT1, GT2), mean over frames: {s['mse_ratio_mean']:.3f} "
+                  f"MSE(GT_clean, GT2) / MSE(GT1, GT2), mean over frames: {s['mse_ratio_mean']:.3f} in HDR, "
+                  f"{s['mse_ratio_tonemapped_mean']:.3f} on the x/(1+x) scale of the PSNR "
                   "(1 = no gain; 0.5 = a perfect cleaner)", ""]
     if "baseline" in r and not r["baseline"]["frames"]:
         b = r["baseline"]

@@ -247,6 +247,7 @@ def test_clean_report_scores_and_draws(cfg_dir):
     assert r["val"]["frames"] == len(keys) == 2
     assert r["val"]["gt1_vs_gt2"]["psnr"] == pytest.approx(gt1_psnr)
     assert r["val"]["mse_ratio_mean"] == pytest.approx(ratio) and ratio < 0.8
+    assert 0 < r["val"]["mse_ratio_tonemapped_mean"] < 0.8
     assert r["val"]["clean_vs_gt2"]["psnr"] > r["val"]["gt1_vs_gt2"]["psnr"]
     assert r["training"]["epochs"] == 2 and r["baseline"]["frames"] == 0
     md = (out / "cleaner.md").read_text()
