@@ -16,7 +16,10 @@ Names (``eval.methods``):
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``).
 - ``ours``, ``ours_skipN``: the diffusion denoiser of ``train.infer`` at all 27 super27 steps or
   with N of them skipped; ``base_only``, ``base_only_skipN``: the same base without its Control
-  Module (the paper's ablation row). These are looked up lazily, as
+  Module (the paper's ablation row). ``ours_small[_skipN]``, ``base_only_small[_skipN]``: the
+  same with the sampler's fixed posterior variance instead of the learned one (``variance="small"``:
+  a weakly trained network predicts a large variance, which its samples then carry as noise).
+  These are looked up lazily, as
 
       from train.infer import load_denoiser, run_dir
       den = load_denoiser(run_dir(cfg, spp), device=device, base_only=False)
@@ -37,12 +40,14 @@ import numpy as np
 from pipeline.config import Config, ConfigError
 from pipeline.exr import StoreError
 
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "ours", "base_only")
+FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "ours", "base_only", "ours_small", "base_only_small")
 # Families whose name may carry a step-skip suffix.
-_SKIPPABLE = ("ours", "base_only")
+_SKIPPABLE = ("ours", "base_only", "ours_small", "base_only_small")
 _NAME = re.compile(r"^(?P<family>[a-z_]+?)(?:_skip(?P<skip>\d+))?$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
-          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
+          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)",
+          "ours_small": "Ours (diffusion), fixed small variance",
+          "base_only_small": "Base only (no Control Module), fixed small variance"}
 
 
 class MethodUnavailable(Exception):
@@ -57,7 +62,7 @@ def parse_name(name: str) -> tuple[str, int]:
         family = None
     if family not in FAMILIES:
         raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, "
-                          f"and ours_skipN / base_only_skipN)")
+                          f"and <ours|base_only>[_small]_skipN)")
     return family, skip
 
 
@@ -141,13 +146,15 @@ class Diffusion(Method):
     device: str = "cpu"
 
     rotation: object = None
+    variance: str = "learned"
 
     def set_frame(self, store, key) -> None:
         from train.data import frame_rotation
         self.rotation = frame_rotation(store, key)
 
     def denoise(self, buffers):
-        out = self.denoiser.denoise(buffers, spp=self.spp, skip=self.skip, seed=self.seed, rotation=self.rotation)
+        out = self.denoiser.denoise(buffers, spp=self.spp, skip=self.skip, seed=self.seed, rotation=self.rotation,
+                                    variance=self.variance)
         return np.asarray(out, dtype=np.float32)
 
 
@@ -186,7 +193,7 @@ class Loader:
         return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
 
     def _diffusion(self, name: str, family: str, skip: int, spp: int) -> Method:
-        base_only = family == "base_only"
+        base_only = family.startswith("base_only")
         key = ("diffusion", spp, base_only)
         if key not in self._models:
             try:
@@ -206,7 +213,7 @@ class Loader:
         if not 0 <= skip < 27:
             raise MethodUnavailable(f"{name}: skip must be 0..26 of the 27 super27 steps")
         return Diffusion(denoiser=self._models[key], spp=spp, skip=skip, seed=self.cfg.eval.seed, name=name,
-                         device=self.device())
+                         device=self.device(), variance="small" if family.endswith("_small") else "learned")
 
 
 def check_names(names: list[str]) -> None:

@@ -331,15 +331,20 @@ def plot_error_vs_time(g: dict, path: Path, group: str) -> None:
     plt.close(fig)
 
 
+# Method families drawn as one curve over their step counts (ours, ours_skip12, ...).
+CURVES = {"ours": ("s-", "C3", "ours over step counts"),
+          "ours_small": ("^--", "C9", "ours, small variance, over step counts")}
+
+
 def _plot_points(ax, points: list[dict], key: str) -> None:
-    ours = sorted((p for p in points if p["kind"] == "ours" and p[key] is not None and math.isfinite(p[key])),
-                  key=lambda p: p["seconds"])
-    if ours:
-        ax.plot([p["seconds"] for p in ours], [p[key] for p in ours], "s-", color="C3", label="ours over step counts",
-                zorder=4)
+    for kind, (style, color, text) in CURVES.items():
+        curve = sorted((p for p in points if p["kind"] == kind and p[key] is not None and math.isfinite(p[key])),
+                       key=lambda p: p["seconds"])
+        if curve:
+            ax.plot([p["seconds"] for p in curve], [p[key] for p in curve], style, color=color, label=text, zorder=4)
     for i, p in enumerate(points):
         v = p[key]
-        if v is None or not math.isfinite(v) or p["kind"] == "ours":
+        if v is None or not math.isfinite(v) or p["kind"] in CURVES:
             continue
         hollow = p["kind"] == "mc_equal_time"
         ax.scatter([p["seconds"]], [v], marker="D" if hollow else "o", s=28, zorder=3,

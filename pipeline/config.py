@@ -140,6 +140,9 @@ class DiffusionConfig:
     skip: int = doc("Sampler: DDPM steps skipped of the 27 super27 steps; the noisy render is q-sampled at the "
                     "first step kept (skip 12 starts at t=900 and runs 15 steps, as the authors' code).", 0)
     threshold_ratio: float = doc("Dynamic thresholding percentile of the predicted clean image (IF: 0.95).", 0.95)
+    variance: str = doc("Sampler variance: 'learned' (IF's learned range, the paper) or 'small' (the fixed "
+                        "posterior variance; ignores the network's variance output). Used by validation and "
+                        "make denoise; eval compares both as ours[_skipN] and ours_small[_skipN].", "learned")
     val_frames: int = doc("Validation frames sampled after every epoch (val PSNR with the sampler at val_skip).", 2)
     val_skip: int = doc("Sampler skip used for the per-epoch validation (cheaper than the full 27 steps).", 12)
     tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles.", 256)
@@ -337,6 +340,8 @@ def validate(cfg: Config, source: str) -> None:
     for key in ("skip", "val_skip"):
         if not 0 <= getattr(f, key) <= 26:
             bad(f"diffusion.{key}", "must be in [0, 26] (super27 has 27 steps; at least one must run)")
+    if f.variance not in ("learned", "small"):
+        bad("diffusion.variance", f"expected 'learned' or 'small', got {f.variance!r}")
     if not 0 < f.threshold_ratio <= 1:
         bad("diffusion.threshold_ratio", "must be in (0, 1]")
     for sec, key in (("diffusion", "epochs"), ("diffusion", "batch_size"), ("diffusion", "crop"),

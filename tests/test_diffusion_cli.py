@@ -102,12 +102,13 @@ def test_eval_runs_the_trained_model(setup, tmp_path):
     """The evaluator loads the real trained run (not a stand-in) and reports it next to the noisy input."""
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
-    proc = run("eval", *keys, "eval.methods=[noisy,ours_skip24,base_only_skip24]", "eval.metrics=[l1,psnr]",
+    proc = run("eval", *keys, "eval.methods=[noisy,ours_skip24,base_only_skip24,ours_small_skip24]",
+               "eval.metrics=[l1,psnr]",
                "eval.equal_time=none", "eval.split=train", "eval.frames=1", f"eval.out={tmp_path / 'rep'}",
                "--spp", "4")
     md = (tmp_path / "rep" / "eval.md").read_text()
     assert "not available" not in md, md
-    for name in ("ours_skip24", "base_only_skip24"):
+    for name in ("ours_skip24", "base_only_skip24", "ours_small_skip24"):
         row = next(line for line in md.splitlines() if line.startswith("|") and f"(`{name}`)" in line)
         l1, psnr_db = (float(c.strip(" *")) for c in row.split("|")[2:4])
         assert 0 <= l1 < 6 and 0 < psnr_db < 100, row

@@ -279,6 +279,35 @@ def test_train_base_option_trains_the_base_too(tmp_path):
     assert len(m.trainable_parameters()) == len(list(m.control.parameters())) + len(list(m.base.parameters()))
 
 
+def test_small_variance_ignores_the_variance_output():
+    """variance="small" samples with the posterior variance whatever the network's variance head
+    says; the learned-range sampler follows it. An imperfect ε (0.9 × the truth) makes the step
+    noise matter: with small variance v = −1 and v = +1 give the same image, with the learned
+    range v = +1 (variance β, the largest) leaves the result further from x than v = −1."""
+    acp = diffusion.make_scheduler().alphas_cumprod
+    x = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.9
+
+    class Imperfect(torch.nn.Module):
+        multiple = 1
+
+        def __init__(self, v):
+            super().__init__()
+            self.v = v
+
+        def forward(self, z, noisy, aux, t):
+            a = acp[t].view(-1, 1, 1, 1)
+            return torch.cat([0.9 * (z - a.sqrt() * x) / (1 - a).sqrt(), torch.full_like(z, self.v)], 1)
+
+    def err(v, variance):
+        return (sample(Imperfect(v), torch.zeros_like(x), None, skip=0, seed=1, variance=variance) - x).abs().mean()
+
+    assert torch.equal(sample(Imperfect(-1.0), torch.zeros_like(x), None, seed=1, variance="small"),
+                       sample(Imperfect(1.0), torch.zeros_like(x), None, seed=1, variance="small"))
+    assert err(1.0, "learned") > 1.2 * err(-1.0, "learned")
+    with pytest.raises(ValueError, match="sampler variance"):
+        sample(Imperfect(0.0), torch.zeros_like(x), None, variance="big")
+
+
 @pytest.mark.parametrize("skip", [0, 12, 24])
 def test_sampler_recovers_the_image_with_an_oracle_model(skip):
     """With the true ε (and the posterior variance), every skip setting must land exactly on x: the

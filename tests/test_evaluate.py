@@ -75,9 +75,9 @@ class FakeDiffusion:
     def __init__(self, folder, device, base_only):
         self.folder, self.device, self.base_only = Path(folder), device, base_only
 
-    def denoise(self, buffers, spp, skip, seed, rotation=None):
+    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None):
         FakeDiffusion.calls.append({"spp": spp, "skip": skip, "seed": seed, "base_only": self.base_only,
-                                    "keys": sorted(buffers)})
+                                    "variance": variance, "keys": sorted(buffers)})
         time.sleep(FAKE_DENOISE_SECONDS * (27 - skip) / 27)
         c = buffers["color"]
         if self.base_only:
@@ -117,7 +117,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     (runs / "diffusion_spp4").mkdir(parents=True)            # ours has a checkpoint at 4 spp only
     monkeypatch.setitem(sys.modules, "train.infer", fake_infer_module())
     FakeDiffusion.calls.clear()
-    methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only"]
+    methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_small_skip18"]
     cfg = load_config(TINY, [f"store={store_root}", f"runs={runs}", f"eval.methods={json.dumps(methods)}",
                              "eval.equal_time=pool", "eval.equal_time_methods=[ours, oidn, isik]", "eval.device=cpu",
                              "eval.seed=5"])
@@ -157,9 +157,11 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     assert not e16["methods"]["ours"]["available"] and "diffusion_spp16" in e16["methods"]["ours"]["reason"]
     assert "metrics" not in e16["methods"]["ours"]
 
-    # ours plugged in through train.infer: spp, skip, seed and base_only reach the denoiser
-    seen = {(c["spp"], c["skip"], c["base_only"], c["seed"]) for c in FakeDiffusion.calls}
-    assert seen == {(4, 0, False, 5), (4, 18, False, 5), (4, 0, True, 5)}
+    # ours plugged in through train.infer: spp, skip, seed, base_only and the variance reach the denoiser
+    seen = {(c["spp"], c["skip"], c["base_only"], c["seed"], c["variance"]) for c in FakeDiffusion.calls}
+    assert seen == {(4, 0, False, 5, "learned"), (4, 18, False, 5, "learned"), (4, 0, True, 5, "learned"),
+                    (4, 18, False, 5, "small")}
+    assert "fixed small variance" in (out / "eval.md").read_text()
     assert all("color.variance" in c["keys"] and "normal" in c["keys"] for c in FakeDiffusion.calls)
     assert rows["ours"]["metrics"]["l1"] < rows["noisy"]["metrics"]["l1"]
     assert rows["base_only"]["metrics"]["l1"] > rows["noisy"]["metrics"]["l1"]

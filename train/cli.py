@@ -65,7 +65,8 @@ def _validator(store: Store, keys: list[FrameKey], spp: int, cfg: Config, device
         for it in items:
             noisy, aux = it["noisy"][None].to(device), it["aux"][None].to(device)
             out = sample(model, noisy, aux, skip=cfg.diffusion.val_skip, seed=cfg.seed,
-                         threshold_ratio=cfg.diffusion.threshold_ratio, autocast_dtype=autocast)
+                         threshold_ratio=cfg.diffusion.threshold_ratio, autocast_dtype=autocast,
+                         variance=cfg.diffusion.variance)
             ref = from_model(it["target"], tm).numpy()
             rows.append((psnr(from_model(out[0].float().cpu(), tm).numpy(), ref),
                          psnr(from_model(it["noisy"], tm).numpy(), ref)))
@@ -188,8 +189,9 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         from pipeline.exr import read_layers
         buffers = read_layers(Path(exr))
         source = exr
-    hdr = den.denoise(buffers, int(spp), skip=skip, seed=cfg.seed if seed is None else seed, rotation=rotation)
-    meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name,
+    hdr = den.denoise(buffers, int(spp), skip=skip, seed=cfg.seed if seed is None else seed, rotation=rotation,
+                      variance=f.variance)
+    meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name, "variance": f.variance,
             "skip": den.meta.get("skip") if skip is None else skip, "repaired_nonfinite": den.last_repaired,
             "seconds": round(den.last_seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta)

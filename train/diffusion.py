@@ -31,12 +31,20 @@ import torch
 TRAIN_STEPS = 1000
 
 
-def make_scheduler(threshold_ratio: float = 0.95, sample_max: float = 1.0):
-    """A ``DDPMScheduler`` as DeepFloyd IF stage II uses it (cosine betas, learned range, dynamic thresholding)."""
+# Sampler variance: IF's learned range (the network's second output interpolates log β and log β̃)
+# or DDPM's fixed posterior variance β̃ ("small"), which ignores the variance head.
+VARIANCES = {"learned": "learned_range", "small": "fixed_small"}
+
+
+def make_scheduler(threshold_ratio: float = 0.95, sample_max: float = 1.0, variance: str = "learned"):
+    """A ``DDPMScheduler`` as DeepFloyd IF stage II uses it (cosine betas, learned range, dynamic
+    thresholding); ``variance="small"`` swaps the learned range for the fixed posterior variance."""
     from diffusers import DDPMScheduler
 
+    if variance not in VARIANCES:
+        raise ValueError(f"sampler variance must be one of {', '.join(VARIANCES)}, got {variance!r}")
     return DDPMScheduler(num_train_timesteps=TRAIN_STEPS, beta_schedule="squaredcos_cap_v2",
-                         variance_type="learned_range", prediction_type="epsilon", clip_sample=True,
+                         variance_type=VARIANCES[variance], prediction_type="epsilon", clip_sample=True,
                          clip_sample_range=1.0, thresholding=True, dynamic_thresholding_ratio=float(threshold_ratio),
                          sample_max_value=float(sample_max))
 

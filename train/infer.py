@@ -39,7 +39,7 @@ class Denoiser:
         self.last_seconds = 0.0
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
-                rotation: np.ndarray | None = None) -> np.ndarray:
+                rotation: np.ndarray | None = None, variance: str | None = None) -> np.ndarray:
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
@@ -50,7 +50,8 @@ class Denoiser:
         skip = int(self.meta.get("skip", 0) if skip is None else skip)
         out = sample_tiled(self.model, noisy_t, aux_t, tile=self.tile, overlap=self.overlap, skip=skip, seed=seed,
                            threshold_ratio=float(self.meta.get("threshold_ratio", 0.95)),
-                           autocast_dtype=self.autocast)
+                           autocast_dtype=self.autocast,
+                           variance=variance or self.meta.get("variance", "learned"))
         hdr = from_model(out[0].float().cpu(), tonemap).numpy()
         self.last_seconds = time.perf_counter() - t0
         return np.ascontiguousarray(np.moveaxis(hdr, 0, 2), dtype=np.float32)

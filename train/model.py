@@ -63,7 +63,7 @@ def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict
         "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(),
         "control": model.control is not None, "train_base": model.train_base,
         "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
-        "threshold_ratio": cfg.diffusion.threshold_ratio, **record})
+        "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance, **record})
 
 
 def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[ControlledDenoiser, dict]:

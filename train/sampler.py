@@ -32,15 +32,20 @@ def _pad(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]
 
 @torch.no_grad()
 def sample(model, noisy: torch.Tensor, aux: torch.Tensor | None, skip: int = 0, seed: int = 0,
-           threshold_ratio: float = 0.95, autocast_dtype: torch.dtype | None = None) -> torch.Tensor:
-    """The denoised image in model space, (B, 3, H, W) like ``noisy``; any H, W (padded internally)."""
+           threshold_ratio: float = 0.95, autocast_dtype: torch.dtype | None = None,
+           variance: str = "learned") -> torch.Tensor:
+    """The denoised image in model space, (B, 3, H, W) like ``noisy``; any H, W (padded internally).
+
+    ``variance``: "learned" (IF: the network's variance output) or "small" (the posterior
+    variance β̃ whatever the network says; see ``diffusion.VARIANCES``)."""
     if not 0 <= skip < 27:
         raise ValueError(f"skip must be in [0, 26], got {skip}")
     device = noisy.device
     m = getattr(model, "multiple", 1)
     noisy_p, (H, W) = _pad(noisy.float(), m)
     aux_p = _pad(aux.float(), m)[0] if aux is not None else None
-    sched = make_scheduler(threshold_ratio)
+    sched = make_scheduler(threshold_ratio, variance=variance)
+    channels = 3 if variance == "small" else None      # fixed variance: the scheduler wants ε only
     sched.set_timesteps(timesteps=super27())
     steps = sched.timesteps[skip:]
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
@@ -50,7 +55,7 @@ def sample(model, noisy: torch.Tensor, aux: torch.Tensor | None, skip: int = 0, 
         tt = t.to(device).expand(noisy_p.shape[0])
         with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype is not None):
             out = model(z, noisy_p, aux_p, tt)
-        z = sched.step(out.float(), t, z, generator=gen).prev_sample   # noise drawn on the CPU generator
+        z = sched.step(out[:, :channels].float(), t, z, generator=gen).prev_sample   # noise drawn on the CPU generator
     return z[..., :H, :W].clamp(-1, 1)
 
 
