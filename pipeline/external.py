@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import shutil
 from pathlib import Path
 
 from .config import Config, ConfigError
-from .exr import StoreError
+from .exr import StoreError, atomic_write_bytes
 from .executors import run_tasks
 from .store import STORE_FORMAT, STORE_VERSION, Store, image_names, image_seed
 from .versions import package_versions
@@ -45,9 +46,6 @@ def _register(store: Store, cfg: Config, sid: str) -> int:
 
 def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
                  name: str | None = None) -> dict:
-    from render.frame import FrameTask
-    from .dataset import _render_frame_entry, scene_record
-
     if not Path(xml).is_file():
         raise StoreError(f"{xml}: scene file not found")
     size = None
@@ -58,6 +56,30 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
         size = (int(m.group(1)), int(m.group(2)))
     store = Store(store_path)
     sid = _scene_id(xml, name)
+    # A scene that fails (bad XML, a render error) leaves the store as it found it: the manifest
+    # gets its old bytes back, a new scene folder goes, a store this call created is removed.
+    root_existed = store.root.exists()
+    manifest = store.manifest_path.read_bytes() if store.manifest_path.exists() else None
+    folder_existed = store.scene_dir(sid).exists()
+    try:
+        return _render(store, store_path, cfg, xml, sid, size)
+    except BaseException:
+        if not root_existed:
+            shutil.rmtree(store.root, ignore_errors=True)
+        else:
+            if manifest is None:
+                store.manifest_path.unlink(missing_ok=True)
+            else:
+                atomic_write_bytes(store.manifest_path, lambda tmp: Path(tmp).write_bytes(manifest))
+            if not folder_existed:
+                shutil.rmtree(store.scene_dir(sid), ignore_errors=True)
+        raise
+
+
+def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size) -> dict:
+    from render.frame import FrameTask
+    from .dataset import _render_frame_entry, scene_record
+
     index = _register(store, cfg, sid)
     d = cfg.dataset
     names = image_names(d.stacks)

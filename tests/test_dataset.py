@@ -185,7 +185,20 @@ def test_unreadable_scene_xml_is_a_clear_error(tmp_path):
     proc = cli("render-scene", bad, "--store", tmp_path / "ext", "--config", TINY, check=False)
     assert proc.returncode == 2
     assert "broken.xml" in proc.stderr
-    assert not list((tmp_path / "ext").rglob("*.exr"))
+    assert not (tmp_path / "ext").exists()          # the store this call would have made: not left behind
+
+
+def test_failed_scene_leaves_an_existing_store_as_it_was(tmp_path, tiny_store):
+    """A bad scene added to a dataset store: no manifest entry, no scene folder, nothing else touched."""
+    root, _ = tiny_store
+    before = {p: p.read_bytes() for p in Path(root).rglob("*") if p.is_file() and p.suffix == ".json"}
+    files = sorted(Path(root).rglob("*"))
+    bad = tmp_path / "broken.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='nosuchshape'/></scene>")
+    proc = cli("render-scene", bad, "--store", root, "--config", TINY, check=False)
+    assert proc.returncode == 2 and "broken.xml" in proc.stderr
+    assert sorted(Path(root).rglob("*")) == files
+    assert all(p.read_bytes() == data for p, data in before.items())
 
 
 def test_render_scene_writes_a_test_frame(tmp_path):
