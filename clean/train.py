@@ -168,11 +168,7 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     for tmp in folder.glob(".*.tmp") if folder.is_dir() else ():
         tmp.unlink(missing_ok=True)
     if last.exists():
-        record = load_last(last, model, opt, device)
-        if record.get("fingerprint") != fp:
-            changed = sorted(k for k in fp if record.get("fingerprint", {}).get(k) != fp[k])
-            raise TrainError(f"{last}: made with different settings ({', '.join(changed)}); delete {folder} "
-                             f"or set another 'runs' folder to start over")
+        record = load_last(last, model, opt, device, fingerprint=fp)
         start, history, best = int(record["epoch"]), record["history"], record["best"]
     title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
     if start >= c.epochs:

@@ -245,7 +245,14 @@ def main(argv: list[str] | None = None) -> int:
                                                            "(prints JSON for pipeline/plan.py)")
     p.set_defaults(fn=cmd_plan)
 
-    args = parser.parse_args(argv)
+    # key=value overrides may follow options too (`gt-clean --quiet clean.epochs=3`): argparse
+    # stops the positional list at the first option, so collect the rest here.
+    args, extra = parser.parse_known_args(argv)
+    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = list(args.overrides) + extra
     try:
         return args.fn(args)
     except (ConfigError, StoreError, MitsubaSetupError) as exc:

@@ -40,8 +40,12 @@ def save_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, re
 
 
 def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, device,
-              extra: dict[str, torch.Tensor] | None = None) -> dict:
-    """Restore ``model``, ``opt``, the torch RNG (and fill ``extra`` with saved extras); return the record."""
+              extra: dict[str, torch.Tensor] | None = None, fingerprint: dict | None = None) -> dict:
+    """Restore ``model``, ``opt``, the torch RNG (and fill ``extra`` with saved extras); return the record.
+
+    ``fingerprint``: the settings the checkpoint must have been made with. Checked before any
+    weight is loaded, so a run with another model shape gets the list of changed settings, not
+    a tensor size mismatch."""
     from safetensors import SafetensorError, safe_open
     try:
         with safe_open(str(path), framework="pt") as f:
@@ -50,7 +54,16 @@ def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, de
     except (SafetensorError, OSError, KeyError, ValueError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise StoreError(f"{path}: not a checkpoint this trainer wrote ({first}); delete it to start over") from None
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    start_over = f"delete {Path(path).parent} or set another 'runs' folder to start over"
+    if fingerprint is not None and record.get("fingerprint") != fingerprint:
+        old = record.get("fingerprint") or {}
+        changed = sorted(k for k in set(fingerprint) | set(old) if old.get(k) != fingerprint.get(k))
+        raise StoreError(f"{path}: made with different settings ({', '.join(changed)}); {start_over}")
+    try:
+        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[0]
+        raise StoreError(f"{path}: made for a different model ({first}); {start_over}") from None
     state: dict[int, dict] = {}
     for k, v in tensors.items():
         if k.startswith("optim."):

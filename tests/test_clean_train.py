@@ -183,6 +183,9 @@ def test_changed_settings_refuse_to_resume(cfg_dir):
     train(tiny_cfg(cfg_dir, epochs=1), "cleaner", quiet=True)
     with pytest.raises(RuntimeError, match="different settings.*lr"):
         train(tiny_cfg(cfg_dir, epochs=2, lr=0.1), "cleaner", quiet=True)
+    # Another model shape (here: no range term) is the same clear refusal, not a tensor size mismatch.
+    with pytest.raises(RuntimeError, match=r"different settings \(hparams\)"):
+        train(tiny_cfg(cfg_dir, epochs=2, range_term="false"), "cleaner", quiet=True)
 
 
 def test_apply_is_idempotent_and_follows_the_checkpoint(cfg_dir):

@@ -77,3 +77,20 @@ def test_yaml_is_loaded_safely(tmp_path):
 def test_every_key_documented_in_configs_readme():
     assert (ROOT / "configs" / "README.md").read_text() == documentation_markdown(), \
         "configs/README.md is stale: regenerate with `python -m pipeline config --doc > configs/README.md`"
+
+
+def test_overrides_may_follow_options(capsys):
+    """`key=value` after an option still overrides (argparse alone stops the list at the option);
+    stray options and non-override words are still refused."""
+    import yaml
+
+    from pipeline.__main__ import main
+
+    assert main(["config", "clean.lr=0.5", "--config", "configs/tiny.yaml", "clean.epochs=7", "clean.lr=0.25"]) == 0
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["clean"]["epochs"] == 7 and printed["clean"]["lr"] == 0.25   # the later override wins
+    for stray in (["--bogus"], ["scene.xml"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["config", "clean.lr=0.5", "--config", "configs/tiny.yaml", *stray])
+        assert exc.value.code == 2
+        assert f"unrecognized arguments: {stray[0]}" in capsys.readouterr().err

@@ -132,11 +132,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
     best: dict | None = None
     start = 0
     if last.exists():
-        record = load_last(last, job.trainable, opt, device)
-        if record.get("fingerprint") != job.fingerprint:
-            changed = sorted(k for k in job.fingerprint if record.get("fingerprint", {}).get(k) != job.fingerprint[k])
-            raise TrainError(f"{last}: made with different settings ({', '.join(changed)}); delete {folder} "
-                             "or set another 'runs' folder to start over")
+        record = load_last(last, job.trainable, opt, device, fingerprint=job.fingerprint)
         start, history, best = int(record["epoch"]), record["history"], record["best"]
     if start >= job.epochs:
         summary = _summary(job, history, best, 0, time.perf_counter() - t_start)
