@@ -49,6 +49,29 @@ def cleaner_metrics(store: Store, split: str, eps: float) -> dict:
             "mse_ratio_tonemapped_mean": float(np.mean(tm_ratio)) if tm_ratio else None}
 
 
+def untrained_metrics(cfg: Config, store: Store, split: str) -> dict | None:
+    """GT_clean's recipe with the *untrained* network (seeded like training): how much of the
+    gain is the range term's fixed NL-means prior and how much is learned. None without it."""
+    import torch
+
+    from .apply import denoise
+    from .train import build_model
+
+    if not cfg.clean.range_term:
+        return None
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg)
+    rows = []
+    for key in store.frames(split):
+        if not store.image_path(key.scene, key.frame, "gt_clean").exists():
+            continue
+        g1 = store.read_image(key.scene, key.frame, "gt1")[0]
+        g2 = store.read_image(key.scene, key.frame, "gt2", ["color"])[0]["color"]
+        out = denoise(model, *frame_inputs(g1), tile=cfg.clean.tile, device="cpu")
+        rows.append(all_metrics(out, g2, cfg.clean.smape_eps))
+    return _mean_rows(rows) or None
+
+
 def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -> dict:
     from .apply import denoise
 
@@ -96,6 +119,8 @@ def run_report(cfg: Config, out: str = "reports/cleaner", spp: int | None = None
     eps = cfg.clean.smape_eps
     result = {"store": str(cfg.store), "smape_eps": eps,
               "val": cleaner_metrics(store, "val", eps), "test": cleaner_metrics(store, "test", eps)}
+    for split in ("val", "test"):
+        result[split]["untrained_vs_gt2"] = untrained_metrics(cfg, store, split)
     train_json = run_dir(cfg, "cleaner") / "train.json"
     if train_json.exists():
         hist = json.loads(train_json.read_text())
@@ -130,7 +155,10 @@ def format_markdown(r: dict) -> str:
             continue
         lines += [f"## {split} split: {s['frames']} frames, against an independent GT2", "",
                   "| image | PSNR dB (x/(1+x)) | L1 (HDR, [0,6]) | SMAPE |", "| --- | --- | --- | --- |",
-                  row("GT1", s["gt1_vs_gt2"]), row("GT_clean", s["clean_vs_gt2"]), "",
+                  row("GT1", s["gt1_vs_gt2"]), row("GT_clean", s["clean_vs_gt2"])]
+        if s.get("untrained_vs_gt2"):
+            lines.append(row("untrained network, range term only", s["untrained_vs_gt2"]))
+        lines += ["",
                   f"MSE(GT_clean, GT2) / MSE(GT1, GT2), mean over frames: {s['mse_ratio_mean']:.3f} in HDR, "
                   f"{s['mse_ratio_tonemapped_mean']:.3f} on the x/(1+x) scale of the PSNR "
                   "(1 = no gain; 0.5 = a perfect cleaner)", ""]

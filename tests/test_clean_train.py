@@ -253,8 +253,10 @@ def test_clean_report_scores_and_draws(cfg_dir):
     assert 0 < r["val"]["mse_ratio_tonemapped_mean"] < 0.8
     assert r["val"]["clean_vs_gt2"]["psnr"] > r["val"]["gt1_vs_gt2"]["psnr"]
     assert r["training"]["epochs"] == 2 and r["baseline"]["frames"] == 0
+    # The untrained-network row (the range term's prior alone) is there and already beats GT1.
+    assert r["val"]["untrained_vs_gt2"]["psnr"] > r["val"]["gt1_vs_gt2"]["psnr"]
     md = (out / "cleaner.md").read_text()
-    assert f"{ratio:.3f}" in md and "no test frame" in md
+    assert f"{ratio:.3f}" in md and "no test frame" in md and "untrained network, range term only" in md
     from PIL import Image
     with Image.open(out / "cleaner_crops.png") as im:
         assert im.size[0] > im.size[1] > 100          # 6 columns by 2 rows
