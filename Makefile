@@ -54,8 +54,8 @@ llvm:
 demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
-	$(RUN) clean-report --config $(CONFIG) $(OVERRIDES)
 	$(RUN) train --model isik --spp $(SPP) --config $(CONFIG) clean.epochs=10 $(OVERRIDES)
+	$(RUN) clean-report --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
 	$(RUN) train --model diffusion --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
 	$(RUN) eval --config $(CONFIG) $(OVERRIDES) --spp $(SPP)
 
