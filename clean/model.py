@@ -33,12 +33,13 @@ largest temporary is the (B, 49, H, W) log-weight stack (13 MB in float32).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .data import decode_variance
 
 # Inputs are range-compressed by clean.data to roughly [-20, 20]; this clamp only guards against
 # pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
@@ -67,12 +68,19 @@ def range_distance(radiance: torch.Tensor, variance: torch.Tensor, dy: int, dx: 
     of the distance itself). Neighbours outside the image see the border (replicate padding);
     the caller excludes them anyway. Returns (B, 1, H, W), finite for finite inputs.
     """
-    H, W = radiance.shape[-2:]
     r = max(abs(dy), abs(dx))
-    pad = (r, r, r, r)
-    window = (..., slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
-    rq = F.pad(radiance, pad, mode="replicate")[window]
-    vq = F.pad(variance, pad, mode="replicate")[window]
+    r_pad, v_pad = (F.pad(x, (r, r, r, r), mode="replicate") for x in (radiance, variance))
+    window = _window(r, dy, dx, *radiance.shape[-2:])
+    return _range_distance(radiance, variance, r_pad[window], v_pad[window], patch)
+
+
+def _window(r: int, dy: int, dx: int, H: int, W: int) -> tuple:
+    """Index of the neighbours q = p + (dy, dx) in a tensor padded by r on every side."""
+    return (..., slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+
+
+def _range_distance(radiance, variance, rq, vq, patch: int) -> torch.Tensor:
+    """``range_distance`` given the neighbours' radiance ``rq`` and variance ``vq`` (already shifted)."""
     big = torch.finfo(radiance.dtype).max
     diff = ((radiance - rq) ** 2).mean(1, keepdim=True).clamp(max=big)
     d2 = (diff - (variance + torch.minimum(variance, vq))) / (RANGE_EPS + variance + vq)
@@ -106,18 +114,21 @@ def affinity_weights(features: torch.Tensor, bandwidth: torch.Tensor, log_centre
     sq = (features * features).sum(1, keepdim=True)
     sq_pad = F.pad(sq, pad)
     inside = F.pad(torch.ones(1, 1, H, W, dtype=torch.bool, device=features.device), pad)
+    if range_weight is not None:
+        # Padded once for all offsets (replicate: a window reads the same values at any pad width).
+        r_pad, v_pad = (F.pad(x, pad, mode="replicate") for x in (radiance, variance))
     logits = []
     for dy, dx in offsets:
         if dy == 0 and dx == 0:
             logits.append(log_centre)
             continue
-        window = (..., slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+        window = _window(r, dy, dx, H, W)
         # ‖f_p − f_q‖² = ‖f_p‖² + ‖f_q‖² − 2 f_p·f_q: keeps only views of f_pad for backward
         # instead of one (B, F, H, W) difference per offset; clamp the round-off below 0.
         dist = (sq + sq_pad[window] - 2.0 * (features * f_pad[window]).sum(1, keepdim=True)).clamp(min=0.0)
         logit = -(bandwidth * dist)
         if range_weight is not None:
-            logit = logit - range_weight * range_distance(radiance, variance, dy, dx, patch)
+            logit = logit - range_weight * _range_distance(radiance, variance, r_pad[window], v_pad[window], patch)
         logits.append(logit.masked_fill(~inside[window], float("-inf")))
     # Softmax = max-subtracted exp / sum: the centre logit is finite, so the max is finite and
     # the normalizer >= 1; underflowing affinities just become 0 weights.
@@ -131,7 +142,7 @@ def apply_weights(x: torch.Tensor, weights: torch.Tensor, dilation: int = 1, siz
     x_pad = F.pad(x, (r, r, r, r))
     out = torch.zeros_like(x)
     for k, (dy, dx) in enumerate(_offsets(size, dilation)):
-        out = out + weights[:, k:k + 1] * x_pad[..., r + dy:r + dy + H, r + dx:r + dx + W]
+        out = out + weights[:, k:k + 1] * x_pad[_window(r, dy, dx, H, W)]
     return out
 
 
@@ -259,7 +270,6 @@ class AffinityDenoiser(nn.Module):
         out = radiance
         variance = None
         if self.variance_channel is not None:
-            from .data import decode_variance
             c = self.variance_channel
             variance = decode_variance(inputs[:, c:c + 1], radiance)
         for (feat, bw, logc, rng), d in zip(self.kernel_parameters(inputs), self.dilations):

@@ -32,44 +32,43 @@ def _mean_rows(rows: list[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
 
 
-def cleaner_metrics(store: Store, split: str, eps: float) -> dict:
-    rows_gt1, rows_clean, mse_ratio, tm_ratio = [], [], [], []
+def cleaner_metrics(store: Store, split: str, eps: float, untrained=None, tile: int = 512, device="cpu") -> dict:
+    """GT1 and GT_clean against GT2 over ``split``; with ``untrained`` (a fresh model, see
+    ``untrained_model``) also that network's output from GT1, in the same pass over the frames."""
+    from .apply import denoise
+
+    rows_gt1, rows_clean, rows_untrained, mse_ratio, tm_ratio = [], [], [], [], []
     for key in store.frames(split):
         if not store.image_path(key.scene, key.frame, "gt_clean").exists():
             continue
-        g1 = store.read_image(key.scene, key.frame, "gt1", ["color"])[0]["color"]
+        gt1 = store.read_image(key.scene, key.frame, "gt1", None if untrained else ["color"])[0]
+        g1 = gt1["color"]
         g2 = store.read_image(key.scene, key.frame, "gt2", ["color"])[0]["color"]
         gc = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
         rows_gt1.append(all_metrics(g1, g2, eps))
         rows_clean.append(all_metrics(gc, g2, eps))
+        if untrained is not None:
+            rows_untrained.append(all_metrics(denoise(untrained, *frame_inputs(gt1), tile=tile, device=device), g2, eps))
         mse_ratio.append(mse(gc, g2) / max(mse(g1, g2), 1e-30))
         tm_ratio.append(mse(reinhard(gc), reinhard(g2)) / max(mse(reinhard(g1), reinhard(g2)), 1e-30))
     return {"frames": len(rows_gt1), "gt1_vs_gt2": _mean_rows(rows_gt1), "clean_vs_gt2": _mean_rows(rows_clean),
+            "untrained_vs_gt2": _mean_rows(rows_untrained) or None,
             "mse_ratio_mean": float(np.mean(mse_ratio)) if mse_ratio else None,
             "mse_ratio_tonemapped_mean": float(np.mean(tm_ratio)) if tm_ratio else None}
 
 
-def untrained_metrics(cfg: Config, store: Store, split: str) -> dict | None:
-    """GT_clean's recipe with the *untrained* network (seeded like training): how much of the
-    gain is the range term's fixed NL-means prior and how much is learned. None without it."""
+def untrained_model(cfg: Config):
+    """The cleaner's network as training starts it (same seed), or None without the range term:
+    scoring it shows how much of the gain is the range term's fixed NL-means prior and how much
+    is learned."""
     import torch
 
-    from .apply import denoise
     from .train import build_model
 
     if not cfg.clean.range_term:
         return None
     torch.manual_seed(cfg.seed)
-    model = build_model(cfg)
-    rows = []
-    for key in store.frames(split):
-        if not store.image_path(key.scene, key.frame, "gt_clean").exists():
-            continue
-        g1 = store.read_image(key.scene, key.frame, "gt1")[0]
-        g2 = store.read_image(key.scene, key.frame, "gt2", ["color"])[0]["color"]
-        out = denoise(model, *frame_inputs(g1), tile=cfg.clean.tile, device="cpu")
-        rows.append(all_metrics(out, g2, cfg.clean.smape_eps))
-    return _mean_rows(rows) or None
+    return build_model(cfg).to(pick_device(cfg.clean.device))
 
 
 def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -> dict:
@@ -117,10 +116,10 @@ def crop_grid(store: Store, split: str, path: Path, rows: int = 4, size: int = 6
 def run_report(cfg: Config, out: str = "reports/cleaner", spp: int | None = None) -> dict:
     store = Store(cfg.store)
     eps = cfg.clean.smape_eps
+    untrained = untrained_model(cfg)
     result = {"store": str(cfg.store), "smape_eps": eps,
-              "val": cleaner_metrics(store, "val", eps), "test": cleaner_metrics(store, "test", eps)}
-    for split in ("val", "test"):
-        result[split]["untrained_vs_gt2"] = untrained_metrics(cfg, store, split)
+              **{split: cleaner_metrics(store, split, eps, untrained, cfg.clean.tile, pick_device(cfg.clean.device))
+                 for split in ("val", "test")}}
     train_json = run_dir(cfg, "cleaner") / "train.json"
     if train_json.exists():
         hist = json.loads(train_json.read_text())

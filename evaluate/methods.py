@@ -40,9 +40,10 @@ import numpy as np
 from pipeline.config import Config, ConfigError
 from pipeline.exr import StoreError
 
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "ours", "base_only", "ours_small", "base_only_small")
-# Families whose name may carry a step-skip suffix.
-_SKIPPABLE = ("ours", "base_only", "ours_small", "base_only_small")
+# Diffusion families: (without the Control Module, sampler variance). They take a _skipN suffix.
+_DIFFUSION = {"ours": (False, "learned"), "base_only": (True, "learned"),
+              "ours_small": (False, "small"), "base_only_small": (True, "small")}
+FAMILIES = ("noisy", "oidn", "oidn_color", "isik", *_DIFFUSION)
 _NAME = re.compile(r"^(?P<family>[a-z_]+?)(?:_skip(?P<skip>\d+))?$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
           "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)",
@@ -58,7 +59,7 @@ def parse_name(name: str) -> tuple[str, int]:
     """``ours_skip12`` → ("ours", 12); ``oidn_color`` → ("oidn_color", 0). Unknown names: ConfigError."""
     m = _NAME.match(name)
     family, skip = (m.group("family"), int(m.group("skip") or 0)) if m else (name, 0)
-    if m and m.group("skip") is not None and family not in _SKIPPABLE:
+    if m and m.group("skip") is not None and family not in _DIFFUSION:
         family = None
     if family not in FAMILIES:
         raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, "
@@ -193,7 +194,7 @@ class Loader:
         return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
 
     def _diffusion(self, name: str, family: str, skip: int, spp: int) -> Method:
-        base_only = family.startswith("base_only")
+        base_only, variance = _DIFFUSION[family]
         key = ("diffusion", spp, base_only)
         if key not in self._models:
             try:
@@ -213,7 +214,7 @@ class Loader:
         if not 0 <= skip < 27:
             raise MethodUnavailable(f"{name}: skip must be 0..26 of the 27 super27 steps")
         return Diffusion(denoiser=self._models[key], spp=spp, skip=skip, seed=self.cfg.eval.seed, name=name,
-                         device=self.device(), variance="small" if family.endswith("_small") else "learned")
+                         device=self.device(), variance=variance)
 
 
 def check_names(names: list[str]) -> None:

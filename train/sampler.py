@@ -45,7 +45,7 @@ def sample(model, noisy: torch.Tensor, aux: torch.Tensor | None, skip: int = 0, 
     noisy_p, (H, W) = _pad(noisy.float(), m)
     aux_p = _pad(aux.float(), m)[0] if aux is not None else None
     sched = make_scheduler(threshold_ratio, variance=variance)
-    channels = 3 if variance == "small" else None      # fixed variance: the scheduler wants ε only
+    channels = noisy_p.shape[1] if variance == "small" else None   # fixed variance: the scheduler wants ε only
     sched.set_timesteps(timesteps=super27())
     steps = sched.timesteps[skip:]
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
