@@ -9,27 +9,30 @@ harness (``evaluate.harness.run_method``), never by a method.
 Names (``eval.methods``):
 
 - ``noisy``: the input colour itself.
-- ``oidn``: Intel Open Image Denoise 2.5 (``pyoidn``), filter RT in HDR mode, quality high, with
-  albedo and normal (noisy auxiliaries, so OIDN prefilters them: ``cleanAux`` off). ``oidn_color``:
-  colour only. OIDN takes world- or view-space normals in [-1, 1] (need not be normalised) and
-  albedo in [0, 1]: ours are world space, clamped to those ranges before the call.
+- ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
+  albedo and normal; ``oidn_color``: colour only.
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``).
-- ``ours``, ``ours_skipN``: the diffusion denoiser of ``train.infer`` at all 27 super27 steps or
-  with N of them skipped; ``base_only``, ``base_only_skipN``: the same base without its Control
-  Module (the paper's ablation row). ``ours_small[_skipN]``, ``base_only_small[_skipN]``: the
-  same with the sampler's fixed posterior variance instead of the learned one (``variance="small"``:
-  a weakly trained network predicts a large variance, which its samples then carry as noise).
+- ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
+  spp-conditioned ``diffusion_sppany``), sampled as its run was configured; ``base_only``: the
+  same base without its Control Module (the paper's ablation row). Options follow the family,
+  separated by ``_``: first an optional run variant (``ours_paper``: run ``diffusion_spp<N>_paper``,
+  trained with ``diffusion.name=paper``), then any of ``sN`` (N sampler steps), ``skipN`` (skip the
+  first N; the paper formulation: of its 27 super27 steps), ``kN`` (the mean of N samples),
+  ``small`` (the paper formulation's fixed posterior variance instead of the learned one),
+  ``noise`` / ``render`` / ``estimate`` (where sampling starts). E.g. ``ours_s1``, ``ours_s3_k4``,
+  ``ours_paper_skip24``, ``ours_paper_small_skip24``, ``base_only_s1``.
   These are looked up lazily, as
 
-      from train.infer import load_denoiser, run_dir
-      den = load_denoiser(run_dir(cfg, spp), device=device, base_only=False)
-      hdr = den.denoise(buffers, spp=spp, skip=N, seed=cfg.eval.seed)
+      from train.infer import load_denoiser
+      den = load_denoiser(folder, device=device, base_only=False)
+      hdr = den.denoise(buffers, spp=spp, steps=N, samples=K, seed=cfg.eval.seed)
 
   A missing module or checkpoint makes the method *not available* with the reason (a row in the
   table), never a crash and never made-up numbers.
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -40,36 +43,81 @@ import numpy as np
 from pipeline.config import Config, ConfigError
 from pipeline.exr import StoreError
 
-# Diffusion families: (without the Control Module, sampler variance). They take a _skipN suffix.
-_DIFFUSION = {"ours": (False, "learned"), "base_only": (True, "learned"),
-              "ours_small": (False, "small"), "base_only_small": (True, "small")}
+# Diffusion families: family -> without the Control Module. Name tokens after the family select the
+# run variant and the sampling (see the module docstring).
+_DIFFUSION = {"ours": False, "base_only": True}
 FAMILIES = ("noisy", "oidn", "oidn_color", "isik", *_DIFFUSION)
-_NAME = re.compile(r"^(?P<family>[a-z_]+?)(?:_skip(?P<skip>\d+))?$")
+_TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|(?P<variance>small)|"
+                    r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
-          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)",
-          "ours_small": "Ours (diffusion), fixed small variance",
-          "base_only_small": "Base only (no Control Module), fixed small variance"}
+          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
 
 class MethodUnavailable(Exception):
     """The method cannot run here (missing package, module or checkpoint); the message says why."""
 
 
-def parse_name(name: str) -> tuple[str, int]:
-    """``ours_skip12`` → ("ours", 12); ``oidn_color`` → ("oidn_color", 0). Unknown names: ConfigError."""
-    m = _NAME.match(name)
-    family, skip = (m.group("family"), int(m.group("skip") or 0)) if m else (name, 0)
-    if m and m.group("skip") is not None and family not in _DIFFUSION:
-        family = None
-    if family not in FAMILIES:
-        raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, "
-                          f"and <ours|base_only>[_small]_skipN)")
-    return family, skip
+@dataclass(frozen=True)
+class Spec:
+    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate]``."""
+    family: str
+    variant: str = ""
+    steps: int | None = None
+    skip: int | None = None
+    samples: int = 1
+    variance: str | None = None
+    start: str | None = None
+
+
+def parse(name: str) -> Spec:
+    """``ours_paper_skip12`` → Spec("ours", "paper", skip=12); unknown names: ConfigError."""
+    family = next((f for f in sorted(FAMILIES, key=len, reverse=True)
+                   if name == f or name.startswith(f + "_")), None)
+    if family is None:
+        raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, and "
+                          "<ours|base_only>[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate])")
+    tokens = [t for t in name[len(family):].split("_") if t]
+    if tokens and family not in _DIFFUSION:
+        raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options")
+    fields: dict = {}
+    for i, tok in enumerate(tokens):
+        m = _TOKEN.match(tok)
+        if m is None:
+            if i != 0 or not re.fullmatch(r"[a-z][a-z0-9-]*", tok):
+                raise ConfigError(f"eval.methods: {name!r}: unknown option {tok!r} (a run variant comes first; "
+                                  "options are sN, skipN, kN, small, noise, render, estimate)")
+            fields["variant"] = tok
+            continue
+        for key, value in m.groupdict().items():
+            if value is not None:
+                fields[key] = int(value) if key in ("steps", "skip", "samples") else value
+    spec = Spec(family, **fields)
+    if spec.samples < 1 or (spec.steps is not None and spec.steps < 1):
+        raise ConfigError(f"eval.methods: {name!r}: steps and samples must be at least 1")
+    return spec
+
+
+def curve_kind(name: str) -> str:
+    """The name without its step options (sN, skipN): rows of one kind form one curve over step counts."""
+    spec = parse(name)
+    return "_".join([spec.family] + [p for p in (spec.variant, spec.variance, spec.start) if p]
+                    + ([f"k{spec.samples}"] if spec.samples > 1 else []))
 
 
 def label(name: str) -> str:
-    family, skip = parse_name(name)
-    return LABELS[family] + (f", {skip} of 27 steps skipped" if skip else "")
+    spec = parse(name)
+    parts = [LABELS[spec.family] + (f" [{spec.variant}]" if spec.variant else "")]
+    if spec.steps is not None:
+        parts.append(f"{spec.steps} step{'s' if spec.steps > 1 else ''}")
+    if spec.skip:
+        parts.append(f"{spec.skip} skipped")
+    if spec.start:
+        parts.append(f"from the {spec.start}")
+    if spec.variance == "small":
+        parts.append("fixed small variance")
+    if spec.samples > 1:
+        parts.append(f"mean of {spec.samples} samples")
+    return ", ".join(parts)
 
 
 class Method(ABC):
@@ -104,20 +152,14 @@ class OIDN(Method):
     device: str = "cpu"
 
     def __post_init__(self):
-        try:
-            import pyoidn  # noqa: F401
-        except ImportError as exc:
-            raise MethodUnavailable(f"pyoidn is not installed ({exc}); pip install pyoidn==2.5.1.0") from None
+        from pipeline import oidn
+        why = oidn.available()
+        if why:
+            raise MethodUnavailable(why)
 
     def denoise(self, buffers):
-        import pyoidn
-
-        color = np.ascontiguousarray(np.maximum(buffers["color"], 0), dtype=np.float32)
-        albedo = normal = None
-        if self.aux:
-            albedo = np.ascontiguousarray(np.clip(buffers["albedo"], 0, 1), dtype=np.float32)
-            normal = np.ascontiguousarray(np.clip(buffers["normal"], -1, 1), dtype=np.float32)
-        return pyoidn.denoise(color, albedo, normal, hdr=True, quality=self.quality)
+        from pipeline import oidn
+        return oidn.denoise(buffers, aux=self.aux, quality=self.quality)
 
 
 @dataclass
@@ -137,25 +179,24 @@ class Isik(Method):
 
 @dataclass
 class Diffusion(Method):
-    """``ours``/``base_only`` through ``train.infer``'s denoiser object."""
+    """``ours``/``base_only`` through ``train.infer``'s denoiser object, sampled as ``spec`` says."""
 
     denoiser: object = None
     spp: int = 4
-    skip: int = 0
+    spec: Spec = None
     seed: int = 0
     name: str = "ours"
     device: str = "cpu"
-
     rotation: object = None
-    variance: str = "learned"
 
     def set_frame(self, store, key) -> None:
         from train.data import frame_rotation
         self.rotation = frame_rotation(store, key)
 
     def denoise(self, buffers):
-        out = self.denoiser.denoise(buffers, spp=self.spp, skip=self.skip, seed=self.seed, rotation=self.rotation,
-                                    variance=self.variance)
+        s = self.spec
+        out = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, rotation=self.rotation,
+                                    variance=s.variance, steps=s.steps, start=s.start, samples=s.samples)
         return np.asarray(out, dtype=np.float32)
 
 
@@ -172,14 +213,14 @@ class Loader:
 
     def load(self, name: str, spp: int) -> Method:
         """The method ``name`` at ``spp``; raises ``MethodUnavailable`` with the reason."""
-        family, skip = parse_name(name)
-        if family == "noisy":
+        spec = parse(name)
+        if spec.family == "noisy":
             return Noisy()
-        if family in ("oidn", "oidn_color"):
-            return OIDN(name=name, aux=family == "oidn")
-        if family == "isik":
+        if spec.family in ("oidn", "oidn_color"):
+            return OIDN(name=name, aux=spec.family == "oidn")
+        if spec.family == "isik":
             return self._isik(spp)
-        return self._diffusion(name, family, skip, spp)
+        return self._diffusion(name, spec, spp)
 
     def _isik(self, spp: int) -> Method:
         from clean.model import load_model
@@ -193,33 +234,39 @@ class Loader:
             self._models[key] = load_model(folder, self.device())[0]
         return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
 
-    def _diffusion(self, name: str, family: str, skip: int, spp: int) -> Method:
-        base_only, variance = _DIFFUSION[family]
-        key = ("diffusion", spp, base_only)
+    def diffusion_folder(self, spp: int, variant: str) -> Path:
+        """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""
+        from train.model import find_run
+
+        cfg = dataclasses.replace(self.cfg, diffusion=dataclasses.replace(self.cfg.diffusion, control=True))
+        try:
+            return find_run(cfg, spp, variant)
+        except StoreError as exc:
+            raise MethodUnavailable(str(exc)) from None
+
+    def _diffusion(self, name: str, spec: Spec, spp: int) -> Method:
+        base_only = _DIFFUSION[spec.family]
+        folder = self.diffusion_folder(spp, spec.variant)
+        key = ("diffusion", str(folder), base_only)
         if key not in self._models:
             try:
-                from train.infer import load_denoiser, run_dir
-            except ImportError as exc:
-                raise MethodUnavailable(f"the diffusion model is not built yet (import train.infer: {exc}); "
-                                        f"run `make train SPP={spp}` once it is") from None
-            folder = Path(run_dir(self.cfg, spp))
-            if not base_only and not folder.exists():
-                raise MethodUnavailable(f"no diffusion checkpoint in {folder}: run `make train "
-                                        f"SPP={spp}`")
-            try:
+                from train.infer import load_denoiser
                 self._models[key] = load_denoiser(folder, device=self.device(), base_only=base_only)
             except (OSError, StoreError, ConfigError, ValueError, KeyError) as exc:
                 raise MethodUnavailable(f"cannot load the diffusion model from {folder}: "
                                         f"{type(exc).__name__}: {exc}") from None
-        if not 0 <= skip < 27:
+        den = self._models[key]
+        f = den.formulation
+        if f.paper and not 0 <= (spec.skip or 0) < 27:
             raise MethodUnavailable(f"{name}: skip must be 0..26 of the 27 super27 steps")
-        return Diffusion(denoiser=self._models[key], spp=spp, skip=skip, seed=self.cfg.eval.seed, name=name,
-                         device=self.device(), variance=variance)
+        if not f.paper and not 0 <= (spec.skip or 0) < (spec.steps or f.steps):
+            raise MethodUnavailable(f"{name}: skip must be below the number of steps")
+        return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device())
 
 
 def check_names(names: list[str]) -> None:
     for name in names:
-        parse_name(name)
+        parse(name)
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ConfigError(f"eval.methods: {', '.join(dup)} listed twice")

@@ -9,7 +9,7 @@ Files under the report folder (``reports/<run>/`` by default):
 - ``eval_<group>_spp<N>.csv``: one row per method (and per equal-time MC row).
 - ``eval.json``: all of it including every per-frame number (inf written as the string "inf").
 - ``error_vs_time_<group>.png``: MC convergence per frame and mean, methods as points, ours
-  (ours_skipN) as a curve over step counts (paper Fig. 4 analogue), equal-time MC as hollow marks.
+  (ours_sN, ours_paper_skipN, ...) as curves over step counts (paper Fig. 4 analogue), equal-time MC as hollow marks.
 - ``crops_<group>_spp<N>.png``: noisy / OIDN / Isik / ours / reference crops (gamma tonemap).
 """
 from __future__ import annotations
@@ -331,20 +331,24 @@ def plot_error_vs_time(g: dict, path: Path, group: str) -> None:
     plt.close(fig)
 
 
-# Method families drawn as one curve over their step counts (ours, ours_skip12, ...).
-CURVES = {"ours": ("s-", "C3", "ours over step counts"),
-          "ours_small": ("^--", "C9", "ours, small variance, over step counts")}
+# Diffusion rows of one kind (evaluate.methods.curve_kind: ours, ours_paper, ...) are drawn as one curve over
+# their step counts when there are several; every other row is a point.
+def _curves(points: list[dict], key: str) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for p in points:
+        if p["kind"].startswith(("ours", "base_only")) and p[key] is not None and math.isfinite(p[key]):
+            out.setdefault(p["kind"], []).append(p)
+    return {k: sorted(v, key=lambda p: p["seconds"]) for k, v in out.items() if len(v) > 1}
 
 
 def _plot_points(ax, points: list[dict], key: str) -> None:
-    for kind, (style, color, text) in CURVES.items():
-        curve = sorted((p for p in points if p["kind"] == kind and p[key] is not None and math.isfinite(p[key])),
-                       key=lambda p: p["seconds"])
-        if curve:
-            ax.plot([p["seconds"] for p in curve], [p[key] for p in curve], style, color=color, label=text, zorder=4)
+    curves = _curves(points, key)
+    for i, (kind, curve) in enumerate(curves.items()):
+        ax.plot([p["seconds"] for p in curve], [p[key] for p in curve], "s-", color=f"C{(i + 3) % 10}",
+                label=f"{kind} over step counts", zorder=4)
     for i, p in enumerate(points):
         v = p[key]
-        if v is None or not math.isfinite(v) or p["kind"] in CURVES:
+        if v is None or not math.isfinite(v) or p["kind"] in curves:
             continue
         hollow = p["kind"] == "mc_equal_time"
         ax.scatter([p["seconds"]], [v], marker="D" if hollow else "o", s=28, zorder=3,

@@ -28,7 +28,7 @@ from pipeline.store import FrameKey, Store
 
 from . import report
 from .harness import finite_output, run_method
-from .methods import Loader, MethodUnavailable, check_names, label, parse_name
+from .methods import Loader, MethodUnavailable, check_names, curve_kind, label
 from .montecarlo import equal_time_images, mc_curve, mean_curve
 from .scoring import NOT_COMPUTED, check_metrics, score, usable_metrics
 from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
@@ -234,9 +234,9 @@ def _time_vs_error(spp, keys, rows, equal, costs, mc_mean) -> list[dict]:
 
     for name, row in rows.items():
         if row["available"] and row.get("metrics"):
-            family = parse_name(name)[0]
-            denoise = row["seconds"]["median"] if family != "noisy" else 0.0
-            add(name, family, render_s + denoise, row["metrics"])
+            kind = curve_kind(name)
+            denoise = row["seconds"]["median"] if kind != "noisy" else 0.0
+            add(name, kind, render_s + denoise, row["metrics"])
     for name, et in equal.items():
         secs = float(np.mean([r["model_seconds"] for r in et["per_frame"]]))
         add(f"mc_equal_{name}", "mc_equal_time", secs, et["metrics"])

@@ -69,10 +69,15 @@ def cmd_pretrain(args) -> int:
     return run(_config(args), quiet=args.quiet)
 
 
+def cmd_pack(args) -> int:
+    from train.cli import cmd_pack as run
+    return run(_config(args), args.split or ["train", "val"], quiet=args.quiet)
+
+
 def cmd_denoise(args) -> int:
     from train.cli import cmd_denoise as run
     return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
-               base_only=args.base_only, quiet=args.quiet)
+               base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples)
 
 
 def cmd_clean_report(args) -> int:
@@ -166,16 +171,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
 
-    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, super-resolution prior)"))
+    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_pretrain)
+
+    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
+    p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_pack)
 
     p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
     p.add_argument("--spp", type=_spp, required=True, help="which run (diffusion_spp<N>) and the input's spp")
     p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000")
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
     p.add_argument("--out", required=True, help="output EXR")
-    p.add_argument("--skip", type=int, default=None, help="DDPM steps to skip of 27 (default: the run's)")
+    p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
+    p.add_argument("--steps", type=int, default=None, help="sampler steps, refine formulation (default: the run's)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
     p.add_argument("--quiet", action="store_true")
@@ -223,9 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="reports/bench", help="folder for bench results (JSON, Markdown)")
     p.set_defaults(fn=cmd_bench)
 
-    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 27/15/9 steps, 256² and per MP"))
+    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP"))
     p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
-    p.add_argument("--side", type=int, default=256, help="frame side of the per-frame timing")
+    p.add_argument("--side", type=int, default=128, help="frame side of the per-frame timing")
     p.add_argument("--out", default="reports/bench")
     p.set_defaults(fn=cmd_bench_denoise)
 

@@ -39,6 +39,10 @@ class DatasetConfig:
     test_fraction: float = doc("Fraction of scenes in the test split (paper: 0.05); at least one scene.", 0.05)
     stress: list = doc("Names of stress presets rendered as extra scenes in the split 'stress' (see render/stress.py); "
                        "'all' for every preset.", factory=list)
+    stress_copies: int = doc("Variants of each stress preset (copy k > 0 is scene stress_<name>_<k>, another seed of "
+                             "the same preset): oversamples hard light transport in a training set.", 1)
+    stress_split: str = doc("'stress': stress scenes form their own split (reported apart by make eval); 'mixed': "
+                            "they are split into train/val/test with the random scenes (a training set).", "stress")
 
 
 @dataclass
@@ -137,14 +141,48 @@ class DiffusionConfig:
     device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
     time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
                                "limit); a rerun resumes.", 0.0)
-    skip: int = doc("Sampler: DDPM steps skipped of the 27 super27 steps; the noisy render is q-sampled at the "
-                    "first step kept (skip 12 starts at t=900 and runs 15 steps, as the authors' code).", 0)
+    name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
+                    "formulation beside the default one); make eval's ours_<name> rows read it.", "")
+    prediction: str = doc("What the network predicts: 'sample' (x0; an untrained zero last layer returns the first "
+                          "estimate exactly), 'v' (Salimans & Ho 2022) or 'epsilon' (the paper, with IF's "
+                          "learned-range variance and hybrid loss when schedule=if). See train/formulation.py.",
+                          "sample")
+    schedule: str = doc("Noise schedule: 'zero_snr' (IF's cosine betas rescaled to zero terminal SNR, trailing "
+                        "timesteps; Lin et al. 2023) or 'if' (IF's cosine schedule as is; with epsilon: the paper).",
+                        "zero_snr")
+    estimate: str = doc("First estimate the model refines and reads as its image input: 'oidn' (OIDN with albedo "
+                        "and normal) or 'none' (the noisy render, as the paper).", "oidn")
+    residual: bool = doc("Diffuse the residual (x - estimate)/residual_scale instead of the image.", True)
+    residual_scale: float = doc("Scale s of the diffused residual in model space (about its standard deviation "
+                                "over the training pairs, so the residual is of unit order like an image).", 0.1)
+    snr_gamma: float = doc("gamma of the min-SNR loss weighting (Hang et al. 2023).", 5.0)
+    snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
+                           "step whose output is the one-step estimate).", 1.0)
+    t_focus: float = doc("Probability that a training timestep is drawn from the timesteps the sampler visits with "
+                         "train_steps steps (else uniform over 0..999).", 0.5)
+    train_steps: list = doc("Step counts whose timesteps t_focus draws from.", factory=lambda: [1, 3, 9, 27])
+    sampler: str = doc("Sampler of the refine formulation: 'ddim' (deterministic) or 'ddpm' (diffusers).", "ddim")
+    steps: int = doc("Sampler steps (trailing spacing over the 1000 training steps) of the refine formulation; "
+                     "the paper formulation always uses IF's 27 super27 steps.", 1)
+    start: str = doc("Where sampling starts: 'estimate' (the first estimate q-sampled at the first step run), "
+                     "'render' (the noisy render q-sampled there) or 'noise' (pure noise at t = T).", "estimate")
+    samples: int = doc("Samples averaged per frame by make denoise / validation (their per-pixel standard "
+                       "deviation is the uncertainty layer of denoise's output).", 1)
+    skip: int = doc("Sampler: steps skipped at the start (paper formulation: of the 27 super27 steps; the noisy "
+                    "render is q-sampled at the first step kept, skip 12 starts at t=900 and runs 15 steps, as the "
+                    "authors' code; refine formulation: of the 'steps' trailing steps).", 0)
     threshold_ratio: float = doc("Dynamic thresholding percentile of the predicted clean image (IF: 0.95).", 0.95)
-    variance: str = doc("Sampler variance: 'learned' (IF's learned range, the paper) or 'small' (the fixed "
-                        "posterior variance; ignores the network's variance output). Used by validation and "
-                        "make denoise; eval compares both as ours[_skipN] and ours_small[_skipN].", "learned")
-    val_frames: int = doc("Validation frames sampled after every epoch (val PSNR with the sampler at val_skip).", 2)
-    val_skip: int = doc("Sampler skip used for the per-epoch validation (cheaper than the full 27 steps).", 12)
+    variance: str = doc("Paper formulation's sampler variance: 'learned' (IF's learned range, the paper) or 'small' "
+                        "(the fixed posterior variance; ignores the network's variance output). eval compares both "
+                        "as ours_paper[_skipN] and ours_paper_small[_skipN].", "learned")
+    pack: bool = doc("Train from compact packs (<runs>/pack/<split>_<estimate>.safetensors, built on first use or "
+                     "by make pack: decoded once, float16, only what the model reads; train/pack.py) instead of "
+                     "decoding the store's EXRs for every item.", True)
+    val_frames: int = doc("Validation frames sampled after every epoch and before the first (val PSNR with the "
+                          "configured sampler; the paper formulation samples at val_skip). SPP=any models cycle "
+                          "through the sample counts.", 8)
+    val_skip: int = doc("Paper formulation: sampler skip used for the per-epoch validation (cheaper than the full "
+                        "27 steps).", 12)
     tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles.", 256)
     tile_overlap: int = doc("Overlap between inference tiles, blended linearly.", 32)
 
@@ -164,7 +202,10 @@ class PretrainConfig:
     weight_decay: float = doc("AdamW weight decay.", 0.01)
     scales: list = doc("Down-sampling factors of the super-resolution degradation (one drawn per crop).",
                        factory=lambda: [2, 4])
-    noise: float = doc("Largest std of Gaussian noise added to the degraded image (model space, drawn uniformly).", 0.1)
+    noise: float = doc("Largest std of the synthetic degradation's noise (model space, drawn uniformly).", 0.1)
+    fireflies: float = doc("Fraction of pixels the synthetic degradation turns into fireflies.", 0.002)
+    real: float = doc("Probability that a crop's degraded input is a real low-spp render of its frame (through the "
+                      "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.6)
     time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: none).",
                                0.0)
     out: str = doc("Where make pretrain writes the new base; empty: <runs>/base. Copy it to train/base_model to "
@@ -174,12 +215,13 @@ class PretrainConfig:
 @dataclass
 class EvalConfig:
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
-                        "ours, ours_skipN (N of the 27 steps skipped), base_only[_skipN] (the base without the "
-                        "Control Module), ours_small[_skipN] / base_only_small[_skipN] (sampled with the fixed "
-                        "posterior variance instead of the learned one). A method whose model is missing is "
-                        "listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip12", "ours_skip18",
-                                         "ours_skip24", "ours_small_skip18", "ours_small_skip24", "base_only"])
+                        "ours, base_only (the base without the Control Module); ours and base_only take options "
+                        "after an optional run variant: sN (sampler steps), skipN, kN (mean of N samples), small "
+                        "(paper formulation: fixed posterior variance), noise/render/estimate (start), e.g. "
+                        "ours_s3_k4 or ours_paper_skip24 (run diffusion_spp<N>_paper; see evaluate/methods.py). "
+                        "A method whose model is missing is listed as not available.",
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_s3", "ours_s9",
+                                         "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (external scenes are always reported separately).", "test")

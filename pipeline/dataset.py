@@ -65,6 +65,19 @@ class Plan:
         return tasks
 
 
+def stress_entries(presets: list[str], copies: int, first_index: int) -> list[tuple[str, int, str]]:
+    """(scene id, index, preset) of every stress scene: copy 0 of a preset keeps the id ``stress_<name>``
+    (so stores made before copies existed read the same), copy k > 0 is ``stress_<name>_<k>``; each has
+    its own index, hence its own seed."""
+    out = []
+    for j, name in enumerate(presets):
+        out.append((f"stress_{name}", first_index + j, name))
+    for k in range(1, copies):
+        for j, name in enumerate(presets):
+            out.append((f"stress_{name}_{k}", first_index + k * len(presets) + j, name))
+    return out
+
+
 def make_plan(cfg: Config) -> Plan:
     from render.scene import random_scene, stress_scene, STRESS_PRESETS
 
@@ -74,10 +87,15 @@ def make_plan(cfg: Config) -> Plan:
     for name in stress:
         if name not in STRESS_PRESETS:
             raise config_mod.ConfigError(f"dataset.stress: unknown preset {name!r} (have {', '.join(STRESS_PRESETS)})")
+    if d.stress_copies < 1:
+        raise config_mod.ConfigError(f"dataset.stress_copies: expected >= 1, got {d.stress_copies}")
+    if d.stress_split not in ("stress", "mixed"):
+        raise config_mod.ConfigError(f"dataset.stress_split: expected 'stress' or 'mixed', got {d.stress_split!r}")
     entries = [(scene_id(i), i, None) for i in range(d.scenes)]
-    entries += [(f"stress_{name}", d.scenes + j, name) for j, name in enumerate(stress)]
-    splits = split_scenes([e[0] for e in entries if e[2] is None], d.val_fraction, d.test_fraction, cfg.seed)
-    splits["stress"] = [e[0] for e in entries if e[2] is not None]
+    entries += stress_entries(stress, d.stress_copies, d.scenes)
+    mixed = d.stress_split == "mixed"
+    splits = split_scenes([e[0] for e in entries if mixed or e[2] is None], d.val_fraction, d.test_fraction, cfg.seed)
+    splits["stress"] = [] if mixed else [e[0] for e in entries if e[2] is not None]
     split_of = {s: k for k, ids in splits.items() for s in ids}
     scenes = []
     for sid, index, preset in entries:
@@ -123,6 +141,11 @@ def check_compatible(store: Store, cfg: Config) -> None:
     except (KeyError, TypeError):
         raise StoreError(f"{store.manifest_path}: config section is missing or incomplete") from None
     new_fixed = _fixed_part(dataclasses.asdict(cfg))
+    # A key added to a section since the store was made counts as its default (old stores stay usable).
+    defaults = _fixed_part(dataclasses.asdict(Config()))
+    for key, value in old_fixed.items():
+        if isinstance(value, dict):
+            old_fixed[key] = {**defaults[key], **value}
     for key in _FIXED_KEYS:
         if old_fixed[key] != new_fixed[key]:
             raise StoreError(f"{store.manifest_path}: this store was made with a different '{key}' "

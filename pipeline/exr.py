@@ -145,10 +145,13 @@ def _round_to_storage(value: float, dtype: type) -> float:
 
 
 def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
-                meta: dict | None = None, omit_constant: bool = True) -> dict:
+                meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None
+                ) -> dict:
     """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
 
     ``constants`` maps keys that were not computed at all (pruned features) to their value.
+    ``layers``: extra HxWx3 float32 layers of ``schema.OUTPUT_LAYERS`` (a denoiser's ``std``), written
+    as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
     Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
     """
     constants = dict(constants or {})
@@ -189,6 +192,13 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
                     channels[ch] = data
     if shape is None:
         raise StoreError(f"{path}: no buffer has pixel data, cannot tell the image size")
+    for name, arr in (layers or {}).items():
+        arr = np.asarray(arr, dtype=np.float32)
+        if name not in schema.OUTPUT_LAYERS or arr.shape != (*shape, 3) or not np.all(np.isfinite(arr)):
+            raise StoreError(f"{path}: layer {name!r} must be one of {schema.OUTPUT_LAYERS}, a finite HxWx3 array of "
+                             f"the image's size; got shape {arr.shape}")
+        for c, ch in enumerate("RGB"):
+            channels[f"{name}.{ch}"] = np.ascontiguousarray(arr[..., c])
     if not channels:
         # OpenEXR needs at least one channel; keep the beauty's red even if constant.
         first = schema.BY_NAME[buffers[0]]
@@ -197,7 +207,7 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     record = {
         "format": FORMAT, "version": FORMAT_VERSION, "buffers": buffers,
         "height": int(shape[0]), "width": int(shape[1]),
-        "constants": dict(sorted(omitted.items())), **(meta or {}),
+        "constants": dict(sorted(omitted.items())), **({"layers": sorted(layers)} if layers else {}), **(meta or {}),
     }
     record["checksum"] = checksum(record, channels)
     header = {
@@ -322,6 +332,7 @@ def _header_info(attrs: dict, fail) -> dict:
         fail(f"EXR line order {attrs['lineOrder'][1][0]} is not valid")
     from . import schema
     expected = {ch: np.dtype(schema.storage_dtype(ch)) for ch in schema.exr_channel_map()}
+    expected.update({ch: np.dtype(t) for ch, t in schema.output_layer_channels().items()})
     channels: dict[str, np.dtype] = {}
     data, pos = attrs["channels"][1], 0
     while True:

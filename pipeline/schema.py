@@ -109,3 +109,12 @@ def exr_channel_map() -> dict[str, tuple[str, int, bool]]:
 def storage_dtype(exr_channel: str) -> type:
     buf, _, is_var = exr_channel_map()[exr_channel]
     return np.float32 if is_var else BY_NAME[buf].dtype
+
+
+# Layers a denoiser writes beside the schema's buffers (float32 R, G, B each): ``std``, the per-pixel
+# standard deviation of the samples whose mean is the denoised colour (``denoise --samples K``).
+OUTPUT_LAYERS = ("std",)
+
+
+def output_layer_channels() -> dict[str, type]:
+    return {f"{layer}.{c}": np.float32 for layer in OUTPUT_LAYERS for c in "RGB"}

@@ -58,10 +58,15 @@ def test_train_then_denoise(setup, tmp_path):
 
     scene = sorted(p.name for p in (tmp / "store" / "scenes").iterdir())[0]
     out = tmp_path / "den.exr"
-    proc = run("denoise", "--spp", "4", "--frame", f"{scene}/000", "--out", out, "--skip", "24", *keys)
+    proc = run("denoise", "--spp", "4", "--frame", f"{scene}/000", "--out", out, "--steps", "3", "--samples", "3",
+               *keys)
     img, rec = read_image(out)
     assert img["color"].shape == (24, 32, 3) and np.isfinite(img["color"]).all()
-    assert rec["method"] == "ours" and rec["skip"] == 24
+    assert rec["method"] == "ours" and rec["steps"] == 3 and rec["samples"] == 3 and rec["layers"] == ["std"]
+    std = _layer(out, "std")
+    assert std.shape == (24, 32, 3) and (std >= 0).all() and std.max() > 0   # three samples differ somewhere
+    run("denoise", "--spp", "4", "--frame", f"{scene}/000", "--out", out, "--steps", "3", *keys)
+    assert not _layer(out, "std").any()                                     # one sample: no spread
 
     # A foreign EXR: only R, G, B (+ a NaN that must be repaired and counted).
     rgb = np.random.default_rng(0).random((20, 28), np.float32)
@@ -69,10 +74,16 @@ def test_train_then_denoise(setup, tmp_path):
     foreign = tmp_path / "foreign.exr"
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, {c: rgb.copy() for c in "RGB"}) as f:
         f.write(str(foreign))
-    proc = run("denoise", "--spp", "4", "--exr", foreign, "--out", tmp_path / "f.exr", "--skip", "24", *keys)
+    proc = run("denoise", "--spp", "4", "--exr", foreign, "--out", tmp_path / "f.exr", *keys)
     assert "3 non-finite input values replaced by 0" in proc.stdout   # one NaN pixel in R, G and B
     img, rec = read_image(tmp_path / "f.exr")
     assert img["color"].shape == (20, 28, 3) and np.isfinite(img["color"]).all() and rec["repaired_nonfinite"] == 3
+
+
+def _layer(path, name):
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([ch[f"{name}.{c}"].pixels for c in "RGB"], axis=2)
 
 
 def test_torchrun_two_cpu_processes(setup):
@@ -90,25 +101,30 @@ def test_errors_are_one_line_and_exit_2(setup, tmp_path):
                check=False)
     assert proc.returncode == 2 and "no dataset" in proc.stderr
     proc = run("denoise", "--spp", "16", "--frame", "s00000/000", "--out", tmp_path / "x.exr", *keys, check=False)
-    assert proc.returncode == 2 and "no trained diffusion denoiser" in proc.stderr
+    assert proc.returncode == 2 and "no diffusion checkpoint" in proc.stderr
     assert not (tmp_path / "x.exr").exists()
     proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.base=/nonexistent", check=False)
     assert proc.returncode == 2 and "config.json: missing" in proc.stderr
     proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.skip=27", check=False)
     assert proc.returncode == 2 and "diffusion.skip" in proc.stderr
+    proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.prediction=epsilon", check=False)
+    assert proc.returncode == 2 and "zero terminal SNR" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run("denoise", "--spp", "4", "--frame", "s00000/000", "--out", tmp_path / "x.exr", "--steps", "2",
+               "--skip", "2", *keys, check=False)
+    assert proc.returncode == 2 and "diffusion.skip" in proc.stderr and not (tmp_path / "x.exr").exists()
 
 
 def test_eval_runs_the_trained_model(setup, tmp_path):
     """The evaluator loads the real trained run (not a stand-in) and reports it next to the noisy input."""
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
-    proc = run("eval", *keys, "eval.methods=[noisy,ours_skip24,base_only_skip24,ours_small_skip24]",
+    proc = run("eval", *keys, "eval.methods=[noisy,ours,ours_s3_k2,base_only_s1]",
                "eval.metrics=[l1,psnr]",
                "eval.equal_time=none", "eval.split=train", "eval.frames=1", f"eval.out={tmp_path / 'rep'}",
                "--spp", "4")
     md = (tmp_path / "rep" / "eval.md").read_text()
     assert "not available" not in md, md
-    for name in ("ours_skip24", "base_only_skip24", "ours_small_skip24"):
+    for name in ("ours", "ours_s3_k2", "base_only_s1"):
         row = next(line for line in md.splitlines() if line.startswith("|") and f"(`{name}`)" in line)
         l1, psnr_db = (float(c.strip(" *")) for c in row.split("|")[2:4])
         assert 0 <= l1 < 6 and 0 < psnr_db < 100, row
@@ -119,5 +135,38 @@ def test_bench_denoise_reports_every_step_count(setup, tmp_path):
     tmp, keys = setup
     run("bench-denoise", *keys, "diffusion.tile=32", "diffusion.tile_overlap=8", "--side", 32, "--out", tmp_path)
     rows = json.loads((tmp_path / "denoise.json").read_text())["rows"]
-    assert [r["steps"] for r in rows] == [27, 15, 9]
+    assert [r["steps"] for r in rows] == [1, 3, 9, 27]
     assert all(r["side"] == 32 and r["seconds_frame"] > 0 and r["seconds_per_megapixel"] > 0 for r in rows)
+
+
+def test_pack_equals_the_store_reader(setup):
+    """Every pack item equals what the store reader and the model's encoders give for the same stacks,
+    within float16 rounding; a pack made for another estimate is refused."""
+    from pipeline.store import Store
+    from train.data import first_estimate, frame_rotation, model_inputs, to_planar
+    from train.pack import PackPairs, build_pack, variant_stacks
+
+    tmp, _ = setup
+    store = Store(tmp / "store")
+    keys = [k for k in store.frames("train") if store.image_path(k.scene, k.frame, "gt_clean").exists()]
+    path = tmp / "pack_test.safetensors"
+    header = build_pack(store, keys, path, estimate="oidn", quiet=True)
+    assert header["variants"] == {"4": 2, "16": 1}          # the tiny store has 4 stacks of 4 spp
+    ds = PackPairs(path, crop=None, estimate="oidn")
+    assert len(ds) == 3 * len(keys)
+    seen = {}
+    for i in range(len(ds)):
+        item, t = ds[i], ds.t
+        key, spp = keys[int(t["frame"][ds.index[i]])], int(t["spp"][ds.index[i]])
+        variant = seen.setdefault((key, spp), -1) + 1
+        seen[(key, spp)] = variant
+        buffers = store.read(key.scene, key.frame, spp, stacks=variant_stacks(spp, 4, variant, 4))
+        noisy, aux = model_inputs(buffers, spp, frame_rotation(store, key))
+        gt = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+        for name, ref in (("noisy", noisy), ("aux", aux), ("image", to_planar(first_estimate(buffers, "oidn"))),
+                          ("target", to_planar(gt))):
+            np.testing.assert_allclose(item[name].numpy(), ref, atol=1e-3, rtol=1e-3, err_msg=name)
+    with pytest.raises(Exception, match="another estimate"):
+        PackPairs(path, crop=None, estimate="none")
+    crop = PackPairs(path, crop=8, crops_per_item=2, seed=1, estimate="oidn", spp_choices=[4])
+    assert len(crop) == 2 * 2 * len(keys) and crop[0]["aux"].shape[-2:] == (8, 8)

@@ -266,8 +266,9 @@ def test_tiled_sampling_covers_the_frame():
     g = torch.Generator().manual_seed(0)
     x = torch.rand(1, 3, 40, 56, generator=g) * 2 - 1
     aux = torch.rand(1, AUX_CHANNELS, 40, 56, generator=g)
-    out = sample_tiled(m, x, aux, tile=24, overlap=8, skip=24, seed=1)
+    out, std = sample_tiled(m, x, aux, tile=24, overlap=8, skip=24, seed=1)
     assert out.shape == x.shape and torch.isfinite(out).all()
+    assert torch.equal(std, torch.zeros_like(std))          # one sample: no spread
 
 
 def test_train_base_option_trains_the_base_too(tmp_path):

@@ -73,12 +73,13 @@ class FakeDiffusion:
     calls: list = []
 
     def __init__(self, folder, device, base_only):
-        self.folder, self.device, self.base_only = Path(folder), device, base_only
+        from train.sampler import PAPER
+        self.folder, self.device, self.base_only, self.formulation = Path(folder), device, base_only, PAPER
 
-    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None):
+    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None, steps=None, start=None, samples=1):
         FakeDiffusion.calls.append({"spp": spp, "skip": skip, "seed": seed, "base_only": self.base_only,
                                     "variance": variance, "keys": sorted(buffers)})
-        time.sleep(FAKE_DENOISE_SECONDS * (27 - skip) / 27)
+        time.sleep(FAKE_DENOISE_SECONDS * (27 - (skip or 0)) / 27)
         c = buffers["color"]
         if self.base_only:
             return c * 1.5
@@ -115,6 +116,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     runs = tmp_path / "runs"
     save_untrained_isik(runs / "isik_spp4")
     (runs / "diffusion_spp4").mkdir(parents=True)            # ours has a checkpoint at 4 spp only
+    (runs / "diffusion_spp4" / "model.json").write_text("{}")
     monkeypatch.setitem(sys.modules, "train.infer", fake_infer_module())
     FakeDiffusion.calls.clear()
     methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_small_skip18"]
@@ -158,8 +160,9 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     assert "metrics" not in e16["methods"]["ours"]
 
     # ours plugged in through train.infer: spp, skip, seed, base_only and the variance reach the denoiser
+    # (None: the run's own setting)
     seen = {(c["spp"], c["skip"], c["base_only"], c["seed"], c["variance"]) for c in FakeDiffusion.calls}
-    assert seen == {(4, 0, False, 5, "learned"), (4, 18, False, 5, "learned"), (4, 0, True, 5, "learned"),
+    assert seen == {(4, None, False, 5, None), (4, 18, False, 5, None), (4, None, True, 5, None),
                     (4, 18, False, 5, "small")}
     assert "fixed small variance" in (out / "eval.md").read_text()
     assert all("color.variance" in c["keys"] and "normal" in c["keys"] for c in FakeDiffusion.calls)

@@ -1,62 +1,87 @@
-"""Inference time of the diffusion denoiser: 27, 15 and 9 steps (skip 0, 12, 18) at 256² and per megapixel.
+"""Inference time of the diffusion denoiser at 1, 3, 9 and 27 steps: a 128² frame and per megapixel.
 
     python -m pipeline bench-denoise [--config FILE] [key=value ...]     (also run by make bench)
 
-Uses the trained run of ``--spp`` if there is one, else the base with a fresh (zero) Control
-Module: the network's cost is the same either way. Each setting is timed after one warm-up call,
-best of ``repeats``; the per-megapixel time is measured on a frame of ``tile``-sized tiles
-(2×2 tiles of 256² by default, overlap included), so it includes the tiling overhead.
+Times ``train.infer.Denoiser.denoise`` (input encoding, the first estimate, the sampler, tiling) on
+a synthetic frame, with the trained run of ``--spp`` (or the spp-conditioned one) if there is one,
+else the base with a fresh (zero) Control Module and the configured formulation: the network's
+cost is the same either way. The paper formulation always runs IF's super27 steps, so its rows
+are the last N of them (skip 27 − N). Each setting is timed after one warm-up call, best of
+``repeats``; the per-megapixel time is measured on a frame of 2×2 ``tile``-sized tiles (overlap
+included), so it includes the tiling overhead.
 """
 from __future__ import annotations
 
+import os
 import platform
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pipeline.bench import best_time
 from pipeline.config import Config
-from pipeline.exr import atomic_write_json
+from pipeline.exr import StoreError, atomic_write_json
 
-from .data import AUX_CHANNELS
-from .model import build, load, run_dir
-from .sampler import sample, sample_tiled
-from .train import autocast_dtype, pick_device
+from .formulation import Formulation
+from .infer import Denoiser
+from .model import build, find_run, load
+from .train import pick_device
 
-SKIPS = (0, 12, 18)
+STEPS = (1, 3, 9, 27)
 
 
-def run(cfg: Config, spp: int = 4, side: int = 256, repeats: int = 2, out: str = "reports/bench") -> dict:
+def _frame(side: int, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    return {"color": rng.gamma(1.0, 0.3, (side, side, 3)).astype(np.float32),
+            "albedo": rng.random((side, side, 3), np.float32),
+            "normal": np.repeat(np.array([[[0, 0, 1]]], np.float32), side, 0).repeat(side, 1)}
+
+
+def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
+    f = cfg.diffusion
+    try:
+        folder = find_run(cfg, spp)
+        model, meta = load(folder, device)
+        name = str(folder)
+    except StoreError:
+        model = build(cfg).to(device).eval()
+        meta = {"tonemap": f.tonemap, "formulation": Formulation.from_config(f).record(),
+                "threshold_ratio": f.threshold_ratio, "variance": f.variance}
+        name = "base + fresh Control Module"
+    return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision), name
+
+
+def _time(den: Denoiser, buffers: dict, steps: int, repeats: int) -> float:
+    kw = {"skip": 27 - steps} if den.formulation.paper else {"steps": steps, "skip": 0}
+    return best_time(lambda: den.denoise(buffers, spp=4, **kw), repeats)
+
+
+def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str = "reports/bench") -> dict:
     f = cfg.diffusion
     device = pick_device(f.device)
-    folder = run_dir(cfg, spp)
-    model = load(folder, device)[0] if (folder / "model.json").exists() else build(cfg).to(device).eval()
-    ac = autocast_dtype(f.precision, device)
-    g = torch.Generator().manual_seed(0)
-    noisy = (torch.rand(1, 3, side, side, generator=g) * 2 - 1).to(device)
-    aux = torch.rand(1, AUX_CHANNELS, side, side, generator=g).to(device)
-    big = 2 * f.tile - f.tile_overlap   # 2x2 tiles
-    noisy_big = (torch.rand(1, 3, big, big, generator=g) * 2 - 1).to(device)
-    aux_big = torch.rand(1, AUX_CHANNELS, big, big, generator=g).to(device)
-    sample(model, noisy[..., :64, :64], aux[..., :64, :64], skip=26, autocast_dtype=ac)   # warm-up
+    den, name = _denoiser(cfg, spp, device)
+    small, big = _frame(side), _frame(2 * f.tile - f.tile_overlap, 1)   # big: 2x2 tiles
+    _time(den, _frame(32, 2), 1, 1)   # warm-up
     rows = []
-    for skip in SKIPS:
-        t = best_time(lambda: sample(model, noisy, aux, skip=skip, autocast_dtype=ac), repeats)
-        tb = best_time(lambda: sample_tiled(model, noisy_big, aux_big, tile=f.tile, overlap=f.tile_overlap, skip=skip,
-                                        autocast_dtype=ac), 1)
-        rows.append({"steps": 27 - skip, "skip": skip, "side": side, "seconds_frame": round(t, 3),
-                     "seconds_per_megapixel": round(tb / (big * big / 1e6), 3),
-                     "tiled_frame": f"{big}x{big}"})
+    for steps in STEPS:
+        t = _time(den, small, steps, repeats)
+        tb = _time(den, big, steps, 1)
+        px = big["color"].shape[0] ** 2
+        rows.append({"steps": steps, "side": side, "seconds_frame": round(t, 3),
+                     "seconds_per_megapixel": round(tb / (px / 1e6), 3),
+                     "tiled_frame": f"{big['color'].shape[1]}x{big['color'].shape[0]}"})
+    ac = den.autocast
     result = {"device": str(device), "cuda": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
-              "cpus": __import__("os").cpu_count(), "platform": platform.platform(), "threads": torch.get_num_threads(),
-              "model": str(folder) if (folder / "model.json").exists() else "base + fresh Control Module",
-              "parameters_millions": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+              "cpus": os.cpu_count(), "platform": platform.platform(), "threads": torch.get_num_threads(),
+              "model": name, "formulation": den.formulation.record(),
+              "parameters_millions": round(sum(p.numel() for p in den.model.parameters()) / 1e6, 2),
               "precision": str(ac) if ac else "fp32", "rows": rows}
     lines = [f"Diffusion inference ({result['model']}, {result['parameters_millions']} M parameters, "
              f"{result['device']}{' ' + result['cuda'] if result['cuda'] else ''}, {result['precision']}, "
-             f"{result['threads']} threads)", "",
+             f"{result['threads']} threads; first estimate {den.formulation.estimate})", "",
              f"| steps | {side}² frame (s) | per megapixel (s) |", "| --- | --- | --- |"]
-    lines += [f"| {r['steps']} | {r['seconds_frame']:.2f} | {r['seconds_per_megapixel']:.2f} |" for r in rows]
+    lines += [f"| {r['steps']} | {r['seconds_frame']:.3f} | {r['seconds_per_megapixel']:.2f} |" for r in rows]
     md = "\n".join(lines) + "\n"
     Path(out).mkdir(parents=True, exist_ok=True)
     atomic_write_json(Path(out) / "denoise.json", result)

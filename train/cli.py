@@ -19,10 +19,12 @@ from pipeline.store import FrameKey, Store
 
 from . import base as base_lib
 from .data import DenoisePairs, from_model, frame_rotation
-from .model import FORMAT, base_folder, build, run_dir, save
-from .pretrain import SuperResolutionPairs, gather_pictures
+from .formulation import Formulation
+from .model import FORMAT, base_folder, build, find_run, run_dir, save
+from .pack import PackPairs, ensure_pack, pack_path
+from .pretrain import RestorationPairs, gather_pictures
 from .sampler import sample
-from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
+from .train import PSNR_CEILING, Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
 
 
 def _spp_choices(store: Store, spp) -> list[int]:
@@ -50,30 +52,37 @@ def _fit_crop(crop: int, sides: list[int], multiple: int) -> int:
     return crop
 
 
-def _validator(store: Store, keys: list[FrameKey], spp: int, cfg: Config, device, autocast):
-    """Val PSNR (x/(1+x)) of the sampler at ``val_skip`` on the first ``val_frames`` val frames."""
+def _validator(store: Store, keys: list[FrameKey], spps: list[int], cfg: Config, device, autocast):
+    """Val PSNR (x/(1+x)) of the configured sampler on the first ``val_frames`` val frames (frame i at
+    ``spps[i % len]``), beside the noisy input's and the first estimate's."""
     keys = keys[:cfg.diffusion.val_frames]
     if not keys:
         return None
-    ds = DenoisePairs(store, keys, [spp], crop=None, seed=cfg.seed, tonemap=cfg.diffusion.tonemap)
+    f = cfg.diffusion
+    form = Formulation.from_config(f)
+    ds = DenoisePairs(store, keys, spps, crop=None, seed=cfg.seed, tonemap=f.tonemap, estimate=form.estimate)
     items = [ds[i] for i in range(len(ds))]
-    tm = cfg.diffusion.tonemap
+    refs = [from_model(it["target"], f.tonemap).numpy() for it in items]
+
+    def score(images) -> float:
+        return float(np.mean([min(psnr(from_model(im, f.tonemap).numpy(), ref), PSNR_CEILING)
+                              for im, ref in zip(images, refs)]))
+
+    base = {"noisy_psnr": score([it["noisy"] for it in items]), "estimate_psnr": score([it["image"] for it in items]),
+            "frames": len(items), "spp": [spps[i % len(spps)] for i in range(len(items))]}
 
     def validate(model) -> dict:
         model.eval()
-        rows = []
+        outs = []
         for it in items:
-            noisy, aux = it["noisy"][None].to(device), it["aux"][None].to(device)
-            out = sample(model, noisy, aux, skip=cfg.diffusion.val_skip, seed=cfg.seed,
-                         threshold_ratio=cfg.diffusion.threshold_ratio, autocast_dtype=autocast,
-                         variance=cfg.diffusion.variance)
-            ref = from_model(it["target"], tm).numpy()
-            rows.append((psnr(from_model(out[0].float().cpu(), tm).numpy(), ref),
-                         psnr(from_model(it["noisy"], tm).numpy(), ref)))
+            noisy, aux, image = (it[k][None].to(device) for k in ("noisy", "aux", "image"))
+            out = sample(model, noisy, aux, image=image, formulation=form,
+                         skip=f.val_skip if form.paper else f.skip, seed=cfg.seed,
+                         threshold_ratio=f.threshold_ratio, autocast_dtype=autocast, variance=f.variance)
+            outs.append(out[0].float().cpu())
         model.train()
-        return {"psnr": float(np.mean([min(r[0], 999.0) for r in rows])),
-                "noisy_psnr": float(np.mean([min(r[1], 999.0) for r in rows])), "frames": len(rows),
-                "skip": cfg.diffusion.val_skip}
+        return {"psnr": score(outs), **base, "skip": f.val_skip if form.paper else f.skip,
+                "steps": 27 if form.paper else f.steps}
     return validate
 
 
@@ -94,10 +103,19 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     model = build(cfg).to(device)
     sides = [min(store.scene_manifest(s)["resolution"]) for s in {k.scene for k in train_keys}]
     crop = _fit_crop(f.crop, sides, model.multiple)
-    ds = DenoisePairs(store, train_keys, choices, crop, f.crops_per_frame, cfg.seed, f.tonemap)
+    form = Formulation.from_config(f)
+    if f.pack:
+        path = ensure_pack(store, train_keys, pack_path(cfg.runs, "train", form.estimate), f.tonemap, form.estimate,
+                           quiet)
+        ds = PackPairs(path, crop, f.crops_per_frame, cfg.seed, choices, f.tonemap, form.estimate)
+        choices = sorted(set(ds.t["spp"].tolist()) & set(choices))
+    else:
+        ds = DenoisePairs(store, train_keys, choices, crop, f.crops_per_frame, cfg.seed, f.tonemap,
+                          estimate=form.estimate)
     autocast = autocast_dtype(f.precision, device)
     folder = run_dir(cfg, spp)
     fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg), "crop": crop,
+          "formulation": form.record(), "train_steps": list(f.train_steps),
           **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr", "weight_decay",
                                          "warmup_steps", "grad_clip", "train_base", "control", "epochs")}}
 
@@ -107,9 +125,9 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     trainable = torch.nn.ModuleDict({k: m for k, m in (("control", model.control),
                                                         ("base", model.base if f.train_base else None)) if m})
     job = Job(name=folder.name, folder=folder, model=model, trainable=trainable, params=model.trainable_parameters(),
-              train_ds=ds, validate=_validator(store, val_keys, choices[-1] if str(spp) != "any" else 4, cfg, device,
-                                               autocast),
-              save_best=save_best, epochs=f.epochs, batch_size=f.batch_size, lr=f.lr, weight_decay=f.weight_decay,
+              train_ds=ds, validate=_validator(store, val_keys, choices, cfg, device, autocast),
+              objective=None if form.paper else form.objective(list(f.train_steps)),
+              validate_initial=not form.paper, save_best=save_best, epochs=f.epochs, batch_size=f.batch_size, lr=f.lr, weight_decay=f.weight_decay,
               warmup_steps=f.warmup_steps, grad_clip=f.grad_clip, nan_limit=f.nan_limit,
               time_budget_s=f.time_budget_s, seed=cfg.seed, fingerprint=fp, device=device, autocast=autocast,
               fmt=FORMAT, title=f"Control Module, {spp} spp -> GT_clean")
@@ -129,25 +147,32 @@ def _base_hash(cfg: Config) -> str:
 
 
 def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
-    """Train a new stand-in base (IF-II layout) as a super-resolution prior on clean pictures."""
+    """Train a new stand-in base (IF-II layout) as a restoration prior (``train.pretrain``)."""
     p = cfg.pretrain
     out = Path(p.out) if p.out else Path(cfg.runs) / "base"
-    pictures, sources = gather_pictures(cfg.store, list(p.images))
+    pictures, sources, frames = gather_pictures(cfg.store, list(p.images))
     device = pick_device(cfg.diffusion.device)
+    form = Formulation.from_config(cfg.diffusion)
     config = base_lib.default_config(list(p.channels), p.layers_per_block)
-    from .control import ControlledDenoiser
+    from .control import ControlledDenoiser, zero_module
     unet, prompt = base_lib.build(config, seed=cfg.seed)
+    if not form.paper:
+        zero_module(unet.conv_out)   # the untrained base returns its image input (see train.formulation)
     model = ControlledDenoiser(unet, prompt, None, train_base=True).to(device)
     lcm = math.lcm(model.multiple, *[int(s) for s in p.scales])
     crop = _fit_crop(p.crop, [min(x.shape[:2]) for x in pictures] if pictures else [p.crop], lcm)
-    ds = SuperResolutionPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
-                              cfg.diffusion.tonemap)
+    store = Store(cfg.store)
+    spps = _spp_choices(store, "any") if store.manifest_path.exists() and store.scenes() else [4]
+    ds = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
+                          cfg.diffusion.tonemap, frames=frames, real=p.real, spp_choices=spps,
+                          estimate=form.estimate, fireflies=p.fireflies)
     folder = out.parent / (out.name + ".train")
-    fp = {"config": config, "seed": cfg.seed, "crop": crop, "pictures": len(pictures),
+    fp = {"config": config, "seed": cfg.seed, "crop": crop, "pictures": len(pictures), "formulation": form.record(),
           **{k: getattr(p, k) for k in ("epochs", "batch_size", "crops_per_image", "lr", "weight_decay", "scales",
-                                         "noise")}}
-    card = {"what": "stand-in IF-II-layout base trained by make pretrain (super-resolution prior)",
-            "pictures": len(pictures), "sources": sources[:50], "tonemap": cfg.diffusion.tonemap}
+                                         "noise", "fireflies", "real")}}
+    card = {"what": "stand-in IF-II-layout base trained by make pretrain (restoration prior of radiance)",
+            "pictures": len(pictures), "sources": sources[:50], "tonemap": cfg.diffusion.tonemap,
+            "formulation": form.record()}
 
     def save_best(record):
         base_lib.save(out, unet, prompt, card | record)
@@ -157,7 +182,8 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
               weight_decay=p.weight_decay, warmup_steps=cfg.diffusion.warmup_steps, grad_clip=cfg.diffusion.grad_clip,
               nan_limit=cfg.diffusion.nan_limit, time_budget_s=p.time_budget_s, seed=cfg.seed, fingerprint=fp,
               device=device, autocast=autocast_dtype(cfg.diffusion.precision, device), fmt="mcdenoise-base",
-              title="stand-in base: super-resolution prior")
+              title="stand-in base: restoration prior",
+              objective=None if form.paper else form.objective(list(cfg.diffusion.train_steps)))
     fit(job, quiet=quiet)
     if not quiet:
         print(f"base written to {out} ({sum(x.numel() for x in unet.parameters()) / 1e6:.2f} M parameters); "
@@ -166,14 +192,16 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
 
 
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
-                seed: int | None, base_only: bool = False, quiet: bool = False) -> int:
-    """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR, ``color``)."""
+                seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
+                samples: int | None = None) -> int:
+    """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
+    mean of ``samples`` samples, and ``std``, their per-pixel standard deviation)."""
     from .infer import load_denoiser
 
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
     f = cfg.diffusion
-    den = load_denoiser(run_dir(cfg, spp), f.device, base_only, f.tile, f.tile_overlap, f.precision)
+    den = load_denoiser(find_run(cfg, spp), f.device, base_only, f.tile, f.tile_overlap, f.precision)
     rotation = None
     if frame is not None:
         store = Store(cfg.store)
@@ -189,15 +217,34 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         from pipeline.exr import read_layers
         buffers = read_layers(Path(exr))
         source = exr
-    hdr = den.denoise(buffers, int(spp), skip=skip, seed=cfg.seed if seed is None else seed, rotation=rotation,
-                      variance=f.variance)
+    samples = f.samples if samples is None else int(samples)
+    if samples < 1:
+        raise TrainError(f"--samples {samples}: expected at least 1")
+    hdr, std = den.denoise(buffers, int(spp), skip=skip, seed=cfg.seed if seed is None else seed, rotation=rotation,
+                           variance=f.variance, steps=steps, samples=samples, with_std=True)
     meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name, "variance": f.variance,
-            "skip": den.meta.get("skip") if skip is None else skip, "repaired_nonfinite": den.last_repaired,
-            "seconds": round(den.last_seconds, 3)}
-    write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta)
+            "skip": den.meta.get("skip") if skip is None else skip, "steps": steps, "samples": samples,
+            "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
+            "clamped_pixels": den.last_clamped, "black_input": den.last_black, "seconds": round(den.last_seconds, 3)}
+    write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}) in {den.last_seconds:.1f} s"
               f" -> {out}" + (f"; {den.last_repaired} non-finite input values replaced by 0" if den.last_repaired
                               else ""), flush=True)
     return 0
 
+
+
+def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
+    """Write the training packs of ``splits`` (``train.pack``) for the configured first estimate."""
+    store = Store(cfg.store)
+    if not store.manifest_path.exists():
+        raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
+    est = Formulation.from_config(cfg.diffusion).estimate
+    for split in splits:
+        keys = _frames(store, split)
+        if not keys:
+            raise TrainError(f"{store.root}: no {split} frame with gt_clean; run `make gt-clean`")
+        path = ensure_pack(store, keys, pack_path(cfg.runs, split, est), cfg.diffusion.tonemap, est, quiet)
+        print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
+    return 0

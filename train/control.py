@@ -109,7 +109,7 @@ class ControlModule(nn.Module):
 
 
 class ControlledDenoiser(nn.Module):
-    """Frozen base + Control Module: ``forward(z_t, noisy, aux, t) → ε̂ ⊕ v`` (B, 6, H, W).
+    """Frozen base + Control Module: ``forward(z_t, image, aux, t) → prediction ⊕ variance`` (B, 6, H, W).
 
     ``control=None`` is the paper's "DeepFloyd-II" ablation: the base alone, same inputs.
     """
@@ -137,8 +137,9 @@ class ControlledDenoiser(nn.Module):
         """Input sides must be multiples of this (one halving per down block but the last)."""
         return 2 ** (len(self.base.config.block_out_channels) - 1)
 
-    def forward(self, z: torch.Tensor, noisy: torch.Tensor, aux: torch.Tensor | None, t: torch.Tensor) -> torch.Tensor:
-        sample = torch.cat([z, noisy], dim=1)
+    def forward(self, z: torch.Tensor, image: torch.Tensor, aux: torch.Tensor | None, t: torch.Tensor) -> torch.Tensor:
+        """``image``: the noisy render (paper) or the first estimate (refine formulation), in model space."""
+        sample = torch.cat([z, image], dim=1)
         B = sample.shape[0]
         t = t.expand(B) if t.dim() == 1 and t.numel() == 1 else t
         prompt = self.prompt.to(sample.dtype).expand(B, -1, -1)

@@ -125,8 +125,23 @@ def condition(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | N
 def model_inputs(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,
                  tonemap: str = "log") -> tuple[np.ndarray, np.ndarray]:
     """(noisy radiance (3, H, W) in [−1, 1], condition (AUX_CHANNELS, H, W)) of one image."""
-    noisy = np.moveaxis(to_model(buffers["color"].astype(np.float32), tonemap), 2, 0)
-    return np.ascontiguousarray(noisy, np.float32), condition(buffers, spp, rotation, tonemap)
+    return to_planar(buffers["color"], tonemap), condition(buffers, spp, rotation, tonemap)
+
+
+def first_estimate(buffers: dict[str, np.ndarray], kind: str) -> np.ndarray | None:
+    """The first estimate (H, W, 3) HDR that the refine formulation starts from: OIDN with albedo and
+    normal (``"oidn"``), or None (``"none"``: the model starts from the noisy render)."""
+    if kind == "none":
+        return None
+    if kind == "oidn":
+        from pipeline import oidn
+        return oidn.denoise(buffers)
+    raise ValueError(f"unknown first estimate {kind!r}")
+
+
+def to_planar(hdr: np.ndarray, tonemap: str = "log") -> np.ndarray:
+    """(H, W, 3) HDR → (3, H, W) float32 in model space."""
+    return np.ascontiguousarray(np.moveaxis(to_model(hdr.astype(np.float32), tonemap), 2, 0), np.float32)
 
 
 # ---- augmentation ----------------------------------------------------------------------------
@@ -184,17 +199,21 @@ class DenoisePairs(Dataset):
     """Low-spp buffers of a frame (random stacks in training, the first ones in validation) → gt_clean.
 
     Items: ``noisy`` (3, h, w), ``aux`` (AUX_CHANNELS, h, w), ``target`` (3, h, w), all float32
-    in model space. ``spp_choices`` with several values draws the sample count per item (the
-    ``SPP=any`` model). Randomness from ``default_rng([seed, epoch, index])``: reproducible epochs,
-    exact resume.
+    in model space, and ``image`` (3, h, w), the first estimate (``estimate``, computed on the whole
+    frame before cropping) or, without one, the noisy radiance again. ``spp_choices`` with several
+    values draws the sample count per item (the ``SPP=any`` model); in validation (``crop=None``)
+    item i uses ``spp_choices[i % len]``, so every sample count is validated. Randomness from
+    ``default_rng([seed, epoch, index])``: reproducible epochs, exact resume.
     """
 
     def __init__(self, store: Store, keys: list[FrameKey], spp_choices: list[int], crop: int | None,
-                 crops_per_frame: int = 1, seed: int = 0, tonemap: str = "log", augment: bool = True):
+                 crops_per_frame: int = 1, seed: int = 0, tonemap: str = "log", augment: bool = True,
+                 estimate: str = "none"):
         if not keys:
             raise ValueError("no frames")
         self.store, self.keys, self.spp_choices = store, list(keys), [int(s) for s in spp_choices]
         self.crop, self.seed, self.tonemap, self.do_augment = crop, int(seed), tonemap, augment
+        self.estimate = estimate
         self.crops_per_frame = int(crops_per_frame) if crop else 1
         self.epoch = 0
         self._rot: dict = {}
@@ -209,22 +228,25 @@ class DenoisePairs(Dataset):
     def _target(self, key: FrameKey) -> np.ndarray:
         if key not in self._target_cache:
             gt = self.store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"]
-            self._target_cache[key] = np.ascontiguousarray(np.moveaxis(to_model(gt, self.tonemap), 2, 0), np.float32)
+            self._target_cache[key] = to_planar(gt, self.tonemap)
         return self._target_cache[key]
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         key = self.keys[index // self.crops_per_frame]
         train = self.crop is not None
         rng = np.random.default_rng([self.seed, self.epoch, index])
-        spp = int(rng.choice(self.spp_choices)) if train else self.spp_choices[0]
+        spp = int(rng.choice(self.spp_choices)) if train else self.spp_choices[index % len(self.spp_choices)]
         buffers = self.store.read(key.scene, key.frame, spp, rng=rng if train else None)
         if key not in self._rot:
             self._rot[key] = frame_rotation(self.store, key)
         noisy, aux = model_inputs(buffers, spp, self._rot[key], self.tonemap)
-        arrays = [noisy, aux, self._target(key)]
+        est = first_estimate(buffers, self.estimate)
+        image = noisy if est is None else to_planar(est, self.tonemap)
+        arrays = [noisy, aux, self._target(key), image]
         if train:
             arrays = random_crop(arrays, self.crop, rng)
             if self.do_augment:
                 arrays = augment(arrays, bool(rng.integers(2)), bool(rng.integers(2)), int(rng.integers(4)),
                                  aux_index=1)
-        return {k: torch.from_numpy(np.ascontiguousarray(a)) for k, a in zip(("noisy", "aux", "target"), arrays)}
+        return {k: torch.from_numpy(np.ascontiguousarray(a))
+                for k, a in zip(("noisy", "aux", "target", "image"), arrays)}

@@ -136,3 +136,19 @@ def loss(model_out: torch.Tensor, x: torch.Tensor, z: torch.Tensor, t: torch.Ten
     mse = ((eps - noise) ** 2).flatten(1).mean(1)
     vb = vlb_term(x, z, t, eps.detach(), v, alphas_cumprod)
     return (mse + vb).mean(), {"mse": mse.mean().detach(), "vb": vb.mean().detach()}
+
+
+def objective(device: torch.device):
+    """The paper's training step: x = GT_clean, x̃ = noisy, t ~ U{0..999}, ε ~ N(0, I),
+    z_t = q_sample(x, t, ε), loss = ‖ε − ε̂‖² + L_t(Σ_θ) with ε̂ ⊕ v = model(z_t, x̃, F, t)."""
+    acp = make_scheduler().alphas_cumprod.to(device)
+
+    def step(net, batch, gen, device, autocast):
+        x, noisy, aux = batch["target"], batch["noisy"], batch.get("aux")
+        t = torch.randint(0, TRAIN_STEPS, (x.shape[0],), generator=gen).to(device)
+        noise = torch.randn(x.shape, generator=gen).to(device)
+        z = q_sample(x, t, noise, acp)
+        with torch.autocast(device.type, dtype=autocast, enabled=autocast is not None):
+            out = net(z, noisy, aux, t)
+        return loss(out, x, z, t, noise, acp)
+    return step

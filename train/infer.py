@@ -1,16 +1,25 @@
 """Denoise a frame with a trained run: the evaluator's and ``python -m pipeline denoise``'s entry point.
 
     den = load_denoiser(run_dir(cfg, 4))                 # or base_only=True: the ablation row
-    hdr = den.denoise(store.read(scene, frame, 4), spp=4, skip=0, seed=0)   # (H, W, 3) float32
+    hdr = den.denoise(store.read(scene, frame, 4), spp=4, seed=0)          # (H, W, 3) float32
+    hdr, std = den.denoise(buffers, spp=4, samples=8, with_std=True)       # mean of 8 and their std
 
 ``buffers`` are what ``Store.read`` returns (HxWxC arrays by buffer name, variances included);
 missing feature buffers count as their background value. Non-finite input values are replaced
 by 0 and counted in ``den.last_repaired`` (never passed to the network). Frames larger than
 ``diffusion.tile`` are denoised in overlapping tiles, so memory is bounded at any size.
-The output is HDR radiance in [0, 6] (the model's range, as in the paper).
+
+What the model cannot represent is said, not hidden:
+
+- the model space holds radiance in [0, 6] (as the paper); with a first estimate (the refine
+  formulation) a pixel whose estimate is above 6 keeps the estimate's value, without one the
+  output is clamped at 6. ``den.last_clamped`` counts such pixels;
+- a frame (or tile) whose noisy radiance is exactly 0 everywhere carried no light at all: it is
+  returned black (``den.last_black``), never an invented image.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -19,42 +28,77 @@ import torch
 
 from pipeline.numerics import repair_nonfinite
 
-from .data import from_model, model_inputs
-from .model import load, run_dir
+from .data import CLAMP, first_estimate, from_model, model_inputs, to_planar
+from .model import formulation, load, run_dir
 from .sampler import sample_tiled
 from .train import autocast_dtype, pick_device
 
-
 __all__ = ["Denoiser", "load_denoiser", "run_dir"]
+
+
+def hdr_std(mean_model: np.ndarray, std_model: np.ndarray, tonemap: str) -> np.ndarray:
+    """A model-space standard deviation in HDR units: times the local slope of ``from_model``."""
+    h = 1e-3
+    slope = (from_model(torch.from_numpy(mean_model + h), tonemap) -
+             from_model(torch.from_numpy(mean_model - h), tonemap)).numpy() / (2 * h)
+    return np.abs(slope) * std_model
 
 
 class Denoiser:
     def __init__(self, model, meta: dict, device: torch.device, tile: int = 256, overlap: int = 32,
                  precision: str = "auto"):
         self.model, self.meta, self.device = model, meta, device
+        self.formulation = formulation(meta)
         self.tile, self.overlap = int(tile), int(overlap)
         self.autocast = autocast_dtype(precision, device)
         self.name = "base_only" if model.control is None else "ours"
-        self.last_repaired = 0
+        self.last_repaired = self.last_clamped = 0
+        self.last_black = False
         self.last_seconds = 0.0
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
-                rotation: np.ndarray | None = None, variance: str | None = None) -> np.ndarray:
+                rotation: np.ndarray | None = None, variance: str | None = None, steps: int | None = None,
+                start: str | None = None, samples: int = 1, with_std: bool = False):
+        """HDR (H, W, 3) float32; with ``with_std`` also the per-pixel standard deviation of the samples."""
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
         tonemap = self.meta.get("tonemap", "log")
+        f = self.formulation
+        est = first_estimate(buffers, f.estimate)
         noisy, aux = model_inputs(buffers, spp, rotation, tonemap)
-        noisy_t = torch.from_numpy(noisy)[None].to(self.device)
-        aux_t = torch.from_numpy(aux)[None].to(self.device)
-        skip = int(self.meta.get("skip", 0) if skip is None else skip)
-        out = sample_tiled(self.model, noisy_t, aux_t, tile=self.tile, overlap=self.overlap, skip=skip, seed=seed,
-                           threshold_ratio=float(self.meta.get("threshold_ratio", 0.95)),
-                           autocast_dtype=self.autocast,
-                           variance=variance or self.meta.get("variance", "learned"))
-        hdr = from_model(out[0].float().cpu(), tonemap).numpy()
+        self.last_black = not np.any(buffers["color"])
+        if self.last_black:
+            hdr, std = np.zeros_like(buffers["color"]), np.zeros_like(buffers["color"])
+        else:
+            hdr, std = self._sample(noisy, aux, est, tonemap, skip, seed, variance, steps, start, samples)
+            hdr, self.last_clamped = self._beyond_range(hdr, est if est is not None else buffers["color"])
         self.last_seconds = time.perf_counter() - t0
-        return np.ascontiguousarray(np.moveaxis(hdr, 0, 2), dtype=np.float32)
+        return (hdr, std) if with_std else hdr
+
+    def _sample(self, noisy, aux, est, tonemap, skip, seed, variance, steps, start, samples):
+        t = lambda a: torch.from_numpy(a)[None].to(self.device)  # noqa: E731
+        image = t(to_planar(est, tonemap)) if est is not None else None
+        skip = int(self.meta.get("skip", 0) if skip is None else skip)
+        # The requested sampling, checked like a config (a one-line ConfigError naming the key).
+        f = dataclasses.replace(self.formulation, skip=skip, steps=self.formulation.steps if steps is None else steps,
+                                start=start or self.formulation.start)
+        mean, std = sample_tiled(self.model, t(noisy), t(aux), image=image, tile=self.tile, overlap=self.overlap,
+                                 samples=samples, formulation=f, steps=steps, skip=skip, start=start, seed=seed,
+                                 threshold_ratio=float(self.meta.get("threshold_ratio", 0.95)),
+                                 autocast_dtype=self.autocast,
+                                 variance=variance or self.meta.get("variance", "learned"))
+        mean_m, std_m = mean[0].float().cpu().numpy(), std[0].float().cpu().numpy()
+        hdr = from_model(torch.from_numpy(mean_m), tonemap).numpy()
+        return np.moveaxis(hdr, 0, 2), np.moveaxis(hdr_std(mean_m, std_m, tonemap), 0, 2)
+
+    def _beyond_range(self, hdr: np.ndarray, source: np.ndarray) -> tuple[np.ndarray, int]:
+        """Pixels whose first estimate (or input) exceeds the model's range: the estimate's value where
+        there is one, else the clamp at CLAMP; returns the image and how many pixels that touched."""
+        over = (source > CLAMP).any(axis=2)
+        if self.formulation.estimate != "none" and over.any():
+            hdr = np.where(over[..., None], source, hdr)
+        return np.ascontiguousarray(hdr, dtype=np.float32), int(over.sum())
 
 
 def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = False, tile: int = 256,

@@ -23,6 +23,8 @@ from pipeline.store import sha256
 from . import base as base_lib
 from .control import ControlledDenoiser, ControlModule
 from .data import AUX_CHANNELS, aux_names
+from .formulation import Formulation
+from .sampler import PAPER
 
 FORMAT = "mcdenoise-control"
 
@@ -31,11 +33,30 @@ def base_folder(cfg: Config) -> Path:
     return Path(cfg.diffusion.base) if cfg.diffusion.base else base_lib.SHIPPED
 
 
-def run_dir(cfg: Config, spp: int | str) -> Path:
+def run_name(spp: int | str, variant: str = "") -> str:
+    """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_paper`` (variant ``paper``)."""
     name = "diffusion_sppany" if str(spp) == "any" else f"diffusion_spp{int(spp)}"
+    return name + (f"_{variant}" if variant else "")
+
+
+def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
+    name = run_name(spp, cfg.diffusion.name if variant is None else variant)
     if not cfg.diffusion.control:
         name += "_base_only"
     return Path(cfg.runs) / name
+
+
+def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
+    """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
+    ``diffusion_sppany[_variant]`` (one model serves every sample count); StoreError if neither."""
+    own = run_dir(cfg, spp, variant)
+    candidates = [own] if str(spp) == "any" else [own, run_dir(cfg, "any", variant)]
+    for folder in candidates:
+        if (folder / "model.json").exists():
+            return folder
+    raise StoreError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
+                     f"`make train SPP={spp}` or `make train SPP=any`" +
+                     (f" with diffusion.name={variant}" if variant else ""))
 
 
 def build(cfg: Config, seed: int | None = None) -> ControlledDenoiser:
@@ -63,7 +84,14 @@ def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict
         "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(),
         "control": model.control is not None, "train_base": model.train_base,
         "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
-        "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance, **record})
+        "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance,
+        "formulation": Formulation.from_config(cfg.diffusion).record(), **record})
+
+
+def formulation(meta: dict) -> Formulation:
+    """The formulation a run was trained with (records older than the refine formulation: the paper's)."""
+    rec = meta.get("formulation")
+    return Formulation.from_record(rec) if rec else PAPER
 
 
 def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[ControlledDenoiser, dict]:

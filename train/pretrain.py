@@ -1,16 +1,24 @@
-"""The stand-in base: an IF-II-style super-resolution prior trained on clean images (``make pretrain``).
+"""The stand-in base: a restoration prior of radiance in IF-II's layout (``make pretrain``).
 
 No foundation-model weights can be fetched here, so the default base is ours: the same UNet
-layout as DeepFloyd IF stage II, trained the way IF-II was, as a super-resolution model, on clean
-images we have: every GT_clean frame of the store's train split and any folder the user names
-(``pretrain.images``: PNG/JPEG in sRGB, or EXRs with R, G, B radiance).
+layout as DeepFloyd IF stage II, trained on what we have: the GT_clean frames of the store's
+train split, their low-spp stacks, and any folder the user names (``pretrain.images``: PNG/JPEG
+in sRGB, or EXRs with R, G, B radiance).
 
-Degradation (the "low-res image" the base is conditioned on), per crop x in model space:
+Its second input (where IF-II reads the low-resolution image) is a degraded image y of the clean
+crop x (model space), drawn per crop:
 
-    x_low = up_k(down_k(x)) + σ·n,   k ∈ pretrain.scales,  σ ~ U(0, pretrain.noise),  n ~ N(0, I)
+- with probability ``pretrain.real``, a real low-spp render of the frame at a random sample count
+  of the stacks, passed through the formulation's first estimate (OIDN) when it has one, so the
+  prior learns exactly the degradation it will refine;
+- otherwise a synthetic degradation (``degrade``): area down-sampling by k ∈ ``pretrain.scales``
+  and bilinear up-sampling, Gaussian noise of std σ ~ U(0, ``pretrain.noise``), heavy-tailed
+  (Student-t, 2 degrees of freedom) noise of the same scale, and fireflies (a fraction
+  ``pretrain.fireflies`` of pixels pushed towards white).
 
-(area down-sampling, bilinear up-sampling). The base then learns p(x | x_low) by the same
-ε-MSE + L_t objective as the Control Module (``train.train.fit``).
+The base learns p(x | y) in the configured formulation (``train.formulation``; the paper's
+ε-MSE + L_t when it is the paper's), with the same loop as the Control Module (``train.train.fit``).
+With the refine formulation its last convolution starts at zero, so the untrained base returns y.
 """
 from __future__ import annotations
 
@@ -24,7 +32,7 @@ from torch.utils.data import Dataset
 from pipeline.exr import StoreError
 from pipeline.store import Store
 
-from .data import augment, random_crop, to_model
+from .data import augment, first_estimate, random_crop, to_model, to_planar
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr"}
 
@@ -57,27 +65,40 @@ def load_picture(path: Path) -> np.ndarray:
     return srgb_to_linear(rgb)
 
 
-def degrade(x: torch.Tensor, scale: int, sigma: float, gen: torch.Generator) -> torch.Tensor:
-    """up_k(down_k(x)) + σ·n for a (C, H, W) model-space image; H, W multiples of ``scale``."""
+def degrade(x: torch.Tensor, scale: int, sigma: float, gen: torch.Generator, fireflies: float = 0.0) -> torch.Tensor:
+    """A synthetic degradation of a (C, H, W) model-space image (H, W multiples of ``scale``):
+    up_k(down_k(x)) + σ·(Gaussian + heavy-tailed) noise + fireflies, clamped to [−1, 1]."""
     if scale > 1:
         low = F.avg_pool2d(x[None], scale)
         x = F.interpolate(low, scale_factor=scale, mode="bilinear", align_corners=False)[0]
-    return x + sigma * torch.randn(x.shape, generator=gen)
+    gauss = torch.randn(x.shape, generator=gen)
+    # Student-t with 2 dof: N / sqrt(chi2_2 / 2); chi2_2 / 2 is Exp(1) = -log U.
+    heavy = torch.randn(x.shape, generator=gen) / (-torch.log(torch.rand(x.shape, generator=gen).clamp_min(1e-12))).sqrt()
+    y = x + sigma * (gauss + 0.5 * heavy.clamp(-20, 20))
+    if fireflies > 0:
+        hot = torch.rand(x.shape[-2:], generator=gen) < fireflies
+        y = torch.where(hot[None], torch.ones_like(y), y)
+    return y.clamp(-1.0, 1.0)
 
 
-class SuperResolutionPairs(Dataset):
-    """Random crops of clean pictures: ``noisy`` = degraded crop, ``target`` = the crop (model space).
-
-    ``crop`` must be a multiple of every scale and no larger than the smallest picture.
-    """
+class RestorationPairs(Dataset):
+    """Random crops of clean pictures: ``target`` = the crop, ``noisy``/``image`` = its degradation
+    (model space; see the module docstring). ``frames``: (store, key) per picture that has a real
+    render, else None; ``estimate``: the first estimate applied to real renders ("none" or "oidn").
+    ``crop`` must be a multiple of every scale and no larger than the smallest picture."""
 
     def __init__(self, pictures: list[np.ndarray], crop: int, crops_per_image: int, scales: list[int],
-                 noise: float, seed: int = 0, tonemap: str = "log"):
+                 noise: float, seed: int = 0, tonemap: str = "log", frames: list | None = None,
+                 real: float = 0.0, spp_choices: list[int] | None = None, estimate: str = "none",
+                 fireflies: float = 0.002):
         if not pictures:
             raise StoreError("no pictures to pretrain on: run make dataset first (GT_clean frames) "
                              "or name folders in pretrain.images")
         self.pictures = [np.ascontiguousarray(np.moveaxis(to_model(p, tonemap), 2, 0), np.float32) for p in pictures]
         self.crop, self.per, self.scales, self.noise, self.seed = crop, crops_per_image, scales, noise, seed
+        self.frames = frames or [None] * len(pictures)
+        self.real, self.spp_choices, self.estimate = real, spp_choices or [4], estimate
+        self.tonemap, self.fireflies = tonemap, fireflies
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -86,26 +107,37 @@ class SuperResolutionPairs(Dataset):
     def __len__(self) -> int:
         return len(self.pictures) * self.per
 
+    def _real(self, i: int, rng: np.random.Generator) -> np.ndarray:
+        store, key = self.frames[i]
+        buffers = store.read(key.scene, key.frame, int(rng.choice(self.spp_choices)), rng=rng)
+        est = first_estimate(buffers, self.estimate)
+        return to_planar(buffers["color"] if est is None else est, self.tonemap)
+
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng([self.seed, self.epoch, index])
-        pic = self.pictures[index // self.per]
-        (x,) = random_crop([pic], self.crop, rng)
-        (x,) = augment([x], bool(rng.integers(2)), bool(rng.integers(2)), int(rng.integers(4)))
-        scale = int(rng.choice(self.scales))
-        x = torch.from_numpy(np.ascontiguousarray(x))
+        i = index // self.per
+        real = self.frames[i] is not None and rng.random() < self.real
+        arrays = [self.pictures[i]] + ([self._real(i, rng)] if real else [])
+        arrays = random_crop(arrays, self.crop, rng)
+        arrays = augment(arrays, bool(rng.integers(2)), bool(rng.integers(2)), int(rng.integers(4)))
+        x = torch.from_numpy(np.ascontiguousarray(arrays[0]))
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        return {"noisy": degrade(x, scale, float(rng.uniform(0, self.noise)), gen).float(), "target": x}
+        scale, sigma = int(rng.choice(self.scales)), float(rng.uniform(0, self.noise))
+        y = torch.from_numpy(np.ascontiguousarray(arrays[1])) if real else degrade(x, scale, sigma, gen, self.fireflies)
+        return {"noisy": y.float(), "image": y.float(), "target": x}
 
 
-def gather_pictures(store_path: str, folders: list[str]) -> tuple[list[np.ndarray], list[str]]:
-    """Every GT_clean frame of the store's train split, then every picture in ``folders``."""
-    pictures, sources = [], []
+def gather_pictures(store_path: str, folders: list[str]) -> tuple[list[np.ndarray], list[str], list]:
+    """Every GT_clean frame of the store's train split, then every picture in ``folders``; the third
+    list holds (store, key) for store frames (their real renders) and None for pictures."""
+    pictures, sources, frames = [], [], []
     store = Store(store_path)
     if store.manifest_path.exists():
         for key in store.frames("train"):
             if store.image_path(key.scene, key.frame, "gt_clean").exists():
                 pictures.append(store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"])
                 sources.append(f"{key.scene}/{key.frame:03d}/gt_clean")
+                frames.append((store, key))
     for folder in folders:
         root = Path(folder)
         if not root.is_dir():
@@ -113,4 +145,5 @@ def gather_pictures(store_path: str, folders: list[str]) -> tuple[list[np.ndarra
         for path in sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES):
             pictures.append(load_picture(path))
             sources.append(str(path))
-    return pictures, sources
+            frames.append(None)
+    return pictures, sources, frames

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -72,7 +72,8 @@ class Job:
     autocast: torch.dtype | None = None
     fmt: str = "mcdenoise-diffusion"
     title: str = ""
-    extra: dict = field(default_factory=dict)
+    objective: Callable | None = None   # (net, batch, gen, device, autocast) -> (loss, terms); None: IF's hybrid loss
+    validate_initial: bool = False      # score the model before the first step (a candidate for "best")
 
 
 def lr_factor(step: int, total: int, warmup: int) -> float:
@@ -144,7 +145,9 @@ def fit(job: Job, quiet: bool = False) -> dict:
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel as DDP
         net = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
-    acp = diffusion.make_scheduler().alphas_cumprod.to(device)
+    objective = job.objective or diffusion.objective(device)
+    if start == 0 and job.validate_initial and job.validate is not None and rank == 0:
+        best = _initial(job, history)
     per_rank = len(job.train_ds) // world
     steps_per_epoch = max(1, per_rank // job.batch_size)
     total_steps = job.epochs * steps_per_epoch
@@ -163,15 +166,8 @@ def fit(job: Job, quiet: bool = False) -> dict:
             for g in opt.param_groups:
                 g["lr"] = job.lr * lr_factor(step, total_steps, job.warmup_steps)
             gen = torch.Generator().manual_seed(int(np.random.default_rng([job.seed, epoch, i, rank]).integers(2**62)))
-            x = batch["target"].to(device)
-            noisy = batch["noisy"].to(device)
-            aux = batch["aux"].to(device) if "aux" in batch else None
-            t = torch.randint(0, diffusion.TRAIN_STEPS, (x.shape[0],), generator=gen).to(device)
-            noise = torch.randn(x.shape, generator=gen).to(device)
-            z = diffusion.q_sample(x, t, noise, acp)
-            with torch.autocast(device.type, dtype=job.autocast, enabled=job.autocast is not None):
-                out = net(z, noisy, aux, t)
-            loss, terms = diffusion.loss(out, x, z, t, noise, acp)
+            batch = {k: v.to(device) for k, v in batch.items()}
+            loss, terms = objective(net, batch, gen, device, job.autocast)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             norm = torch.nn.utils.clip_grad_norm_(job.params, job.grad_clip if job.grad_clip > 0 else float("inf"))
@@ -229,6 +225,16 @@ def fit(job: Job, quiet: bool = False) -> dict:
     return summary
 
 
+def _initial(job: Job, history: list[dict]) -> dict:
+    """Epoch 0: the untrained model's validation score, saved as the best so far. With a zero-initialised
+    residual this is the first estimate itself, so training can only be kept where validation improves it."""
+    val = job.validate(job.model)
+    history.append({"epoch": 0, "train_loss": None, "mse": None, "vb": None, "skipped_steps": 0,
+                    "lr": 0.0, "val": val, "seconds": 0.0})
+    job.save_best({"epoch": 0, "metrics": val, "train_loss": None})
+    return {"epoch": 0, "score": val["psnr"], "val": val, "train_loss": None}
+
+
 def _check_in_sync(module: torch.nn.Module, world: int) -> None:
     import torch.distributed as dist
     mine = torch.tensor([checksum(module)], dtype=torch.float64)
@@ -242,8 +248,8 @@ def _check_in_sync(module: torch.nn.Module, world: int) -> None:
 
 
 def _plot(job: Job, history: list[dict]) -> None:
-    curves = {"train loss (eps-MSE + L_t)": [(h["epoch"], h["train_loss"]) for h in history
-                                             if np.isfinite(h["train_loss"])]}
+    curves = {"train loss": [(h["epoch"], h["train_loss"]) for h in history
+                             if h["train_loss"] is not None and np.isfinite(h["train_loss"])]}
     right = {}
     if any(h.get("val") for h in history):
         right = {"val PSNR (dB)": [(h["epoch"], h["val"]["psnr"]) for h in history if h.get("val")],

@@ -1,0 +1,205 @@
+"""The refine formulation (train/formulation.py) and its sampler: parametrisations, weights, oracle and
+zero networks through every sampler and start option, the denoiser's black and over-range rules."""
+import numpy as np
+import pytest
+import torch
+
+from train.formulation import Formulation, FormulationError, snr_weight
+from train.sampler import sample, sample_many
+
+G = torch.Generator().manual_seed(0)
+X = torch.rand(1, 3, 16, 16, generator=G) * 1.6 - 0.8          # the clean image, model space
+EST = (X + 0.05 * torch.randn(X.shape, generator=G)).clamp(-1, 1)  # a first estimate near it
+NOISY = (X + 0.3 * torch.randn(X.shape, generator=G)).clamp(-1, 1)
+
+
+def form(**kw):
+    base = dict(prediction="v", schedule="zero_snr", estimate="oidn", residual=True, residual_scale=0.1)
+    return Formulation(**{**base, **kw})
+
+
+class Oracle(torch.nn.Module):
+    """Knows the clean image: returns the exact ε, v or x0 target for (z, t) under ``f``."""
+    multiple = 1
+
+    def __init__(self, f: Formulation):
+        super().__init__()
+        self.f, self.acp = f, f.scheduler("ddpm").alphas_cumprod
+
+    def forward(self, z, image, aux, t):
+        y = self.f.target(X, image)
+        a = self.acp[t].view(-1, 1, 1, 1)
+        alpha, sigma = a.sqrt(), (1 - a).sqrt()
+        eps = (z - alpha * y) / sigma
+        out = {"epsilon": eps, "v": alpha * eps - sigma * y, "sample": y}[self.f.prediction]
+        return torch.cat([out, torch.zeros_like(out)], 1)
+
+
+class Zero(torch.nn.Module):
+    """An untrained network whose last layer is zero."""
+    multiple = 1
+
+    def forward(self, z, image, aux, t):
+        return torch.zeros(z.shape[0], 6, *z.shape[2:])
+
+
+def test_v_prediction_round_trip():
+    """diffusers' get_velocity and x̂0 = α z − σ v̂, ε̂ = σ z + α v̂ recover x and ε at every t."""
+    f = form()
+    sched = f.scheduler("ddpm")
+    eps = torch.randn(X.shape, generator=torch.Generator().manual_seed(1))
+    for t in (0, 250, 700, 998):
+        tt = torch.tensor([t])
+        z = sched.add_noise(X, eps, tt)
+        v = sched.get_velocity(X, eps, tt)
+        a = sched.alphas_cumprod[t]
+        torch.testing.assert_close(a.sqrt() * z - (1 - a).sqrt() * v, X, atol=1e-5, rtol=0)
+        torch.testing.assert_close((1 - a).sqrt() * z + a.sqrt() * v, eps, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("prediction", ["v", "sample"])
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+@pytest.mark.parametrize("start,steps,skip", [("noise", 1, 0), ("noise", 9, 0), ("estimate", 9, 3),
+                                              ("render", 27, 12), ("estimate", 3, 0)])
+def test_oracle_network_recovers_the_image(prediction, sampler, start, steps, skip):
+    f = form(prediction=prediction)
+    out = sample(Oracle(f), NOISY, None, image=EST, formulation=f, steps=steps, skip=skip, start=start,
+                 sampler=sampler, seed=3)
+    torch.testing.assert_close(out, X, atol=2e-5, rtol=0)
+
+
+@pytest.mark.parametrize("schedule,prediction", [("if", "v"), ("if", "sample")])
+def test_oracle_without_residual_or_zero_snr(schedule, prediction):
+    f = form(schedule=schedule, prediction=prediction, residual=False, estimate="none")
+    out = sample(Oracle(f), NOISY, None, formulation=f, steps=9, skip=4, start="render", seed=0)
+    torch.testing.assert_close(out, X, atol=2e-5, rtol=0)
+
+
+def test_one_step_from_t_returns_the_networks_x0():
+    """Zero terminal SNR: one DDIM step from T = the network's x̂0 = −v̂ (α_T = 0, σ_T = 1)."""
+    f = form(prediction="v")
+    v_hat = torch.randn(X.shape, generator=torch.Generator().manual_seed(5)) * 0.3
+
+    class Fixed(torch.nn.Module):
+        multiple = 1
+
+        def forward(self, z, image, aux, t):
+            assert int(t[0]) == 999
+            return torch.cat([v_hat, torch.zeros_like(v_hat)], 1)
+
+    out = sample(Fixed(), NOISY, None, image=EST, formulation=f, steps=1, start="noise", seed=7)
+    torch.testing.assert_close(out, (EST + 0.1 * (-v_hat)).clamp(-1, 1), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+@pytest.mark.parametrize("start,steps,skip", [("noise", 1, 0), ("estimate", 27, 0), ("render", 9, 4)])
+def test_untrained_sample_prediction_returns_the_estimate_exactly(sampler, start, steps, skip):
+    f = form(prediction="sample")
+    out = sample(Zero(), NOISY, None, image=EST, formulation=f, steps=steps, skip=skip, start=start, sampler=sampler,
+                 seed=2)
+    if sampler == "ddim":
+        assert torch.equal(out, EST)
+    else:   # DDPM's last step still draws noise with diffusers' variance floor of 1e-20 (std 1e-10)
+        torch.testing.assert_close(out, EST, atol=1e-7, rtol=0)
+
+
+def test_min_snr_weight_has_a_floor_at_zero_snr_and_gamma_at_low_noise():
+    f = form()
+    sched = f.scheduler("ddpm")
+    t = torch.tensor([0, 500, 999])
+    w0 = snr_weight(sched, t, "sample", gamma=5.0, floor=1.0)
+    assert w0[2] == pytest.approx(1.0) and w0[0] == pytest.approx(5.0)
+    wv = snr_weight(sched, t, "v", gamma=5.0, floor=1.0)
+    assert wv[2] == pytest.approx(1.0) and wv[0] < 1e-3      # x0-error weight 5 over SNR + 1 ≫ 1
+    assert torch.all(snr_weight(sched, t, "sample", 5.0, 0.0)[:2] > 0)
+    assert snr_weight(sched, t, "sample", 5.0, 0.0)[2] == 0      # the trap the floor avoids
+
+
+def test_training_timesteps_focus_on_the_samplers_steps():
+    f = form(t_focus=1.0)
+    focus = f.train_timesteps([1, 3])
+    assert focus.tolist() == [332, 666, 999]
+    t = f.draw_t(500, focus, torch.Generator().manual_seed(0))
+    assert set(t.tolist()) <= {332, 666, 999}
+    mixed = form(t_focus=0.5).draw_t(4000, focus, torch.Generator().manual_seed(0))
+    share = np.isin(mixed.numpy(), [332, 666, 999]).mean()
+    assert 0.45 < share < 0.56
+
+
+def test_loss_is_zero_for_the_oracle_and_positive_otherwise():
+    for prediction in ("v", "sample"):
+        f = form(prediction=prediction)
+        sched = f.scheduler("ddpm")
+        y = f.target(X, EST)
+        t = torch.tensor([999])
+        noise = torch.randn(X.shape, generator=torch.Generator().manual_seed(4))
+        z = sched.add_noise(y, noise, t)
+        exact = Oracle(f)(z, EST, None, t)
+        assert float(f.loss(exact, y, z, t, noise, sched)[0]) < 1e-10
+        assert float(f.loss(torch.zeros_like(exact), y, z, t, noise, sched)[0]) > 1e-3
+
+
+@pytest.mark.parametrize("bad,match", [
+    (dict(prediction="epsilon"), "zero terminal SNR"),
+    (dict(prediction="epsilon", schedule="if"), "paper formulation"),
+    (dict(estimate="none"), "needs a first estimate"),
+    (dict(start="middle"), "diffusion.start"),
+    (dict(steps=3, skip=3), "diffusion.skip"),
+])
+def test_formulation_refuses_what_cannot_work(bad, match):
+    with pytest.raises(FormulationError, match=match):
+        form(**bad)
+
+
+def test_samples_mean_and_std():
+    f = form(prediction="sample")
+
+    class Noisy(torch.nn.Module):
+        """x̂0 = the true residual + noise drawn from z: samples differ, their mean is near the truth."""
+        multiple = 1
+
+        def forward(self, z, image, aux, t):
+            y = f.target(X, image)
+            return torch.cat([y + 0.5 * z, torch.zeros_like(z)], 1)
+
+    one_mean, one_std = sample_many(Noisy(), NOISY, None, samples=1, image=EST, formulation=f, steps=1,
+                                    start="noise", seed=0)
+    assert torch.equal(one_std, torch.zeros_like(one_std))
+    mean, std = sample_many(Noisy(), NOISY, None, samples=6, image=EST, formulation=f, steps=1, start="noise", seed=0)
+    assert torch.all(std >= 0) and float(std.mean()) > 0.01
+    assert float((mean - X).abs().mean()) < float((one_mean - X).abs().mean())
+
+
+# ---- the denoiser around the model (train/infer.py) ------------------------------------------------
+
+def tiny_denoiser(estimate="oidn"):
+    from tests.test_diffusion_model import tiny_model
+    from train.infer import Denoiser
+
+    f = form(prediction="sample", estimate=estimate, residual=estimate != "none")
+    m = tiny_model().eval()
+    torch.nn.init.normal_(m.base.conv_out.weight, std=0.5)   # an imperfect network: it changes its input
+    return Denoiser(m, {"tonemap": "log", "formulation": f.record()}, torch.device("cpu"))
+
+
+@pytest.mark.parametrize("estimate", ["oidn", "none"])
+def test_black_in_black_out(estimate):
+    den = tiny_denoiser(estimate)
+    buffers = {"color": np.zeros((16, 16, 3), np.float32), "albedo": np.full((16, 16, 3), 0.5, np.float32)}
+    out, std = den.denoise(buffers, spp=4, with_std=True)
+    assert den.last_black and not out.any() and not std.any()
+    buffers["color"][3, 4] = 0.2                                          # one lit pixel: the network runs
+    assert den.denoise(buffers, spp=4).any() and not den.last_black
+
+
+def test_radiance_beyond_the_model_range_keeps_the_first_estimate():
+    den = tiny_denoiser("oidn")
+    color = np.full((16, 16, 3), 0.3, np.float32)
+    color[4:8, 4:8] = 1e5
+    from pipeline import oidn
+    est = oidn.denoise({"color": color})
+    out = den.denoise({"color": color}, spp=4)
+    over = (est > 6).any(axis=2)
+    assert over.any() and den.last_clamped == int(over.sum())
+    np.testing.assert_array_equal(out[over], est[over])
+    assert out[~over].max() <= 6.0

@@ -1,0 +1,210 @@
+"""What the diffusion model diffuses and predicts, and how its loss is weighted (``diffusion.*`` keys).
+
+Two formulations share the model, the data and the training loop:
+
+- ``paper`` (``prediction: epsilon``, ``schedule: if``): DeepFloyd IF stage II as the paper uses it:
+  ε-prediction with a learned-range variance over IF's cosine schedule, the hybrid loss
+  ε-MSE + L_t (``train.diffusion``), sampled with IF's DDPM over the ``super27`` steps. What real
+  IF-II-M weights need, kept unchanged.
+- ``refine`` (any other combination; the default): a diffusion model that refines a first estimate
+  x_est of the clean image (``diffusion.estimate``: OIDN, or none: the noisy render itself). With
+  ``residual: true`` it diffuses the scaled residual
+
+      r = (x − x_est) / s          (model space, s = ``residual_scale``)
+
+  and the estimate is the base's image input (where IF-II reads its low-resolution image), so the
+  Control Module still sees the noisy render among its buffers. The schedule is IF's cosine one,
+  rescaled to zero terminal SNR with trailing timesteps (``schedule: zero_snr``; Lin et al. 2023),
+  so one step from t = T is the network's direct estimate of r. The network predicts
+  ``prediction`` ∈ {v, sample, epsilon} (Salimans & Ho 2022; ε is refused with a zero terminal
+  SNR, where it says nothing about x); the loss is the MSE against ``DDPMScheduler``'s targets
+  (``get_velocity`` for v), weighted by min-SNR-γ (Hang et al. 2023) expressed in x₀-error terms
+  and floored, because min(SNR, γ) is 0 at SNR = 0, exactly the step whose output is the one-step
+  estimate:
+
+      w_x0(t) = max(min(SNR_t, γ), floor);   w = w_x0 / SNR (ε), w_x0 / (SNR + 1) (v), w_x0 (sample)
+
+  With ``prediction: sample`` an untrained network whose last layer is zero predicts r̂ = 0 at every
+  step, so every sampler returns the estimate exactly: training starts from the estimate.
+  Training t is drawn with probability ``t_focus`` from the timesteps the sampler visits
+  (``train_timesteps``), else uniformly.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+
+from pipeline.config import ConfigError
+
+from . import diffusion as if_ddpm
+
+TRAIN_STEPS = if_ddpm.TRAIN_STEPS
+PREDICTIONS = {"epsilon": "epsilon", "v": "v_prediction", "sample": "sample"}
+SCHEDULES = ("if", "zero_snr")
+SAMPLERS = ("ddim", "ddpm")
+STARTS = ("noise", "render", "estimate")
+ESTIMATES = ("none", "oidn")
+
+
+class FormulationError(ConfigError):
+    """A combination of ``diffusion.*`` keys that cannot work; the message names the keys."""
+
+
+@dataclass(frozen=True)
+class Formulation:
+    prediction: str = "sample"
+    schedule: str = "zero_snr"
+    estimate: str = "oidn"
+    residual: bool = True
+    residual_scale: float = 0.1
+    snr_gamma: float = 5.0
+    snr_floor: float = 1.0
+    t_focus: float = 0.5
+    sampler: str = "ddim"
+    steps: int = 1
+    start: str = "estimate"
+    skip: int = 0
+
+    def __post_init__(self):
+        check(self)
+
+    @property
+    def paper(self) -> bool:
+        """IF's own path: ε, learned-range variance, hybrid loss, super27 DDPM."""
+        return self.prediction == "epsilon" and self.schedule == "if"
+
+    def record(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_config(cls, d) -> "Formulation":
+        """From the ``diffusion`` config section (``pipeline.config.DiffusionConfig``)."""
+        return cls(**{k: getattr(d, k) for k in cls.__dataclass_fields__})
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Formulation":
+        known = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in record.items() if k in known})
+
+    # ---- what is diffused --------------------------------------------------------------------
+
+    def target(self, x: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        """The diffused signal: the scaled residual around ``image`` (the estimate) or x itself."""
+        return (x - image) / self.residual_scale if self.residual else x
+
+    def image_of(self, target: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        """Inverse of ``target``: model-space image from the diffused signal."""
+        return image + self.residual_scale * target if self.residual else target
+
+    # ---- schedules ---------------------------------------------------------------------------
+
+    def scheduler(self, sampler: str | None = None):
+        """The ``diffusers`` scheduler of this formulation (DDIM or DDPM; trailing timesteps)."""
+        from diffusers import DDIMScheduler, DDPMScheduler
+
+        kind = sampler or self.sampler
+        common = dict(num_train_timesteps=TRAIN_STEPS, beta_schedule="squaredcos_cap_v2",
+                      prediction_type=PREDICTIONS[self.prediction], clip_sample=False,
+                      rescale_betas_zero_snr=self.schedule == "zero_snr", timestep_spacing="trailing")
+        if kind == "ddim":
+            return DDIMScheduler(set_alpha_to_one=True, **common)
+        return DDPMScheduler(variance_type="fixed_small", **common)
+
+    def train_timesteps(self, steps: list[int]) -> torch.Tensor:
+        """Every timestep a sampler with any of ``steps`` visits (trailing spacing), sorted."""
+        sched = self.scheduler("ddim")
+        visited = set()
+        for n in steps:
+            sched.set_timesteps(int(n))
+            visited.update(int(t) for t in sched.timesteps)
+        return torch.tensor(sorted(visited))
+
+    def draw_t(self, n: int, focus: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        """n training timesteps: from ``focus`` with probability ``t_focus``, else uniform."""
+        uniform = torch.randint(0, TRAIN_STEPS, (n,), generator=gen)
+        picked = focus[torch.randint(0, len(focus), (n,), generator=gen)]
+        use = torch.rand(n, generator=gen) < self.t_focus
+        return torch.where(use, picked, uniform)
+
+    def objective(self, focus_steps: list[int]):
+        """The refine formulation's training step (``train.train.fit``'s ``objective``): y = target(x, x_est),
+        t from ``draw_t``, z_t = add_noise(y, ε, t), weighted loss of model(z_t, x_est, F, t)."""
+        sched = self.scheduler("ddpm")
+        focus = self.train_timesteps(focus_steps)
+
+        def step(net, batch, gen, device, autocast):
+            image = batch.get("image", batch["noisy"])
+            y = self.target(batch["target"], image)
+            t = self.draw_t(y.shape[0], focus, gen)
+            noise = torch.randn(y.shape, generator=gen).to(device)
+            z = sched.add_noise(y, noise, t.to(device))
+            with torch.autocast(device.type, dtype=autocast, enabled=autocast is not None):
+                out = net(z, image, batch.get("aux"), t.to(device))
+            return self.loss(out, y, z, t.to(device), noise, sched)
+        return step
+
+    # ---- loss --------------------------------------------------------------------------------
+
+    def loss(self, model_out: torch.Tensor, x0: torch.Tensor, z: torch.Tensor, t: torch.Tensor,
+             noise: torch.Tensor, sched) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Weighted MSE of the prediction (first channels of ``model_out``) against its target."""
+        pred = model_out[:, :x0.shape[1]].float()
+        if self.prediction == "epsilon":
+            target = noise
+        elif self.prediction == "v":
+            target = sched.get_velocity(x0, noise, t)
+        else:
+            target = x0
+        w = snr_weight(sched, t, self.prediction, self.snr_gamma, self.snr_floor).to(pred.device)
+        mse = ((pred - target) ** 2).flatten(1).mean(1)
+        return (w * mse).mean(), {"mse": mse.mean().detach(), "vb": torch.zeros((), device=pred.device)}
+
+
+def snr_weight(sched, t: torch.Tensor, prediction: str, gamma: float, floor: float) -> torch.Tensor:
+    """Per-sample loss weight: min-SNR-γ in x₀-error terms, floored, converted to the prediction's
+    error (see the module docstring)."""
+    from diffusers.training_utils import compute_snr
+
+    snr = compute_snr(sched, t.cpu()).float()
+    w0 = torch.clamp(torch.minimum(snr, torch.full_like(snr, gamma)), min=floor)
+    if prediction == "epsilon":
+        return w0 / snr
+    if prediction == "v":
+        return w0 / (snr + 1.0)
+    return w0
+
+
+def check(f: Formulation) -> None:
+    """Refuse combinations that cannot work, naming the ``diffusion.*`` key."""
+    if f.prediction not in PREDICTIONS:
+        raise FormulationError(f"diffusion.prediction: expected one of {', '.join(PREDICTIONS)}, got {f.prediction!r}")
+    if f.schedule not in SCHEDULES:
+        raise FormulationError(f"diffusion.schedule: expected one of {', '.join(SCHEDULES)}, got {f.schedule!r}")
+    if f.sampler not in SAMPLERS:
+        raise FormulationError(f"diffusion.sampler: expected one of {', '.join(SAMPLERS)}, got {f.sampler!r}")
+    if f.start not in STARTS:
+        raise FormulationError(f"diffusion.start: expected one of {', '.join(STARTS)}, got {f.start!r}")
+    if f.estimate not in ESTIMATES:
+        raise FormulationError(f"diffusion.estimate: expected one of {', '.join(ESTIMATES)}, got {f.estimate!r}")
+    if f.prediction == "epsilon" and f.schedule == "zero_snr":
+        raise FormulationError("diffusion.prediction=epsilon with diffusion.schedule=zero_snr: at zero terminal SNR "
+                               "the noise says nothing about the image; use v or sample")
+    if f.paper and (f.residual or f.estimate != "none"):
+        raise FormulationError("the paper formulation (prediction=epsilon, schedule=if) diffuses the image from the "
+                               "noisy render: set diffusion.residual=false and diffusion.estimate=none")
+    if f.residual and f.estimate == "none":
+        raise FormulationError("diffusion.residual=true needs a first estimate (diffusion.estimate=oidn)")
+    if not f.residual_scale > 0:
+        raise FormulationError(f"diffusion.residual_scale: expected > 0, got {f.residual_scale}")
+    if not 0 <= f.t_focus <= 1:
+        raise FormulationError(f"diffusion.t_focus: expected a probability in [0, 1], got {f.t_focus}")
+    if f.snr_gamma <= 0 or f.snr_floor < 0:
+        raise FormulationError("diffusion.snr_gamma must be > 0 and diffusion.snr_floor >= 0")
+    if f.paper:
+        if not 0 <= f.skip < 27:
+            raise FormulationError(f"diffusion.skip: the paper formulation skips 0..26 of IF's 27 super27 steps, "
+                                   f"got {f.skip}")
+    elif not 1 <= f.steps <= TRAIN_STEPS or not 0 <= f.skip < f.steps:
+        raise FormulationError(f"diffusion.steps / diffusion.skip: need 1 <= steps <= {TRAIN_STEPS} and "
+                               f"0 <= skip < steps, got {f.steps} / {f.skip}")
