@@ -25,6 +25,7 @@ class Outcome:
     input_repaired: dict = field(default_factory=dict)   # buffer key -> NaN/Inf values set to 0
     output_nonfinite: int = 0
     error: str | None = None           # exception or wrong shape; output is None then
+    note: str = ""                     # what the method says it did beyond denoising (Method.note)
 
     @property
     def ok(self) -> bool:
@@ -57,7 +58,7 @@ def run_method(method: Method, buffers: dict[str, np.ndarray]) -> Outcome:
     if out.shape != shape:
         return Outcome(None, seconds, counts, 0, f"output shape {out.shape}, expected {shape}")
     out = out.astype(np.float32, copy=False)
-    return Outcome(out, seconds, counts, int((~np.isfinite(out)).sum()))
+    return Outcome(out, seconds, counts, int((~np.isfinite(out)).sum()), note=method.note())
 
 
 def finite_output(outcome: Outcome) -> np.ndarray:

@@ -134,6 +134,10 @@ class Method(ABC):
         """Called before ``denoise`` with the frame's store and key, for methods that need more than
         its buffers (the diffusion model reads the camera to put normals in camera space)."""
 
+    def note(self) -> str:
+        """What the last ``denoise`` did beyond denoising (clamped its range, returned black), or ''."""
+        return ""
+
 
 @dataclass
 class Noisy(Method):
@@ -192,6 +196,17 @@ class Diffusion(Method):
     def set_frame(self, store, key) -> None:
         from train.data import frame_rotation
         self.rotation = frame_rotation(store, key)
+
+    def note(self) -> str:
+        den = self.denoiser
+        if getattr(den, "last_black", False):
+            return "input black everywhere: returned black"
+        n = getattr(den, "last_clamped", 0)
+        if not n:
+            return ""
+        if den.formulation.estimate != "none":
+            return f"{n} pixels above the model's range (radiance 6) kept the first estimate's value"
+        return f"{n} pixels above the model's range clamped to radiance 6"
 
     def denoise(self, buffers):
         s = self.spec

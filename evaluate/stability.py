@@ -177,7 +177,7 @@ def run_stability(cfg: Config, large: bool | None = None, out: str | Path | None
                 continue
             oc = run_method(methods[name], buffers)
             repaired[case] = int(sum(oc.input_repaired.values()))
-            cell = {"status": oc.status(), "seconds": oc.seconds}
+            cell = {"status": oc.status(), "seconds": oc.seconds, **({"note": oc.note} if oc.note else {})}
             if oc.output is not None:
                 fin = oc.output[np.isfinite(oc.output)]
                 cell.update(shape=list(oc.output.shape), out_min=float(fin.min()) if fin.size else None,
@@ -210,7 +210,8 @@ def format_markdown(data: dict, methods: list[str]) -> str:
         if c["status"] == "not available":
             return "n/a"
         if c["status"] == "ok":
-            return f"ok {fmt_seconds(c['seconds'])} s, mean {c['out_mean']:.3g}"
+            note = f" ({c['note']})" if c.get("note") else ""
+            return f"ok {fmt_seconds(c['seconds'])} s, mean {c['out_mean']:.3g}{note}"
         return f"**FAIL** {c['status'][:160]} ({fmt_seconds(c['seconds'])} s)"
 
     rows = [[f"{case}: {desc}", f"{data['input_mean'][case]:.3g}", str(data["input_repaired"].get(case, 0))]

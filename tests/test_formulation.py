@@ -118,9 +118,11 @@ def test_min_snr_weight_has_a_floor_at_zero_snr_and_gamma_at_low_noise():
 def test_training_timesteps_focus_on_the_samplers_steps():
     f = form(t_focus=1.0)
     focus = f.train_timesteps([1, 3])
-    assert focus.tolist() == [332, 666, 999]
-    t = f.draw_t(500, focus, torch.Generator().manual_seed(0))
+    assert [x.tolist() for x in focus] == [[999], [999, 666, 332]]
+    t = f.draw_t(6000, focus, torch.Generator().manual_seed(0)).numpy()
     assert set(t.tolist()) <= {332, 666, 999}
+    # each step count half the time: 999 in 1/2 + 1/6 of the draws, 666 and 332 in 1/6 each
+    assert abs((t == 999).mean() - 2 / 3) < 0.03 and abs((t == 332).mean() - 1 / 6) < 0.03
     mixed = form(t_focus=0.5).draw_t(4000, focus, torch.Generator().manual_seed(0))
     share = np.isin(mixed.numpy(), [332, 666, 999]).mean()
     assert 0.45 < share < 0.56

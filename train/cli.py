@@ -163,6 +163,8 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     crop = _fit_crop(p.crop, [min(x.shape[:2]) for x in pictures] if pictures else [p.crop], lcm)
     store = Store(cfg.store)
     spps = _spp_choices(store, "any") if store.manifest_path.exists() and store.scenes() else [4]
+    if cfg.diffusion.pack and any(frames):
+        frames = _pack_sources(cfg, store, frames, form.estimate, quiet)
     ds = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
                           cfg.diffusion.tonemap, frames=frames, real=p.real, spp_choices=spps,
                           estimate=form.estimate, fireflies=p.fireflies)
@@ -189,6 +191,18 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
         print(f"base written to {out} ({sum(x.numel() for x in unet.parameters()) / 1e6:.2f} M parameters); "
               f"use it with diffusion.base={out}", flush=True)
     return 0
+
+
+def _pack_sources(cfg: Config, store: Store, frames: list, estimate: str, quiet: bool) -> list:
+    """Real degraded versions of the store's frames from the train pack: (pack, item indices) per frame."""
+    keys = _frames(store, "train")
+    path = ensure_pack(store, keys, pack_path(cfg.runs, "train", estimate), cfg.diffusion.tonemap, estimate, quiet)
+    pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=estimate)
+    items: dict[int, list[int]] = {}
+    for i, f in enumerate(pack.t["frame"].tolist()):
+        items.setdefault(f, []).append(i)
+    where = {str(k): items[j] for j, k in enumerate(keys)}
+    return [None if src is None else (pack, where[str(src[1])]) for src in frames]
 
 
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,

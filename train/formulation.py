@@ -26,8 +26,8 @@ Two formulations share the model, the data and the training loop:
 
   With ``prediction: sample`` an untrained network whose last layer is zero predicts r̂ = 0 at every
   step, so every sampler returns the estimate exactly: training starts from the estimate.
-  Training t is drawn with probability ``t_focus`` from the timesteps the sampler visits
-  (``train_timesteps``), else uniformly.
+  Training t is drawn with probability ``t_focus`` from the timesteps a sampler with one of the
+  ``train_steps`` step counts visits (each count equally likely), else uniformly.
 """
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ class Formulation:
     schedule: str = "zero_snr"
     estimate: str = "oidn"
     residual: bool = True
-    residual_scale: float = 0.1
+    residual_scale: float = 0.05
     snr_gamma: float = 5.0
     snr_floor: float = 1.0
     t_focus: float = 0.5
@@ -111,19 +111,24 @@ class Formulation:
             return DDIMScheduler(set_alpha_to_one=True, **common)
         return DDPMScheduler(variance_type="fixed_small", **common)
 
-    def train_timesteps(self, steps: list[int]) -> torch.Tensor:
-        """Every timestep a sampler with any of ``steps`` visits (trailing spacing), sorted."""
+    def train_timesteps(self, steps: list[int]) -> list[torch.Tensor]:
+        """Per step count in ``steps``, the timesteps a sampler with that many steps visits (trailing spacing)."""
         sched = self.scheduler("ddim")
-        visited = set()
+        out = []
         for n in steps:
             sched.set_timesteps(int(n))
-            visited.update(int(t) for t in sched.timesteps)
-        return torch.tensor(sorted(visited))
+            out.append(sched.timesteps.clone())
+        return out
 
-    def draw_t(self, n: int, focus: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-        """n training timesteps: from ``focus`` with probability ``t_focus``, else uniform."""
+    def draw_t(self, n: int, focus: list[torch.Tensor], gen: torch.Generator) -> torch.Tensor:
+        """n training timesteps: with probability ``t_focus`` a step count of ``focus`` at random, then one of
+        its timesteps at random (so the one step of a 1-step sampler is drawn as often as all 27 of
+        a 27-step one together); else uniform over 0..999."""
         uniform = torch.randint(0, TRAIN_STEPS, (n,), generator=gen)
-        picked = focus[torch.randint(0, len(focus), (n,), generator=gen)]
+        which = torch.randint(0, len(focus), (n,), generator=gen)
+        pos = torch.rand(n, generator=gen)
+        picked = torch.stack([focus[int(w)][min(int(p * len(focus[int(w)])), len(focus[int(w)]) - 1)]
+                              for w, p in zip(which, pos)])
         use = torch.rand(n, generator=gen) < self.t_focus
         return torch.where(use, picked, uniform)
 

@@ -83,9 +83,11 @@ def degrade(x: torch.Tensor, scale: int, sigma: float, gen: torch.Generator, fir
 
 class RestorationPairs(Dataset):
     """Random crops of clean pictures: ``target`` = the crop, ``noisy``/``image`` = its degradation
-    (model space; see the module docstring). ``frames``: (store, key) per picture that has a real
-    render, else None; ``estimate``: the first estimate applied to real renders ("none" or "oidn").
-    ``crop`` must be a multiple of every scale and no larger than the smallest picture."""
+    (model space; see the module docstring). ``frames``: per picture, a source of real degraded
+    versions (``(store, key)``: read at a random spp of ``spp_choices`` through ``estimate``; or a
+    ``PackPairs`` and the pack item indices of the frame) or None; ``estimate``: the first estimate
+    applied to real renders ("none" or "oidn"). ``crop`` must be a multiple of every scale and no
+    larger than the smallest picture."""
 
     def __init__(self, pictures: list[np.ndarray], crop: int, crops_per_image: int, scales: list[int],
                  noise: float, seed: int = 0, tonemap: str = "log", frames: list | None = None,
@@ -108,8 +110,10 @@ class RestorationPairs(Dataset):
         return len(self.pictures) * self.per
 
     def _real(self, i: int, rng: np.random.Generator) -> np.ndarray:
-        store, key = self.frames[i]
-        buffers = store.read(key.scene, key.frame, int(rng.choice(self.spp_choices)), rng=rng)
+        source, where = self.frames[i]
+        if not isinstance(source, Store):   # a pack: one of the frame's items, decoded already
+            return source.t["image"][int(rng.choice(where))].float().numpy()
+        buffers = source.read(where.scene, where.frame, int(rng.choice(self.spp_choices)), rng=rng)
         est = first_estimate(buffers, self.estimate)
         return to_planar(buffers["color"] if est is None else est, self.tonemap)
 
