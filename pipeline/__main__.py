@@ -181,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(fn=cmd_pack)
 
     p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
-    p.add_argument("--spp", type=_spp, required=True, help="which run (diffusion_spp<N>) and the input's spp")
+    p.add_argument("--spp", type=_spp, default=None,
+                   help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
+                        "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
     p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000")
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
     p.add_argument("--out", required=True, help="output EXR")

@@ -141,6 +141,8 @@ class DiffusionConfig:
     device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
     time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
                                "limit); a rerun resumes.", 0.0)
+    shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
+                        "own (make eval's ours rows, make denoise).", True)
     name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
                     "formulation beside the default one); make eval's ours_<name> rows read it.", "")
     prediction: str = doc("What the network predicts: 'sample' (x0; an untrained zero last layer returns the first "
@@ -151,7 +153,11 @@ class DiffusionConfig:
                         "timesteps; Lin et al. 2023) or 'if' (IF's cosine schedule as is; with epsilon: the paper).",
                         "zero_snr")
     estimate: str = doc("First estimate the model refines and reads as its image input: 'oidn' (OIDN with albedo "
-                        "and normal) or 'none' (the noisy render, as the paper).", "oidn")
+                        "and normal), 'isik' (the Isik network of isik_run), 'oidn+isik' (their mean; both are also "
+                        "condition channels) or 'none' (the noisy render, as the paper). See train/estimate.py.",
+                        "oidn")
+    isik_run: str = doc("Isik run folder of the 'isik' estimates; empty: <runs>/isik_sppany "
+                        "(make train MODEL=isik SPP=any).", "")
     residual: bool = doc("Diffuse the residual (x - estimate)/residual_scale instead of the image.", True)
     residual_scale: float = doc("Scale s of the diffused residual in model space (about its standard deviation "
                                 "over the training pairs, so the residual is of unit order like an image; the OIDN residual of the default data: 0.026 at 4 spp, 0.014 at 64).", 0.05)
@@ -205,7 +211,7 @@ class PretrainConfig:
     noise: float = doc("Largest std of the synthetic degradation's noise (model space, drawn uniformly).", 0.1)
     fireflies: float = doc("Fraction of pixels the synthetic degradation turns into fireflies.", 0.002)
     real: float = doc("Probability that a crop's degraded input is a real low-spp render of its frame (through the "
-                      "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.6)
+                      "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.75)
     time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: none).",
                                0.0)
     out: str = doc("Where make pretrain writes the new base; empty: <runs>/base. Copy it to train/base_model to "

@@ -143,14 +143,15 @@ def test_pack_equals_the_store_reader(setup):
     """Every pack item equals what the store reader and the model's encoders give for the same stacks,
     within float16 rounding; a pack made for another estimate is refused."""
     from pipeline.store import Store
-    from train.data import first_estimate, frame_rotation, model_inputs, to_planar
+    from train.data import frame_rotation, model_inputs, to_planar
+    from train.estimate import Estimator
     from train.pack import PackPairs, build_pack, variant_stacks
 
     tmp, _ = setup
     store = Store(tmp / "store")
     keys = [k for k in store.frames("train") if store.image_path(k.scene, k.frame, "gt_clean").exists()]
     path = tmp / "pack_test.safetensors"
-    header = build_pack(store, keys, path, estimate="oidn", quiet=True)
+    header = build_pack(store, keys, path, estimator=Estimator("oidn"), quiet=True)
     assert header["variants"] == {"4": 2, "16": 1}          # the tiny store has 4 stacks of 4 spp
     ds = PackPairs(path, crop=None, estimate="oidn")
     assert len(ds) == 3 * len(keys)
@@ -163,7 +164,7 @@ def test_pack_equals_the_store_reader(setup):
         buffers = store.read(key.scene, key.frame, spp, stacks=variant_stacks(spp, 4, variant, 4))
         noisy, aux = model_inputs(buffers, spp, frame_rotation(store, key))
         gt = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
-        for name, ref in (("noisy", noisy), ("aux", aux), ("image", to_planar(first_estimate(buffers, "oidn"))),
+        for name, ref in (("noisy", noisy), ("aux", aux), ("image", to_planar(Estimator("oidn")(buffers)[0])),
                           ("target", to_planar(gt))):
             np.testing.assert_allclose(item[name].numpy(), ref, atol=1e-3, rtol=1e-3, err_msg=name)
     with pytest.raises(Exception, match="another estimate"):

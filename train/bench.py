@@ -25,7 +25,7 @@ from pipeline.exr import StoreError, atomic_write_json
 
 from .formulation import Formulation
 from .infer import Denoiser
-from .model import build, find_run, load
+from .model import build, estimator, find_run, load, load_run_estimator
 from .train import pick_device
 
 STEPS = (1, 3, 9, 27)
@@ -49,7 +49,8 @@ def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
         meta = {"tonemap": f.tonemap, "formulation": Formulation.from_config(f).record(),
                 "threshold_ratio": f.threshold_ratio, "variance": f.variance}
         name = "base + fresh Control Module"
-    return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision), name
+        return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision, estimator(cfg, device)), name
+    return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision, load_run_estimator(folder, meta, device)), name
 
 
 def _time(den: Denoiser, buffers: dict, steps: int, repeats: int) -> float:

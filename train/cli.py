@@ -13,14 +13,14 @@ import numpy as np
 import torch
 
 from pipeline.config import Config
-from pipeline.exr import write_image
+from pipeline.exr import StoreError, write_image
 from pipeline.metrics import psnr
-from pipeline.store import FrameKey, Store
+from pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
 from .data import DenoisePairs, from_model, frame_rotation
 from .formulation import Formulation
-from .model import FORMAT, base_folder, build, find_run, run_dir, save
+from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder, run_dir, save
 from .pack import PackPairs, ensure_pack, pack_path
 from .pretrain import RestorationPairs, gather_pictures
 from .sampler import sample
@@ -60,7 +60,7 @@ def _validator(store: Store, keys: list[FrameKey], spps: list[int], cfg: Config,
         return None
     f = cfg.diffusion
     form = Formulation.from_config(f)
-    ds = DenoisePairs(store, keys, spps, crop=None, seed=cfg.seed, tonemap=f.tonemap, estimate=form.estimate)
+    ds = DenoisePairs(store, keys, spps, crop=None, seed=cfg.seed, tonemap=f.tonemap, estimator=_estimator(cfg)[0])
     items = [ds[i] for i in range(len(ds))]
     refs = [from_model(it["target"], f.tonemap).numpy() for it in items]
 
@@ -105,13 +105,14 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     crop = _fit_crop(f.crop, sides, model.multiple)
     form = Formulation.from_config(f)
     if f.pack:
-        path = ensure_pack(store, train_keys, pack_path(cfg.runs, "train", form.estimate), f.tonemap, form.estimate,
-                           quiet)
+        est, est_id = _estimator(cfg)
+        path = ensure_pack(store, train_keys, pack_path(cfg.runs, "train", form.estimate), f.tonemap, est, quiet,
+                           est_id)
         ds = PackPairs(path, crop, f.crops_per_frame, cfg.seed, choices, f.tonemap, form.estimate)
         choices = sorted(set(ds.t["spp"].tolist()) & set(choices))
     else:
         ds = DenoisePairs(store, train_keys, choices, crop, f.crops_per_frame, cfg.seed, f.tonemap,
-                          estimate=form.estimate)
+                          estimator=_estimator(cfg)[0])
     autocast = autocast_dtype(f.precision, device)
     folder = run_dir(cfg, spp)
     fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg), "crop": crop,
@@ -164,10 +165,10 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     store = Store(cfg.store)
     spps = _spp_choices(store, "any") if store.manifest_path.exists() and store.scenes() else [4]
     if cfg.diffusion.pack and any(frames):
-        frames = _pack_sources(cfg, store, frames, form.estimate, quiet)
+        frames = _pack_sources(cfg, store, frames, quiet)
     ds = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
                           cfg.diffusion.tonemap, frames=frames, real=p.real, spp_choices=spps,
-                          estimate=form.estimate, fireflies=p.fireflies)
+                          estimator=_estimator(cfg)[0], fireflies=p.fireflies)
     folder = out.parent / (out.name + ".train")
     fp = {"config": config, "seed": cfg.seed, "crop": crop, "pictures": len(pictures), "formulation": form.record(),
           **{k: getattr(p, k) for k in ("epochs", "batch_size", "crops_per_image", "lr", "weight_decay", "scales",
@@ -179,8 +180,13 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     def save_best(record):
         base_lib.save(out, unet, prompt, card | record)
 
+    val_keys = _frames(store, "val") if store.manifest_path.exists() else []
+    validate = _validator(store, val_keys, spps, cfg, device, autocast_dtype(cfg.diffusion.precision, device)) \
+        if val_keys and not form.paper else None
     job = Job(name="pretrain", folder=folder, model=model, trainable=unet, params=list(unet.parameters()),
-              train_ds=ds, validate=None, save_best=save_best, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
+              # Not epoch 0: a zero last layer is the identity, and a frozen identity base would give the Control
+              # Module no gradient (its residuals only reach the output through the base's last layer).
+              train_ds=ds, validate=validate, validate_initial=False, save_best=save_best, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
               weight_decay=p.weight_decay, warmup_steps=cfg.diffusion.warmup_steps, grad_clip=cfg.diffusion.grad_clip,
               nan_limit=cfg.diffusion.nan_limit, time_budget_s=p.time_budget_s, seed=cfg.seed, fingerprint=fp,
               device=device, autocast=autocast_dtype(cfg.diffusion.precision, device), fmt="mcdenoise-base",
@@ -193,11 +199,34 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     return 0
 
 
-def _pack_sources(cfg: Config, store: Store, frames: list, estimate: str, quiet: bool) -> list:
+DEFAULT_EXR_SPP = 16
+
+
+def _exr_spp(path: Path) -> tuple[int, str]:
+    """The sample count an EXR's mcdenoise header records, else ``DEFAULT_EXR_SPP`` (the middle of 4..64)."""
+    from pipeline.exr import read_header
+    try:
+        spp = read_header(path).get("spp")
+    except StoreError:
+        spp = None
+    if isinstance(spp, int) and spp > 0:
+        return spp, "from its header"
+    return DEFAULT_EXR_SPP, "not recorded in the file: assumed"
+
+
+def _estimator(cfg: Config):
+    """(the configured first estimate, an id of its weights for the pack header)."""
+    est = estimator(cfg)
+    ident = sha256(isik_folder(cfg) / "model.safetensors") if est.isik is not None else ""
+    return est, ident
+
+
+def _pack_sources(cfg: Config, store: Store, frames: list, quiet: bool) -> list:
     """Real degraded versions of the store's frames from the train pack: (pack, item indices) per frame."""
     keys = _frames(store, "train")
-    path = ensure_pack(store, keys, pack_path(cfg.runs, "train", estimate), cfg.diffusion.tonemap, estimate, quiet)
-    pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=estimate)
+    est, est_id = _estimator(cfg)
+    path = ensure_pack(store, keys, pack_path(cfg.runs, "train", est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
+    pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=est.kind)
     items: dict[int, list[int]] = {}
     for i, f in enumerate(pack.t["frame"].tolist()):
         items.setdefault(f, []).append(i)
@@ -214,6 +243,12 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
 
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
+    if frame is not None and spp is None:
+        raise TrainError("--frame needs --spp (which of the store's sample counts to denoise)")
+    if exr is not None and spp is None:
+        spp, how = _exr_spp(Path(exr))
+        if not quiet:
+            print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     f = cfg.diffusion
     den = load_denoiser(find_run(cfg, spp), f.device, base_only, f.tile, f.tile_overlap, f.precision)
     rotation = None
@@ -254,11 +289,11 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
     store = Store(cfg.store)
     if not store.manifest_path.exists():
         raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    est = Formulation.from_config(cfg.diffusion).estimate
+    est, est_id = _estimator(cfg)
     for split in splits:
         keys = _frames(store, split)
         if not keys:
             raise TrainError(f"{store.root}: no {split} frame with gt_clean; run `make gt-clean`")
-        path = ensure_pack(store, keys, pack_path(cfg.runs, split, est), cfg.diffusion.tonemap, est, quiet)
+        path = ensure_pack(store, keys, pack_path(cfg.runs, split, est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
         print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0

@@ -34,6 +34,8 @@ from clean.data import relative_variance_feature
 from pipeline import color, schema
 from pipeline.store import FrameKey, Store
 
+from .estimate import Estimator, extra_names
+
 CLAMP = 6.0
 RADIANCE_BUFFERS = tuple(b.name for b in schema.BUFFERS if b.radiance)
 FEATURE_BUFFERS = tuple(b.name for b in schema.BUFFERS if not b.radiance)
@@ -59,13 +61,14 @@ def from_model(y, tonemap: str = "log"):
 # ---- the condition ---------------------------------------------------------------------------
 
 
-def aux_names() -> list[str]:
-    """One name per condition channel, in order."""
+def aux_names(estimate: str = "none") -> list[str]:
+    """One name per condition channel, in order; a first estimate of several components adds them
+    (``train.estimate.extra_names``)."""
     names = []
     for b in schema.BUFFERS:
         names += [f"{b.name}.{c}" for c in b.channels]
     names += [f"{b.name}.variance" for b in schema.BUFFERS]
-    return names + ["spp"]
+    return names + ["spp"] + extra_names(estimate)
 
 
 AUX_CHANNELS = len(aux_names())
@@ -123,20 +126,13 @@ def condition(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | N
 
 
 def model_inputs(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,
-                 tonemap: str = "log") -> tuple[np.ndarray, np.ndarray]:
-    """(noisy radiance (3, H, W) in [−1, 1], condition (AUX_CHANNELS, H, W)) of one image."""
-    return to_planar(buffers["color"], tonemap), condition(buffers, spp, rotation, tonemap)
-
-
-def first_estimate(buffers: dict[str, np.ndarray], kind: str) -> np.ndarray | None:
-    """The first estimate (H, W, 3) HDR that the refine formulation starts from: OIDN with albedo and
-    normal (``"oidn"``), or None (``"none"``: the model starts from the noisy render)."""
-    if kind == "none":
-        return None
-    if kind == "oidn":
-        from pipeline import oidn
-        return oidn.denoise(buffers)
-    raise ValueError(f"unknown first estimate {kind!r}")
+                 tonemap: str = "log", estimates: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(noisy radiance (3, H, W) in [−1, 1], condition (C, H, W)) of one image; ``estimates``: the first
+    estimate's components (HDR), appended to the condition when there are several (``aux_names``)."""
+    aux = condition(buffers, spp, rotation, tonemap)
+    if estimates and len(estimates) > 1:
+        aux = np.concatenate([aux] + [to_planar(e, tonemap) for e in estimates], axis=0)
+    return to_planar(buffers["color"], tonemap), aux
 
 
 def to_planar(hdr: np.ndarray, tonemap: str = "log") -> np.ndarray:
@@ -199,7 +195,7 @@ class DenoisePairs(Dataset):
     """Low-spp buffers of a frame (random stacks in training, the first ones in validation) → gt_clean.
 
     Items: ``noisy`` (3, h, w), ``aux`` (AUX_CHANNELS, h, w), ``target`` (3, h, w), all float32
-    in model space, and ``image`` (3, h, w), the first estimate (``estimate``, computed on the whole
+    in model space, and ``image`` (3, h, w), the first estimate (``estimator``, run on the whole
     frame before cropping) or, without one, the noisy radiance again. ``spp_choices`` with several
     values draws the sample count per item (the ``SPP=any`` model); in validation (``crop=None``)
     item i uses ``spp_choices[i % len]``, so every sample count is validated. Randomness from
@@ -208,12 +204,12 @@ class DenoisePairs(Dataset):
 
     def __init__(self, store: Store, keys: list[FrameKey], spp_choices: list[int], crop: int | None,
                  crops_per_frame: int = 1, seed: int = 0, tonemap: str = "log", augment: bool = True,
-                 estimate: str = "none"):
+                 estimator: Estimator | None = None):
         if not keys:
             raise ValueError("no frames")
         self.store, self.keys, self.spp_choices = store, list(keys), [int(s) for s in spp_choices]
         self.crop, self.seed, self.tonemap, self.do_augment = crop, int(seed), tonemap, augment
-        self.estimate = estimate
+        self.estimator = estimator or Estimator()
         self.crops_per_frame = int(crops_per_frame) if crop else 1
         self.epoch = 0
         self._rot: dict = {}
@@ -239,8 +235,8 @@ class DenoisePairs(Dataset):
         buffers = self.store.read(key.scene, key.frame, spp, rng=rng if train else None)
         if key not in self._rot:
             self._rot[key] = frame_rotation(self.store, key)
-        noisy, aux = model_inputs(buffers, spp, self._rot[key], self.tonemap)
-        est = first_estimate(buffers, self.estimate)
+        est, parts = self.estimator(buffers)
+        noisy, aux = model_inputs(buffers, spp, self._rot[key], self.tonemap, parts)
         image = noisy if est is None else to_planar(est, self.tonemap)
         arrays = [noisy, aux, self._target(key), image]
         if train:

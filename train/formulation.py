@@ -44,7 +44,7 @@ PREDICTIONS = {"epsilon": "epsilon", "v": "v_prediction", "sample": "sample"}
 SCHEDULES = ("if", "zero_snr")
 SAMPLERS = ("ddim", "ddpm")
 STARTS = ("noise", "render", "estimate")
-ESTIMATES = ("none", "oidn")
+ESTIMATES = ("none", "oidn", "isik", "oidn+isik")   # train/estimate.py
 
 
 class FormulationError(ConfigError):
@@ -199,7 +199,8 @@ def check(f: Formulation) -> None:
         raise FormulationError("the paper formulation (prediction=epsilon, schedule=if) diffuses the image from the "
                                "noisy render: set diffusion.residual=false and diffusion.estimate=none")
     if f.residual and f.estimate == "none":
-        raise FormulationError("diffusion.residual=true needs a first estimate (diffusion.estimate=oidn)")
+        raise FormulationError("diffusion.residual=true needs a first estimate (diffusion.estimate=oidn, isik or "
+                               "oidn+isik)")
     if not f.residual_scale > 0:
         raise FormulationError(f"diffusion.residual_scale: expected > 0, got {f.residual_scale}")
     if not 0 <= f.t_focus <= 1:

@@ -28,8 +28,9 @@ import torch
 
 from pipeline.numerics import repair_nonfinite
 
-from .data import CLAMP, first_estimate, from_model, model_inputs, to_planar
-from .model import formulation, load, run_dir
+from .data import CLAMP, from_model, model_inputs, to_planar
+from .estimate import Estimator
+from .model import formulation, load, load_run_estimator, run_dir
 from .sampler import sample_tiled
 from .train import autocast_dtype, pick_device
 
@@ -46,9 +47,10 @@ def hdr_std(mean_model: np.ndarray, std_model: np.ndarray, tonemap: str) -> np.n
 
 class Denoiser:
     def __init__(self, model, meta: dict, device: torch.device, tile: int = 256, overlap: int = 32,
-                 precision: str = "auto"):
+                 precision: str = "auto", estimator: Estimator | None = None):
         self.model, self.meta, self.device = model, meta, device
         self.formulation = formulation(meta)
+        self.estimator = estimator or Estimator(self.formulation.estimate)
         self.tile, self.overlap = int(tile), int(overlap)
         self.autocast = autocast_dtype(precision, device)
         self.name = "base_only" if model.control is None else "ours"
@@ -65,8 +67,8 @@ class Denoiser:
         self.last_repaired = sum(repair_nonfinite(buffers).values())
         tonemap = self.meta.get("tonemap", "log")
         f = self.formulation
-        est = first_estimate(buffers, f.estimate)
-        noisy, aux = model_inputs(buffers, spp, rotation, tonemap)
+        est, parts = self.estimator(buffers)
+        noisy, aux = model_inputs(buffers, spp, rotation, tonemap, parts)
         self.last_black = not np.any(buffers["color"])
         if self.last_black:
             hdr, std = np.zeros_like(buffers["color"]), np.zeros_like(buffers["color"])
@@ -108,4 +110,4 @@ def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = Fa
     model, meta = load(folder, dev)
     if base_only:
         model.control = None
-    return Denoiser(model, meta, dev, tile, overlap, precision)
+    return Denoiser(model, meta, dev, tile, overlap, precision, load_run_estimator(folder, meta, dev))

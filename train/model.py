@@ -22,11 +22,16 @@ from pipeline.store import sha256
 
 from . import base as base_lib
 from .control import ControlledDenoiser, ControlModule
-from .data import AUX_CHANNELS, aux_names
+from .data import aux_names
+from .estimate import KINDS, Estimator
+from .estimate import load as load_estimator
 from .formulation import Formulation
 from .sampler import PAPER
 
 FORMAT = "mcdenoise-control"
+# The denoiser shipped with the repository (base + Control Module + model card), used when a config
+# has no trained run of its own (train/shipped/README.md says how it was made).
+SHIPPED_MODEL = Path(__file__).resolve().parent / "shipped"
 
 
 def base_folder(cfg: Config) -> Path:
@@ -48,9 +53,12 @@ def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
 
 def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
-    ``diffusion_sppany[_variant]`` (one model serves every sample count); StoreError if neither."""
+    ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
+    ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); StoreError if none."""
     own = run_dir(cfg, spp, variant)
     candidates = [own] if str(spp) == "any" else [own, run_dir(cfg, "any", variant)]
+    if not (variant if variant is not None else cfg.diffusion.name) and cfg.diffusion.shipped and cfg.diffusion.control:
+        candidates.append(SHIPPED_MODEL)
     for folder in candidates:
         if (folder / "model.json").exists():
             return folder
@@ -59,11 +67,21 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
                      (f" with diffusion.name={variant}" if variant else ""))
 
 
+def isik_folder(cfg: Config) -> Path:
+    """The Isik network a first estimate with ``isik`` uses: ``diffusion.isik_run``, else <runs>/isik_sppany."""
+    return Path(cfg.diffusion.isik_run) if cfg.diffusion.isik_run else Path(cfg.runs) / "isik_sppany"
+
+
+def estimator(cfg: Config, device="cpu") -> Estimator:
+    return load_estimator(Formulation.from_config(cfg.diffusion).estimate, isik_folder(cfg), device)
+
+
 def build(cfg: Config, seed: int | None = None) -> ControlledDenoiser:
     """The frozen base from ``diffusion.base`` plus a fresh Control Module (or none, ``control: false``)."""
     unet, prompt = base_lib.load(base_folder(cfg))
     torch.manual_seed(cfg.seed if seed is None else seed)
-    control = ControlModule(unet, AUX_CHANNELS) if cfg.diffusion.control else None
+    aux = len(aux_names(Formulation.from_config(cfg.diffusion).estimate))
+    control = ControlModule(unet, aux) if cfg.diffusion.control else None
     return ControlledDenoiser(unet, prompt, control, train_base=cfg.diffusion.train_base)
 
 
@@ -78,14 +96,37 @@ def trainable_state(model: ControlledDenoiser) -> dict[str, torch.Tensor]:
 
 def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict) -> None:
     base = base_folder(cfg)
+    form = Formulation.from_config(cfg.diffusion)
+    isik = {}
+    if "isik" in KINDS[form.estimate]:
+        isik = {"isik": str(isik_folder(cfg).resolve()), "isik_sha256": sha256(isik_folder(cfg) / "model.safetensors")}
     save_safetensors(folder / "control.safetensors", trainable_state(model), {"format": FORMAT})
     atomic_write_json(folder / "model.json", {
         "format": FORMAT, "spp": spp, "base": str(base.resolve()),
-        "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(),
+        "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(form.estimate), **isik,
         "control": model.control is not None, "train_base": model.train_base,
         "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
         "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance,
         "formulation": Formulation.from_config(cfg.diffusion).record(), **record})
+
+
+def _checked(folder: Path, meta: dict, key: str, weights: str) -> Path:
+    """The folder ``meta[key]`` names (relative to ``folder`` for shipped runs), its weights unchanged."""
+    where = Path(meta[key])
+    where = where if where.is_absolute() else (folder / where).resolve()
+    if not (where / weights).exists():
+        raise StoreError(f"{folder / 'model.json'}: its {key} {where} is missing; retrain, or restore that folder")
+    if sha256(where / weights) != meta[f"{key}_sha256"]:
+        raise StoreError(f"{where / weights}: the {key} changed since {folder} was trained (SHA-256 differs); "
+                         f"retrain the Control Module for it")
+    return where
+
+
+def load_run_estimator(folder: str | Path, meta: dict, device="cpu") -> Estimator:
+    """The first estimate a run was trained with (its Isik network checked like its base)."""
+    kind = formulation(meta).estimate
+    isik = _checked(Path(folder), meta, "isik", "model.safetensors") if "isik" in KINDS[kind] else None
+    return load_estimator(kind, isik, device)
 
 
 def formulation(meta: dict) -> Formulation:
@@ -106,15 +147,13 @@ def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[Contro
     meta = read_json(meta_path, "model record")
     if meta.get("format") != FORMAT:
         raise StoreError(f"{meta_path}: not a {FORMAT} record")
-    if meta.get("aux_channels") != aux_names():
+    names = aux_names(formulation(meta).estimate)
+    if meta.get("aux_channels") != names:
         raise StoreError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
-                         f"channels, this code makes {AUX_CHANNELS}); retrain")
-    base = Path(meta["base"])
-    if sha256(base / base_lib.WEIGHTS) != meta["base_sha256"]:
-        raise StoreError(f"{base / base_lib.WEIGHTS}: the base changed since {folder} was trained "
-                         "(SHA-256 differs); retrain the Control Module for this base")
+                         f"channels, this code makes {len(names)}); retrain")
+    base = _checked(folder, meta, "base", base_lib.WEIGHTS)
     unet, prompt = base_lib.load(base)
-    control = ControlModule(unet, AUX_CHANNELS) if meta["control"] else None
+    control = ControlModule(unet, len(names)) if meta["control"] else None
     model = ControlledDenoiser(unet, prompt, control, train_base=False)
     state = load_file(str(weights))
     if control is not None:

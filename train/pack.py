@@ -8,7 +8,7 @@ stack subsets (variant v averages stacks v·k … v·k + k − 1, k = s / stack_
 
     noisy (N, 3, H, W) f16   the noisy radiance            (train.data.model_inputs)
     aux   (N, C, H, W) f16   the condition F               (train.data.condition)
-    image (N, 3, H, W) f16   the first estimate            (train.data.first_estimate; = noisy for "none")
+    image (N, 3, H, W) f16   the first estimate            (train.estimate; = noisy for "none")
     target (F, 3, H, W) f16  GT_clean, one per frame       frame (N,) i32, spp (N,) i32: which frame, which spp
 
 Float16 on model-space values in [−1, 1] (and condition features mostly in [0, 1]) is within
@@ -33,7 +33,8 @@ from pipeline.exr import StoreError
 from pipeline.progress import progress
 from pipeline.store import FrameKey, Store, combine_stacks, stack_name
 
-from .data import aux_names, augment, first_estimate, frame_rotation, model_inputs, random_crop, to_planar
+from .data import aux_names, augment, frame_rotation, model_inputs, random_crop, to_planar
+from .estimate import Estimator
 
 FORMAT = "mcdenoise-pack"
 PACK_VARIANTS = {4: 2, 16: 1, 64: 1}
@@ -59,7 +60,8 @@ def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[
     return out
 
 
-def frame_items(store: Store, key: FrameKey, variants: dict[int, int], tonemap: str, estimate: str) -> list[dict]:
+def frame_items(store: Store, key: FrameKey, variants: dict[int, int], tonemap: str, estimator: Estimator
+                ) -> list[dict]:
     """Every (spp, variant) item of one frame: model-space arrays, float32."""
     sm = store.scene_manifest(key.scene)
     n, total = int(sm["stack_spp"]), int(sm["stacks"])
@@ -70,16 +72,18 @@ def frame_items(store: Store, key: FrameKey, variants: dict[int, int], tonemap: 
     for spp, count in sorted(variants.items()):
         for v in range(count):
             buffers = combine_stacks([images[i] for i in variant_stacks(spp, n, v, total)], n)
-            noisy, aux = model_inputs(buffers, spp, rotation, tonemap)
-            est = first_estimate(buffers, estimate)
+            est, parts = estimator(buffers)
+            noisy, aux = model_inputs(buffers, spp, rotation, tonemap, parts)
             items.append({"spp": spp, "noisy": noisy, "aux": aux,
                           "image": noisy if est is None else to_planar(est, tonemap)})
     return items
 
 
-def build_pack(store: Store, keys: list[FrameKey], out: Path, tonemap: str = "log", estimate: str = "none",
-               variants: dict[int, int] | None = None, quiet: bool = False) -> dict:
-    """Write the pack of ``keys`` to ``out`` (atomically) and return its header."""
+def build_pack(store: Store, keys: list[FrameKey], out: Path, tonemap: str = "log", estimator: Estimator | None = None,
+               variants: dict[int, int] | None = None, quiet: bool = False, estimate_id: str = "") -> dict:
+    """Write the pack of ``keys`` to ``out`` (atomically) and return its header. ``estimate_id`` names
+    the estimator's weights (the Isik network's SHA-256), so a pack made with others is rebuilt."""
+    estimator = estimator or Estimator()
     if not keys:
         raise StoreError(f"{store.root}: no frames to pack")
     sm = store.scene_manifest(keys[0].scene)
@@ -91,7 +95,7 @@ def build_pack(store: Store, keys: list[FrameKey], out: Path, tonemap: str = "lo
     for f, key in enumerate(progress(keys, desc=f"pack {out.name}", unit="frame", disable=quiet)):
         gt = store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"]
         targets.append(to_planar(gt, tonemap))
-        for item in frame_items(store, key, variants, tonemap, estimate):
+        for item in frame_items(store, key, variants, tonemap, estimator):
             for name in ("noisy", "aux", "image"):
                 arrays[name].append(item[name])
             arrays["frame"].append(f)
@@ -100,8 +104,9 @@ def build_pack(store: Store, keys: list[FrameKey], out: Path, tonemap: str = "lo
     tensors["target"] = torch.from_numpy(np.stack(targets)).half()
     tensors["frame"] = torch.tensor(arrays["frame"], dtype=torch.int32)
     tensors["spp"] = torch.tensor(arrays["spp"], dtype=torch.int32)
-    header = {"format": FORMAT, "frames": [str(k) for k in keys], "aux_channels": aux_names(), "tonemap": tonemap,
-              "estimate": estimate, "variants": {str(s): v for s, v in variants.items()}, "store": str(store.root)}
+    header = {"format": FORMAT, "frames": [str(k) for k in keys], "aux_channels": aux_names(estimator.kind),
+              "tonemap": tonemap, "estimate": estimator.kind, "estimate_id": estimate_id,
+              "variants": {str(s): v for s, v in variants.items()}, "store": str(store.root)}
     out.parent.mkdir(parents=True, exist_ok=True)
     save_safetensors(out, tensors, {"format": FORMAT, "header": json.dumps(header)})
     return header
@@ -132,7 +137,7 @@ class PackPairs(Dataset):
 
         self.path = Path(path)
         header = read_header(self.path)
-        for key, want in (("aux_channels", aux_names()), ("tonemap", tonemap), ("estimate", estimate)):
+        for key, want in (("aux_channels", aux_names(estimate)), ("tonemap", tonemap), ("estimate", estimate)):
             if header[key] != want:
                 raise StoreError(f"{self.path}: pack made with another {key} ({header[key]!r}, this run wants "
                                  f"{want!r}); rebuild it with `python -m pipeline pack`")
@@ -168,19 +173,20 @@ class PackPairs(Dataset):
 
 
 def pack_path(runs: str | Path, split: str, estimate: str) -> Path:
-    return Path(runs) / "pack" / f"{split}_{estimate}.safetensors"
+    return Path(runs) / "pack" / f"{split}_{estimate.replace('+', '_')}.safetensors"
 
 
-def ensure_pack(store: Store, keys: list[FrameKey], path: Path, tonemap: str, estimate: str,
-                quiet: bool = False) -> Path:
-    """``path`` if it holds exactly ``keys`` in this layout, else (re)build it."""
+def ensure_pack(store: Store, keys: list[FrameKey], path: Path, tonemap: str, estimator: Estimator,
+                quiet: bool = False, estimate_id: str = "") -> Path:
+    """``path`` if it holds exactly ``keys`` in this layout and estimate, else (re)build it."""
     if path.exists():
         try:
             h = read_header(path)
-            if (h["frames"] == [str(k) for k in keys] and h["aux_channels"] == aux_names() and h["tonemap"] == tonemap
-                    and h["estimate"] == estimate):
+            if (h["frames"] == [str(k) for k in keys] and h["aux_channels"] == aux_names(estimator.kind)
+                    and h["tonemap"] == tonemap and h["estimate"] == estimator.kind
+                    and h.get("estimate_id", "") == estimate_id):
                 return path
         except (StoreError, KeyError, json.JSONDecodeError):
             pass
-    build_pack(store, keys, path, tonemap, estimate, quiet=quiet)
+    build_pack(store, keys, path, tonemap, estimator, quiet=quiet, estimate_id=estimate_id)
     return path

@@ -32,7 +32,8 @@ from torch.utils.data import Dataset
 from pipeline.exr import StoreError
 from pipeline.store import Store
 
-from .data import augment, first_estimate, random_crop, to_model, to_planar
+from .data import augment, random_crop, to_model, to_planar
+from .estimate import Estimator
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr"}
 
@@ -84,14 +85,14 @@ def degrade(x: torch.Tensor, scale: int, sigma: float, gen: torch.Generator, fir
 class RestorationPairs(Dataset):
     """Random crops of clean pictures: ``target`` = the crop, ``noisy``/``image`` = its degradation
     (model space; see the module docstring). ``frames``: per picture, a source of real degraded
-    versions (``(store, key)``: read at a random spp of ``spp_choices`` through ``estimate``; or a
-    ``PackPairs`` and the pack item indices of the frame) or None; ``estimate``: the first estimate
-    applied to real renders ("none" or "oidn"). ``crop`` must be a multiple of every scale and no
+    versions (``(store, key)``: read at a random spp of ``spp_choices`` through ``estimator``; or a
+    ``PackPairs`` and the pack item indices of the frame) or None; ``estimator``: the first estimate
+    (``train.estimate``) applied to real renders. ``crop`` must be a multiple of every scale and no
     larger than the smallest picture."""
 
     def __init__(self, pictures: list[np.ndarray], crop: int, crops_per_image: int, scales: list[int],
                  noise: float, seed: int = 0, tonemap: str = "log", frames: list | None = None,
-                 real: float = 0.0, spp_choices: list[int] | None = None, estimate: str = "none",
+                 real: float = 0.0, spp_choices: list[int] | None = None, estimator: Estimator | None = None,
                  fireflies: float = 0.002):
         if not pictures:
             raise StoreError("no pictures to pretrain on: run make dataset first (GT_clean frames) "
@@ -99,7 +100,7 @@ class RestorationPairs(Dataset):
         self.pictures = [np.ascontiguousarray(np.moveaxis(to_model(p, tonemap), 2, 0), np.float32) for p in pictures]
         self.crop, self.per, self.scales, self.noise, self.seed = crop, crops_per_image, scales, noise, seed
         self.frames = frames or [None] * len(pictures)
-        self.real, self.spp_choices, self.estimate = real, spp_choices or [4], estimate
+        self.real, self.spp_choices, self.estimator = real, spp_choices or [4], estimator or Estimator()
         self.tonemap, self.fireflies = tonemap, fireflies
         self.epoch = 0
 
@@ -114,7 +115,7 @@ class RestorationPairs(Dataset):
         if not isinstance(source, Store):   # a pack: one of the frame's items, decoded already
             return source.t["image"][int(rng.choice(where))].float().numpy()
         buffers = source.read(where.scene, where.frame, int(rng.choice(self.spp_choices)), rng=rng)
-        est = first_estimate(buffers, self.estimate)
+        est = self.estimator(buffers)[0]
         return to_planar(buffers["color"] if est is None else est, self.tonemap)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
