@@ -3,8 +3,9 @@
 A ``Method`` has a ``name``, a ``device`` and ``denoise(buffers) -> (H, W, 3) float32 HDR``,
 where ``buffers`` is what ``Store.read(scene, frame, spp)`` returns (buffer name → (H, W, C)
 array, variances included). One instance serves one sample count (the Isik baseline and the
-diffusion model are trained per spp). Timing, input repair and output checks are done by the
-harness (``evaluate.harness.run_method``), never by a method.
+diffusion model are trained per spp, or once for every spp with ``SPP=any``). Timing, input
+repair and output checks are done by the harness (``evaluate.harness.run_method``), never by a
+method.
 
 Names (``eval.methods``):
 
@@ -13,7 +14,9 @@ Names (``eval.methods``):
   albedo and normal (noisy auxiliaries, so OIDN prefilters them: ``cleanAux`` off). ``oidn_color``:
   colour only. OIDN takes world- or view-space normals in [-1, 1] (need not be normalised) and
   albedo in [0, 1]: ours are world space, clamped to those ranges before the call.
-- ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``).
+- ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
+  or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
+  trained at N spp. Only the Isik baseline falls back like this.
 - ``ours``, ``ours_skipN``: the diffusion denoiser of ``train.infer`` at all 27 super27 steps or
   with N of them skipped; ``base_only``, ``base_only_skipN``: the same base without its Control
   Module (the paper's ablation row). ``ours_small[_skipN]``, ``base_only_small[_skipN]``: the
@@ -126,6 +129,7 @@ class Isik(Method):
     tile: int = 512
     name: str = "isik"
     device: str = "cpu"
+    checkpoint: str = ""          # run folder name, e.g. isik_spp4 or isik_sppany
 
     def denoise(self, buffers):
         from clean.apply import denoise
@@ -183,15 +187,17 @@ class Loader:
 
     def _isik(self, spp: int) -> Method:
         from clean.model import load_model
-        from clean.train import run_dir
+        from clean.train import baseline_checkpoint, run_dir
 
-        folder = run_dir(self.cfg, "baseline", spp)
-        if not (folder / "model.safetensors").exists():
-            raise MethodUnavailable(f"no Isik checkpoint in {folder}: run `make train MODEL=isik SPP={spp}`")
-        key = ("isik", spp)
-        if key not in self._models:
-            self._models[key] = load_model(folder, self.device())[0]
-        return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
+        folder = baseline_checkpoint(self.cfg, spp)
+        if folder is None:
+            raise MethodUnavailable(f"no Isik checkpoint in {run_dir(self.cfg, 'baseline', spp)}, and "
+                                    f"{run_dir(self.cfg, 'baseline', 'any')} has none trained at {spp} spp: run "
+                                    f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
+        # One spp-conditioned model serves every spp: load it once.
+        if folder not in self._models:
+            self._models[folder] = load_model(folder, self.device())[0]
+        return Isik(model=self._models[folder], tile=self.cfg.clean.tile, device=self.device(), checkpoint=folder.name)
 
     def _diffusion(self, name: str, family: str, skip: int, spp: int) -> Method:
         base_only, variance = _DIFFUSION[family]
