@@ -80,6 +80,7 @@ class Method(ABC):
 
     name: str = ""
     device: str = "cpu"
+    checkpoint: str = ""          # the run folder a trained method loaded, reported in its row
 
     @abstractmethod
     def denoise(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
@@ -129,7 +130,7 @@ class Isik(Method):
     tile: int = 512
     name: str = "isik"
     device: str = "cpu"
-    checkpoint: str = ""          # run folder name, e.g. isik_spp4 or isik_sppany
+    checkpoint: str = ""          # isik_spp<N>, or isik_sppany serving N
 
     def denoise(self, buffers):
         from clean.apply import denoise

@@ -144,7 +144,7 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
             try:
                 methods[name] = loader.load(name, spp)
                 rows[name] = {"label": label(name), "available": True, "device": methods[name].device,
-                              "checkpoint": getattr(methods[name], "checkpoint", None), "per_frame": []}
+                              "checkpoint": methods[name].checkpoint or None, "per_frame": []}
             except MethodUnavailable as exc:
                 rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
         _warm_up(methods, store, keys[0], spp)
