@@ -329,7 +329,8 @@ def write_csv(path: Path, entry: dict, names: list[str]) -> None:
                     "failed_frames", "input_repaired", "device", *interval_columns(names)])
         for n, r in entry["methods"].items():
             if not r["available"]:
-                w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", ""])
+                w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", "",
+                            *[""] * len(interval_columns(names))])
                 continue
             w.writerow([n, r["label"], True, "", *[fmt(m, r["metrics"][m]) for m in names], r["seconds"]["median"],
                         r["seconds"]["mean"], r["failed_frames"], r["input_repaired"], r["device"],

@@ -245,6 +245,7 @@ def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_
     with open(out / "eval_test_spp16.csv", newline="") as f:
         isik16 = next(r for r in csv.DictReader(f) if r["method"] == "isik")
     assert isik16["available"] == "False" and isik16["reason"].startswith("no Isik checkpoint") and isik16["l1"] == ""
+    assert isik16["l1_vs_noisy_hi"] == ""                    # a full row, interval columns empty
     frames_csv = (out / "eval_frames.csv").read_text()
     assert "test,16,isik," not in frames_csv and "test,4,isik,s00001/000,ok" in frames_csv
     assert "stress,16,noisy,stress_fireflies/001,ok" in frames_csv
