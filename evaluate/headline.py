@@ -20,7 +20,8 @@ def _margin(lead: dict) -> str:
     if lead.get("runner_up") is None:
         return "the only denoiser"
     if lead.get("lo") is None:
-        return f"ahead of `{lead['runner_up']}`, untested: {lead['n']} paired frames"
+        why = f"{lead['n']} paired frames" if lead.get("diff") is not None else "non-finite values (PSNR inf)"
+        return f"ahead of `{lead['runner_up']}`, untested: {why}"
     how = "significantly" if lead["significant"] else "not significantly"
     return f"{how} ahead of `{lead['runner_up']}`"
 

@@ -55,7 +55,8 @@ def paired_bootstrap(a, b, resamples: int = 5000, seed: int = 0, level: float = 
         raise ValueError(f"paired values need the same frames, got {len(a)} and {len(b)}")
     if resamples < 1:
         raise ValueError(f"resamples must be positive, got {resamples}")
-    d = _finite(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)) if len(a) else None
+    with np.errstate(invalid="ignore"):                  # inf − inf is nan, rejected just below
+        d = _finite(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)) if len(a) else None
     if d is None or d.size < MIN_FRAMES:
         return {"diff": None if d is None else float(d.mean()), "lo": None, "hi": None, "n": len(a)}
     rng = np.random.default_rng(seed)

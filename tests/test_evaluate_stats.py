@@ -147,9 +147,15 @@ def test_headline_names_the_winner_and_whether_its_lead_is_significant():
     assert "`noisy` on" not in text
 
 
-def test_headline_says_untested_below_min_frames():
+def test_headline_says_untested_below_min_frames_or_with_inf():
     text = headline(synthetic_result(frames=4))
     assert "`isik` on PSNR (ahead of `oidn`, untested: 4 paired frames)" in text
+    result = synthetic_result()
+    entry = result["groups"]["test"]["spp"]["4"]
+    for name in ("isik", "oidn"):                            # both exact on one frame: inf − inf
+        entry["methods"][name]["per_frame"][0]["metrics"]["psnr"] = math.inf
+    annotate(entry, ["l1", "psnr"], resamples=2000, seed=0)
+    assert "on PSNR (ahead of `" in headline(result) and "untested: non-finite values (PSNR inf))" in headline(result)
 
 
 def test_differences_to_oidn_and_noisy_are_attached_to_every_scored_row():
