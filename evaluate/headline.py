@@ -4,8 +4,8 @@ For the in-distribution group (the first one, ``eval.split``) and each spp: whic
 the best mean on each metric and whether its lead over the runner-up is significant (the paired
 bootstrap 95 % interval of their per-frame difference excludes 0); where plain MC at equal time
 beats every denoiser on PSNR; which methods are not available at which spp. For the hard-case
-groups (stress presets, external scenes) one clause each: the PSNR leader per spp. The noisy input
-and equal-time MC rows are never "the best denoiser".
+groups (stress presets, external scenes) the same leaders in a compact form (``*`` marks a
+significant lead). The noisy input and equal-time MC rows are never "the best denoiser".
 """
 from __future__ import annotations
 
@@ -68,14 +68,21 @@ def spp_sentence(spp: str, entry: dict, metric_names: list[str]) -> str:
     return text + "".join(f"; {c}" for c in extra) + "."
 
 
-def hard_clause(group: str, g: dict) -> str:
-    parts = []
-    for spp, entry in g["spp"].items():
-        lead = entry.get("leads", {}).get("psnr") if "skipped" not in entry else None
+def compact_leaders(leads: dict, metric_names: list[str]) -> str:
+    """"`oidn` on L1*, SSIM; `isik` on PSNR*": leaders with their metrics, * for a significant lead."""
+    by_best: dict[str, list[str]] = {}
+    for m in metric_names:
+        lead = leads.get(m)
         if lead:
-            parts.append(f"`{lead['best']}` at {spp} spp ({_margin(lead)})")
-    where = f"`{group}` ({len(g['frames'])} frames)"
-    return f"On {where} the PSNR leader is " + _join(parts) + "." if parts else f"On {where} no denoiser was scored."
+            by_best.setdefault(lead["best"], []).append(_prose(m) + ("*" if lead.get("significant") else ""))
+    return "; ".join(f"`{best}` on {', '.join(ms)}" for best, ms in by_best.items())
+
+
+def hard_clause(group: str, g: dict, metric_names: list[str]) -> str:
+    parts = [f"{spp} spp: {compact_leaders(entry['leads'], metric_names)}." for spp, entry in g["spp"].items()
+             if "skipped" not in entry and compact_leaders(entry.get("leads", {}), metric_names)]
+    where = f"On `{group}` ({len(g['frames'])} frames)"
+    return f"{where}, best: " + " ".join(parts) if parts else f"{where} no denoiser was scored."
 
 
 def headline(result: dict) -> str:
@@ -90,6 +97,6 @@ def headline(result: dict) -> str:
              "excludes 0)."]
     parts += [spp_sentence(spp, entry, names) for spp, entry in g["spp"].items()]
     if hard:
-        parts.append("Hard cases, reported apart below and never averaged in:")
-        parts += [hard_clause(h, groups[h]) for h in hard]
+        parts.append("Hard cases, reported apart below and never averaged in (* = significant lead):")
+        parts += [hard_clause(h, groups[h], names) for h in hard]
     return " ".join(parts)

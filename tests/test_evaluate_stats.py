@@ -147,6 +147,15 @@ def test_headline_names_the_winner_and_whether_its_lead_is_significant():
     assert "`noisy` on" not in text
 
 
+def test_headline_lists_hard_case_groups_apart():
+    result = synthetic_result()
+    result["groups"]["stress"] = {**result["groups"]["test"], "frames": ["stress_x/000"] * 16}
+    text = headline(result)
+    main, hard = text.split("Hard cases")
+    assert "stress" not in main
+    assert "On `stress` (16 frames), best: 4 spp: `oidn` on L1; `isik` on PSNR*. 16 spp:" in hard
+
+
 def test_headline_says_untested_below_min_frames_or_with_inf():
     text = headline(synthetic_result(frames=4))
     assert "`isik` on PSNR (ahead of `oidn`, untested: 4 paired frames)" in text
