@@ -1,7 +1,8 @@
 # mcdenoise: Monte Carlo denoising dataset -> GT cleaner -> diffusion denoiser -> evaluation.
 #
 #   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik
-#                             baseline and the diffusion denoiser at SPP=4, evaluation (sets itself up)
+#                             baseline (SPP=any) and the diffusion denoiser at SPP=4, evaluation at
+#                             4, 16 and 64 spp (sets itself up)
 #   make test                 the test suite (sets itself up)
 #   make dataset [CONFIG=...] [key=value ...]
 #
@@ -25,7 +26,7 @@ RUN        := $(PY) -m pipeline
 .PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect verify plan bench test clean distclean
 
 help:
-	@sed -n '1,9p' Makefile
+	@sed -n '1,10p' Makefile
 
 # ---- set-up -------------------------------------------------------------------------------
 setup: $(STAMP) llvm
@@ -54,10 +55,10 @@ llvm:
 demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
-	$(RUN) train --model isik --spp $(SPP) --config $(CONFIG) clean.epochs=10 $(OVERRIDES)
+	$(RUN) train --model isik --spp any --config $(CONFIG) clean.epochs=10 $(OVERRIDES)
 	$(RUN) clean-report --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
 	$(RUN) train --model diffusion --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
-	$(RUN) eval --config $(CONFIG) $(OVERRIDES) --spp $(SPP)
+	$(RUN) eval --config $(CONFIG) $(OVERRIDES)
 
 # `make dataset` renders, then cleans the ground truth (the cleaner trains on the whole train
 # split, so with SHARD= only the rendering runs; run `make gt-clean` once all shards are done).
@@ -75,7 +76,8 @@ clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
 # `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline).
-# SPP=any trains one diffusion model for every sample count. Several GPUs/nodes: run the same
+# SPP=any trains one model for every sample count (diffusion: runs/<..>/diffusion_sppany; Isik:
+# isik_sppany, which make eval uses at every spp without its own isik_spp<N>). Several GPUs/nodes: run the same
 # command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
@@ -85,9 +87,10 @@ train: setup
 pretrain: setup
 	$(RUN) pretrain --config $(CONFIG) $(OVERRIDES)
 
-# Every method on the test split (and external scenes) per spp: tables, error vs time, crops in
-# reports/<run>/. SPP=4 limits it to one sample count; SCENES="a.xml b.xml" renders Mitsuba 3
-# scenes into the store (split 'external') first and reports them separately.
+# Every method on the test split per spp (eval.spp: 4, 16, 64) with 95 % intervals and paired
+# bootstrap differences, the stress presets and external scenes as their own groups: tables, error
+# vs time, crops in reports/<run>/. SPP=4 limits it to one sample count; SCENES="a.xml b.xml"
+# renders Mitsuba 3 scenes into the store (split 'external') first and reports them separately.
 eval: setup
 	$(RUN) eval --config $(CONFIG) $(OVERRIDES) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(foreach s,$(SCENES),--scene $(s))
 

@@ -26,7 +26,8 @@ Pairs (dicts of float32 tensors ``inputs`` (C, h, w), ``radiance`` (3, h, w), ``
 - ``CleanerPairs``: GT1 and GT2 of a frame, swapped at random (paper eq. 1): inputs and
   radiance of one, target the other one's ``color``.
 - ``BaselinePairs``: the low-spp buffers at ``spp`` (``Store.read``, random stacks in training,
-  the first stacks in validation) → target ``gt_clean``.
+  the first stacks in validation) → target ``gt_clean``; with a list of sample counts (the
+  Isik baseline's ``SPP=any``) each item draws one.
 
 Training items are random crops with random horizontal/vertical flips; validation items are
 whole frames in a fixed order. Randomness comes from ``numpy.random.default_rng([seed, epoch,
@@ -226,27 +227,36 @@ class CleanerPairs(_Pairs):
 
 
 class BaselinePairs(_Pairs):
-    """Low-spp buffers at ``spp`` (random stacks in training, the first ones in validation) → gt_clean."""
+    """Low-spp buffers (random stacks in training, the first ones in validation) → gt_clean.
 
-    def __init__(self, store: Store, keys: list[FrameKey], spp: int, crop: int | None, crops_per_frame: int = 1,
-                 seed: int = 0):
+    ``spp`` is one sample count or a list of them (the spp-conditioned model, ``SPP=any``): a
+    training item draws its count from the list; validation frame i uses the list's entry
+    i mod len, so every count is validated at the cost of one pass over the frames. The network
+    needs no spp input: the inputs carry the pooled variance, i.e. the noise level.
+    """
+
+    def __init__(self, store: Store, keys: list[FrameKey], spp: int | list[int], crop: int | None,
+                 crops_per_frame: int = 1, seed: int = 0):
         super().__init__(store, keys, crop, crops_per_frame, seed)
-        self.spp = int(spp)
+        self.spps = [int(s) for s in (spp if isinstance(spp, (list, tuple)) else [spp])]
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = self._rng(index)
-        key = self.keys[index // self.crops_per_frame]
+        frame = index // self.crops_per_frame
+        key = self.keys[frame]
         if self.train:
-            inputs, radiance = frame_inputs(self.store.read(key.scene, key.frame, self.spp, rng=rng))
+            spp = self.spps[int(rng.integers(len(self.spps)))] if len(self.spps) > 1 else self.spps[0]
+            inputs, radiance = frame_inputs(self.store.read(key.scene, key.frame, spp, rng=rng))
         else:
-            inputs, radiance = self._image(key, f"spp{self.spp}")
+            inputs, radiance = self._image(key, f"spp{self.spps[frame % len(self.spps)]}")
         target = self._target(key, "gt_clean")
         return self._item(inputs, radiance, target, rng)
 
     def _image(self, key: FrameKey, image: str):
         if image.startswith("spp"):
+            spp = int(image[3:])
             return self.cache.get((key.scene, key.frame, image),
-                                  lambda: frame_inputs(self.store.read(key.scene, key.frame, self.spp)))
+                                  lambda: frame_inputs(self.store.read(key.scene, key.frame, spp)))
         return super()._image(key, image)
 
 

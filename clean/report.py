@@ -20,12 +20,13 @@ import numpy as np
 from pipeline import figures
 from pipeline.color import reinhard
 from pipeline.config import Config
+from pipeline.exr import StoreError
 from pipeline.metrics import all_metrics, mse
 from pipeline.store import Store
 
 from .data import frame_inputs
 from .model import load_model
-from .train import pick_device, run_dir
+from .train import baseline_checkpoint, pick_device, run_dir
 
 
 def _mean_rows(rows: list[dict]) -> dict:
@@ -74,7 +75,11 @@ def untrained_model(cfg: Config):
 def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -> dict:
     from .apply import denoise
 
-    model, _ = load_model(run_dir(cfg, "baseline", spp))
+    folder = baseline_checkpoint(cfg, spp)
+    if folder is None:
+        raise StoreError(f"no Isik baseline for {spp} spp in {run_dir(cfg, 'baseline', spp)} or "
+                         f"{run_dir(cfg, 'baseline', 'any')}: run `make train MODEL=isik SPP={spp}` (or SPP=any)")
+    model, _ = load_model(folder)
     device = pick_device(cfg.clean.device)
     rows_noisy, rows_den = [], []
     for key in store.frames(split):
@@ -86,7 +91,8 @@ def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -
         out = denoise(model, inputs, radiance, tile=cfg.clean.tile, device=device)
         rows_noisy.append(all_metrics(buffers["color"], target, cfg.clean.smape_eps))
         rows_den.append(all_metrics(out, target, cfg.clean.smape_eps))
-    return {"spp": spp, "split": split, "frames": len(rows_den), "noisy": _mean_rows(rows_noisy),
+    return {"spp": spp, "checkpoint": folder.name, "split": split, "frames": len(rows_den),
+            "noisy": _mean_rows(rows_noisy),
             "isik": _mean_rows(rows_den)}
 
 
@@ -168,6 +174,6 @@ def format_markdown(r: dict) -> str:
         b = r["baseline"]
         lines += [f"## Isik baseline at {b['spp']} spp, {b['split']} split ({b['frames']} frames), against GT_clean", "",
                   "| method | PSNR dB | L1 | SMAPE |", "| --- | --- | --- | --- |",
-                  row("noisy input", b["noisy"]), row("Isik", b["isik"]), ""]
+                  row("noisy input", b["noisy"]), row(f"Isik ({b.get('checkpoint', '')})", b["isik"]), ""]
     lines.append("Crops (gamma tonemap): cleaner_crops.png")
     return "\n".join(lines) + "\n"

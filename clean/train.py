@@ -3,6 +3,7 @@
 
     train(cfg, mode="cleaner")          → runs/<...>/cleaner/
     train(cfg, mode="baseline", spp=4)  → runs/<...>/isik_spp4/
+    train(cfg, mode="baseline", spp="any") → runs/<...>/isik_sppany/ (trained at 4, 8, ... 64 spp)
 
 Loss SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW, random crops and flips from
 the train split; after every epoch a validation pass over the whole frames of the val split
@@ -51,12 +52,30 @@ class TrainError(StoreError):
     A ``StoreError``, so ``python -m pipeline`` prints it as one line and exits with status 2."""
 
 
-def run_dir(cfg: Config, mode: str = "cleaner", spp: int | None = None) -> Path:
+def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
     if mode == "cleaner":
         return Path(cfg.runs) / "cleaner"
     if mode == "baseline":
-        return Path(cfg.runs) / f"isik_spp{int(spp)}"
+        return Path(cfg.runs) / f"isik_spp{spp if str(spp) == 'any' else int(spp)}"
     raise ValueError(f"mode must be 'cleaner' or 'baseline', got {mode!r}")
+
+
+def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
+    """The Isik baseline that serves ``spp``: the run trained at that spp (isik_spp<N>) if there is
+    one, else the spp-conditioned run (isik_sppany) when it was trained on that count; None if neither."""
+    own = run_dir(cfg, "baseline", spp)
+    if (own / "model.safetensors").exists():
+        return own
+    anyspp = run_dir(cfg, "baseline", "any")
+    if (anyspp / "model.safetensors").exists() and int(spp) in trained_spps(anyspp):
+        return anyspp
+    return None
+
+
+def trained_spps(folder: Path) -> list[int]:
+    """Sample counts a baseline run trained on (its model.json; older runs name one spp)."""
+    record = json.loads((folder / "model.json").read_text())
+    return [int(s) for s in record.get("spp_choices") or [record["spp"]]]
 
 
 def pick_device(name: str) -> torch.device:
@@ -88,9 +107,10 @@ def build_model_hparams(cfg: Config) -> dict:
 # ---- data ------------------------------------------------------------------------------------
 
 
-def datasets(cfg: Config, mode: str, spp: int | None):
+def datasets(cfg: Config, mode: str, spp: int | str | None):
     store = Store(cfg.store)
     c = cfg.clean
+    spps = store.spp_choices(spp) if mode == "baseline" else None
 
     def keys(split: str) -> list:
         if split not in store.manifest()["splits"]:
@@ -98,14 +118,14 @@ def datasets(cfg: Config, mode: str, spp: int | None):
         if mode == "cleaner":
             return usable_frames(store, split, ["gt1", "gt2"])
         return [k for k in usable_frames(store, split, ["gt1"])
-                if all(store.image_path(k.scene, k.frame, n).exists() for n in baseline_images(store, k, spp))]
+                if all(store.image_path(k.scene, k.frame, n).exists() for n in baseline_images(store, k, max(spps)))]
 
     train_keys, val_keys = keys("train"), keys("val")
     if not train_keys:
         need = "gt1/gt2" if mode == "cleaner" else f"gt_clean and the stacks for {spp} spp (run make gt-clean)"
         raise TrainError(f"{store.root}: no complete training frame with {need}")
     make = ((lambda k, crop, n: CleanerPairs(store, k, crop, n, cfg.seed)) if mode == "cleaner" else
-            (lambda k, crop, n: BaselinePairs(store, k, spp, crop, n, cfg.seed)))
+            (lambda k, crop, n: BaselinePairs(store, k, spps, crop, n, cfg.seed)))
     train_ds = make(train_keys, c.crop, c.crops_per_frame)
     val_ds = make(val_keys, None, 1) if val_keys else None
     return train_ds, val_ds
@@ -180,6 +200,7 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
         return summary
 
     train_ds, val_ds = datasets(cfg, mode, spp)
+    spps = getattr(train_ds, "spps", None)
     trained = 0
     for epoch in range(start, c.epochs):
         train_ds.set_epoch(epoch)
@@ -207,7 +228,8 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
         score = entry["val"]["smape"] if entry["val"] else entry["train_loss"]
         if best is None or score < best["score"]:
             best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
-            save_best(folder, model, {"format": FORMAT, "mode": mode, "spp": spp, "hparams": model.hparams,
+            save_best(folder, model, {"format": FORMAT, "mode": mode, "spp": spp, "spp_choices": spps,
+                                      "hparams": model.hparams,
                                       "input_channels": channel_names(), "epoch": epoch + 1,
                                       "metrics": entry["val"], "train_loss": entry["train_loss"],
                                       "smape_eps": c.smape_eps, "store": str(cfg.store), "clean": vars(c).copy()})

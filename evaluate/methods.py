@@ -3,24 +3,28 @@
 A ``Method`` has a ``name``, a ``device`` and ``denoise(buffers) -> (H, W, 3) float32 HDR``,
 where ``buffers`` is what ``Store.read(scene, frame, spp)`` returns (buffer name → (H, W, C)
 array, variances included). One instance serves one sample count (the Isik baseline and the
-diffusion model are trained per spp). Timing, input repair and output checks are done by the
-harness (``evaluate.harness.run_method``), never by a method.
+diffusion model are trained per spp, or once for every spp with ``SPP=any``). Timing, input
+repair and output checks are done by the harness (``evaluate.harness.run_method``), never by a
+method.
 
 Names (``eval.methods``):
 
 - ``noisy``: the input colour itself.
 - ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
   albedo and normal; ``oidn_color``: colour only.
-- ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``).
+- ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
+  or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
+  trained at N spp.
 - ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
-  spp-conditioned ``diffusion_sppany``), sampled as its run was configured; ``base_only``: the
-  same base without its Control Module (the paper's ablation row). Options follow the family,
-  separated by ``_``: first an optional run variant (``ours_paper``: run ``diffusion_spp<N>_paper``,
-  trained with ``diffusion.name=paper``), then any of ``sN`` (N sampler steps), ``skipN`` (skip the
-  first N; the paper formulation: of its 27 super27 steps), ``kN`` (the mean of N samples),
-  ``small`` (the paper formulation's fixed posterior variance instead of the learned one),
-  ``noise`` / ``render`` / ``estimate`` (where sampling starts). E.g. ``ours_s1``, ``ours_s3_k4``,
-  ``ours_paper_skip24``, ``ours_paper_small_skip24``, ``base_only_s1``.
+  spp-conditioned ``diffusion_sppany``, else the model shipped in ``train/shipped``), sampled as
+  its run was configured; ``base_only``: the same base without its Control Module (the paper's
+  ablation row). Options follow the family, separated by ``_``: first an optional run variant
+  (``ours_paper``: run ``diffusion_spp<N>_paper``, trained with ``diffusion.name=paper``), then any
+  of ``sN`` (N sampler steps), ``skipN`` (skip the first N; the paper formulation: of its 27
+  super27 steps), ``kN`` (the mean of N samples), ``small`` (the paper formulation's fixed
+  posterior variance instead of the learned one), ``noise`` / ``render`` / ``estimate`` (where
+  sampling starts). E.g. ``ours_s1``, ``ours_s3_k4``, ``ours_paper_skip24``,
+  ``ours_paper_small_skip24``, ``base_only_s1``.
   These are looked up lazily, as
 
       from train.infer import load_denoiser
@@ -125,6 +129,7 @@ class Method(ABC):
 
     name: str = ""
     device: str = "cpu"
+    checkpoint: str = ""          # the run folder a trained method loaded, reported in its row
 
     @abstractmethod
     def denoise(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
@@ -172,6 +177,7 @@ class Isik(Method):
     tile: int = 512
     name: str = "isik"
     device: str = "cpu"
+    checkpoint: str = ""          # isik_spp<N>, or isik_sppany serving N
 
     def denoise(self, buffers):
         from clean.apply import denoise
@@ -192,6 +198,7 @@ class Diffusion(Method):
     name: str = "ours"
     device: str = "cpu"
     rotation: object = None
+    checkpoint: str = ""          # the run folder it loaded (diffusion_sppany, shipped, ...)
 
     def set_frame(self, store, key) -> None:
         from train.data import frame_rotation
@@ -239,15 +246,17 @@ class Loader:
 
     def _isik(self, spp: int) -> Method:
         from clean.model import load_model
-        from clean.train import run_dir
+        from clean.train import baseline_checkpoint, run_dir
 
-        folder = run_dir(self.cfg, "baseline", spp)
-        if not (folder / "model.safetensors").exists():
-            raise MethodUnavailable(f"no Isik checkpoint in {folder}: run `make train MODEL=isik SPP={spp}`")
-        key = ("isik", spp)
-        if key not in self._models:
-            self._models[key] = load_model(folder, self.device())[0]
-        return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
+        folder = baseline_checkpoint(self.cfg, spp)
+        if folder is None:
+            raise MethodUnavailable(f"no Isik checkpoint in {run_dir(self.cfg, 'baseline', spp)}, and "
+                                    f"{run_dir(self.cfg, 'baseline', 'any')} has none trained at {spp} spp: run "
+                                    f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
+        # One spp-conditioned model serves every spp: load it once.
+        if folder not in self._models:
+            self._models[folder] = load_model(folder, self.device())[0]
+        return Isik(model=self._models[folder], tile=self.cfg.clean.tile, device=self.device(), checkpoint=folder.name)
 
     def diffusion_folder(self, spp: int, variant: str) -> Path:
         """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""
@@ -276,7 +285,8 @@ class Loader:
             raise MethodUnavailable(f"{name}: skip must be 0..26 of the 27 super27 steps")
         if not f.paper and not 0 <= (spec.skip or 0) < (spec.steps or f.steps):
             raise MethodUnavailable(f"{name}: skip must be below the number of steps")
-        return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device())
+        return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device(),
+                         checkpoint=folder.name)
 
 
 def check_names(names: list[str]) -> None:

@@ -29,7 +29,10 @@ from pipeline import figures
 from pipeline.config import Config, to_dict
 from pipeline.versions import package_versions
 
+from .compare import REFERENCES, frame_values, scored_rows
+from .headline import headline
 from .scoring import METRICS, best
+from .stats import significant
 
 EXTRA_PACKAGES = ("pyoidn", "flip-evaluator", "pyfvvdp", "safetensors", "matplotlib", "scipy")
 
@@ -117,6 +120,27 @@ def fmt(key: str, v) -> str:
     return f"{v:.{_DIGITS.get(key, 4)}f}"
 
 
+def fmt_half(key: str, ci: dict | None) -> str:
+    """" ± half-width" of a 95 % interval, or nothing when it has none (one frame, inf)."""
+    if not ci or ci.get("lo") is None:
+        return ""
+    return f" ± {fmt(key, (ci['hi'] - ci['lo']) / 2)}"
+
+
+def fmt_signed(key: str, v) -> str:
+    return fmt(key, v) if v is None or not math.isfinite(v) else f"{v:+.{_DIGITS.get(key, 4)}f}"
+
+
+def fmt_diff(key: str, d: dict | None) -> str:
+    """"+0.52 [+0.21, +0.83]*": mean difference, bootstrap interval, * when it excludes 0."""
+    if not d or d.get("diff") is None:
+        return "–"
+    if d.get("lo") is None:
+        return f"{fmt_signed(key, d['diff'])} (no interval: {d['n']} frames)"
+    return (f"{fmt_signed(key, d['diff'])} [{fmt_signed(key, d['lo'])}, {fmt_signed(key, d['hi'])}]"
+            f"{'*' if significant(d) else ''}")
+
+
 def fmt_seconds(s) -> str:
     if s is None:
         return "–"
@@ -147,11 +171,12 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
         for m in metric_names:
             values[m][f"mc_equal_{n}"] = et["metrics"].get(m)
     winners = {m: best(values[m], m) for m in metric_names}
+    cis = {n: r.get("ci", {}) for n, r in scored_rows(entry).items()}
     header = ["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names] + ["s/frame", "device",
                                                                                               "notes"]
     def cells(row: str) -> list[str]:
-        return [f"**{fmt(m, values[m].get(row))}**" if row in winners[m] else fmt(m, values[m].get(row))
-                for m in metric_names]
+        return [(f"**{fmt(m, values[m].get(row))}**" if row in winners[m] else fmt(m, values[m].get(row)))
+                + fmt_half(m, cis.get(row, {}).get(m)) for m in metric_names]
 
     lines = []
     for n, r in rows.items():
@@ -165,6 +190,8 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
             notes.append(f"{r['failed_frames']} frame(s) failed: {'; '.join(bad)[:200]}")
         if r.get("input_repaired"):
             notes.append(f"{r['input_repaired']} NaN/Inf input values repaired")
+        if r.get("checkpoint"):
+            notes.append(f"model {r['checkpoint']}")
         lines.append([f"{r['label']} (`{n}`)"] + cells(n) + [fmt_seconds(r["seconds"]["median"]), r["device"],
                                                             "; ".join(notes)])
     for n, et in entry["equal_time"].items():
@@ -181,6 +208,15 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
         lines.append([f"MC at equal time to `{n}` (≈{et['spp']:.0f} spp)"] + cells(f"mc_equal_{n}") +
                      [f"{fmt_seconds(secs)} (render)", "renderer", "; ".join(notes)])
     return _table(header, lines)
+
+
+def diff_table(entry: dict, metric_names: list[str], ref: str) -> list[str]:
+    """Per row: mean over frames of (row − ``ref``) with its paired bootstrap 95 % interval."""
+    rows = [[f"`{n}`"] + [fmt_diff(m, r["vs"][ref].get(m)) for m in metric_names]
+            for n, r in scored_rows(entry).items() if ref in r.get("vs", {})]
+    if not rows:
+        return []
+    return _table(["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names], rows)
 
 
 def time_table(points: list[dict]) -> list[str]:
@@ -227,11 +263,13 @@ def stability_summary(stab: dict | None) -> list[str]:
 def format_markdown(result: dict) -> str:
     meta = result["meta"]
     names = result["metrics"]
-    lines = ["# Evaluation", "",
+    lines = ["# Evaluation", "", headline(result), "",
              f"Store `{meta['store']}`, runs `{meta['runs']}`, commit {meta['git']['commit'][:12]}"
              f"{' (uncommitted changes)' if meta['git'].get('dirty') else ''}, {meta['date']}, "
-             f"{meta.get('seconds', 0):.1f} s. Metrics against the reference image; means over frames. "
-             "Bold: best of the column. s/frame: median denoise wall time on this machine.", ""]
+             f"{meta.get('seconds', 0):.1f} s. Metrics against the reference image; means over frames "
+             "± half-width of the 95 % Student-t interval of the mean. "
+             "Bold: best mean of the column. s/frame: median denoise wall time on this machine. Per-frame "
+             "numbers: eval_frames.csv; per scene: per_scene_<group>_spp<N>.png.", ""]
     for what, why in result.get("metrics_missing", {}).items():
         lines.append(f"- Not in the tables: {what}: {why}.")
     lines.append("")
@@ -244,12 +282,20 @@ def format_markdown(result: dict) -> str:
                 lines += [f"Skipped: {entry['skipped']}.", ""]
                 continue
             lines += method_table(entry, names) + [""]
+            for ref in REFERENCES:
+                table = diff_table(entry, names, ref)
+                if table:
+                    lines += [f"Difference to `{ref}` ({group}, {spp} spp): mean over frames of method − {ref}, "
+                              "paired bootstrap 95 % interval; * = the interval excludes 0 (a real difference):",
+                              ""] + table + [""]
             lines += [f"Error against run time ({group}, {spp} spp; render seconds from the store's render-time "
                       "model, denoise seconds measured here; MC spp by log-log interpolation on the MC curve "
                       "below, extrapolation marked):", ""]
             lines += time_table(entry["time_vs_error"]) + [""]
             if entry.get("crops"):
                 lines += [f"Crops: {entry['crops']}", ""]
+            if entry.get("per_scene"):
+                lines += [f"Per scene (one dot per frame): {entry['per_scene']}", ""]
         lines += [f"Plain MC convergence ({group}, mean over frames; GT2 is the independent high-spp render):", ""]
         lines += mc_table(g["mc_mean"]) + [""] + reference_warning(g["mc_mean"])
         lines += [f"Plot: error_vs_time_{group}.png", ""]
@@ -263,20 +309,53 @@ def format_markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+def interval_columns(names: list[str]) -> list[str]:
+    """CSV columns after the means: the t interval of each mean, then each paired difference."""
+    cols = [f"{m}_ci_{end}" for m in names for end in ("lo", "hi")]
+    return cols + [f"{m}_vs_{ref}{end}" for ref in REFERENCES for m in names for end in ("", "_lo", "_hi")]
+
+
+def interval_cells(row: dict, names: list[str]) -> list:
+    cells = [row.get("ci", {}).get(m, {}).get(end) for m in names for end in ("lo", "hi")]
+    vs = row.get("vs", {})
+    cells += [vs.get(ref, {}).get(m, {}).get(end) for ref in REFERENCES for m in names for end in ("diff", "lo", "hi")]
+    return ["" if v is None else v for v in cells]
+
+
 def write_csv(path: Path, entry: dict, names: list[str]) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["method", "label", "available", "reason", *names, "seconds_median", "seconds_mean",
-                    "failed_frames", "input_repaired", "device"])
+                    "failed_frames", "input_repaired", "device", *interval_columns(names)])
         for n, r in entry["methods"].items():
             if not r["available"]:
-                w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", ""])
+                w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", "",
+                            *[""] * len(interval_columns(names))])
                 continue
             w.writerow([n, r["label"], True, "", *[fmt(m, r["metrics"][m]) for m in names], r["seconds"]["median"],
-                        r["seconds"]["mean"], r["failed_frames"], r["input_repaired"], r["device"]])
+                        r["seconds"]["mean"], r["failed_frames"], r["input_repaired"], r["device"],
+                        *interval_cells(r, names)])
         for n, et in entry["equal_time"].items():
             w.writerow([f"mc_equal_{n}", et["label"], True, f"{et['mode']}, {et['spp']:.0f} spp",
-                        *[fmt(m, et["metrics"][m]) for m in names], "", "", et["failed_frames"], 0, "renderer"])
+                        *[fmt(m, et["metrics"][m]) for m in names], "", "", et["failed_frames"], 0, "renderer",
+                        *interval_cells(et, names)])
+
+
+def write_frames_csv(path: Path, result: dict) -> None:
+    """Every scored row × frame × metric: group, spp, method, frame, status, seconds, one column per metric."""
+    names = result["metrics"]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["group", "spp", "method", "frame", "status", "denoise_seconds", "mc_spp", *names])
+        for group, g in result["groups"].items():
+            for spp, entry in g["spp"].items():
+                if "skipped" in entry:
+                    continue
+                for n, r in scored_rows(entry).items():
+                    for p in r["per_frame"]:
+                        m = p.get("metrics", {})
+                        w.writerow([group, spp, n, p["frame"], p.get("status", p.get("error", "ok")),
+                                    p.get("seconds", ""), p.get("spp", ""), *[m.get(k, "") for k in names]])
 
 
 def write_eval(result: dict, out_dir: Path) -> str:
@@ -286,6 +365,7 @@ def write_eval(result: dict, out_dir: Path) -> str:
             if "skipped" not in entry:
                 write_csv(out_dir / f"eval_{group}_spp{spp}.csv", entry, result["metrics"])
         plot_error_vs_time(g, out_dir / f"error_vs_time_{group}.png", group)
+    write_frames_csv(out_dir / "eval_frames.csv", result)
     write_json(out_dir / "eval.json", result)
     text = format_markdown(result)
     (out_dir / "eval.md").write_text(text)
@@ -353,3 +433,36 @@ def _plot_points(ax, points: list[dict], key: str) -> None:
         hollow = p["kind"] == "mc_equal_time"
         ax.scatter([p["seconds"]], [v], marker="D" if hollow else "o", s=28, zorder=3,
                    facecolors="none" if hollow else f"C{i % 10}", edgecolors=f"C{i % 10}", label=p["method"])
+
+
+def per_scene_figure(entry: dict, metric_names: list[str], path: Path, title: str) -> str | None:
+    """One panel per metric: scenes along x, the methods side by side within a scene, one dot per
+    frame (the spread a mean hides: is a lead one scene or all of them?). Returns the file name."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = {n: r for n, r in entry["methods"].items() if r["available"]}
+    scenes = sorted({f.split("/")[0] for r in rows.values() for f in frame_values(r, metric_names[0])}) \
+        if rows and metric_names else []
+    if not scenes:
+        return None
+    width = 0.8 / len(rows)
+    fig, axes = plt.subplots(len(metric_names), 1, figsize=(2 + (0.6 + 0.15 * len(rows)) * len(scenes),
+                                                           2.3 * len(metric_names)), squeeze=False)
+    for ax, m in zip(axes[:, 0], metric_names):
+        for i, (name, row) in enumerate(rows.items()):
+            pts = [(scenes.index(f.split("/")[0]), v) for f, v in frame_values(row, m).items() if math.isfinite(v)]
+            ax.scatter([x - 0.4 + width * (i + 0.5) for x, _ in pts], [v for _, v in pts], s=12, color=f"C{i % 10}",
+                       label=name, zorder=3)
+        for x in range(1, len(scenes)):
+            ax.axvline(x - 0.5, color="0.85", lw=0.8)
+        ax.set_xticks(range(len(scenes)), scenes, fontsize=7, rotation=20)
+        ax.set_ylabel(f"{METRICS[m].column} {METRICS[m].arrow}", fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].set_title(f"{title}: one dot per frame", fontsize=9)
+    axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path.name

@@ -1,13 +1,16 @@
 """``make eval`` → ``python -m pipeline eval``: every method on the test frames, per spp.
 
-For each group of frames (the ``eval.split`` split against GT_clean; the store's ``external``
-split, e.g. scenes given with ``--scenes``, against GT_clean where it exists, else GT1 — the
-paper does not post-process its external test scenes) and each spp of ``eval.spp``:
+For each group of frames (the ``eval.split`` split against GT_clean; the store's ``stress``
+split against GT_clean; the store's ``external`` split, e.g. scenes given with ``--scenes``,
+against GT_clean where it exists, else GT1 — the paper does not post-process its external test
+scenes) and each spp of ``eval.spp``:
 
 1. every method of ``eval.methods`` denoises the first stacks pooled to that spp
    (``evaluate.harness``: inputs repaired and counted, denoise wall time measured, output
    checked); a method that cannot run is a row with its reason;
-2. metrics against the reference (``evaluate.scoring``), means over frames;
+2. metrics against the reference (``evaluate.scoring``), means over frames with 95 % intervals,
+   and paired bootstrap intervals of the differences to OIDN and the noisy input
+   (``evaluate.compare``);
 3. plain MC at equal time to each of ``eval.equal_time_methods`` (``evaluate.montecarlo``);
 4. the MC convergence curve per frame and the spp plain MC needs to match each method
    (``evaluate.timing.spp_equivalent``), and a crop grid.
@@ -27,6 +30,7 @@ from pipeline.progress import progress
 from pipeline.store import FrameKey, Store
 
 from . import report
+from .compare import annotate
 from .harness import finite_output, run_method
 from .methods import Loader, MethodUnavailable, check_names, curve_kind, label
 from .montecarlo import equal_time_images, mc_curve, mean_curve
@@ -34,6 +38,7 @@ from .scoring import NOT_COMPUTED, check_metrics, score, usable_metrics
 from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 EXTERNAL = "external"
+STRESS = "stress"
 CROP_METHODS = ("noisy", "oidn", "isik", "ours")
 CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "isik": "Isik", "ours": "ours", "gt_clean": "GT_clean", "gt1": "GT1"}
 
@@ -63,12 +68,16 @@ def _reference(store: Store, key: FrameKey, allow_gt1: bool) -> tuple[str, np.nd
 
 
 def frame_groups(cfg: Config, store: Store) -> dict[str, list[FrameKey]]:
-    """{group: frames} with a complete frame record; the split must have GT_clean."""
+    """{group: frames} with a complete frame record; dataset splits must have GT_clean.
+
+    The hard cases (the ``stress`` presets, ``external`` scenes) are groups of their own: averaged
+    into the in-distribution split they would hide how a method does on either."""
     groups: dict[str, list[FrameKey]] = {}
     splits = store.manifest()["splits"]
     if cfg.eval.split not in splits:
         raise StoreError(f"{store.manifest_path}: no split {cfg.eval.split!r} (have {', '.join(splits)})")
-    wanted = [cfg.eval.split] + ([EXTERNAL] if splits.get(EXTERNAL) and cfg.eval.split != EXTERNAL else [])
+    hard = ([STRESS] if cfg.eval.stress else []) + [EXTERNAL]
+    wanted = [cfg.eval.split] + [s for s in hard if splits.get(s) and s != cfg.eval.split]
     for split in wanted:
         keys = [k for k in store.frames(split) if store.frame_record(k.scene, k.frame) is not None]
         if split != EXTERNAL:
@@ -135,7 +144,7 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
             try:
                 methods[name] = loader.load(name, spp)
                 rows[name] = {"label": label(name), "available": True, "device": methods[name].device,
-                              "per_frame": []}
+                              "checkpoint": methods[name].checkpoint or None, "per_frame": []}
             except MethodUnavailable as exc:
                 rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
         _warm_up(methods, store, keys[0], spp)
@@ -166,11 +175,14 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
         entry = {"methods": rows, "equal_time": _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names,
                                                             opts, quiet)}
         entry["time_vs_error"] = _time_vs_error(spp, keys, rows, entry["equal_time"], costs, result["mc_mean"])
+        annotate(entry, metric_names, e.bootstrap_resamples, e.bootstrap_seed)
         titles = [CROP_TITLES[m] for m in CROP_METHODS if m in e.methods] + [CROP_TITLES[refs[keys[0]][0]]]
         if crops:
             path = out_dir / f"crops_{group}_spp{spp}.png"
             report.crop_figure(crops, titles, path, e.crop_size)
             entry["crops"] = path.name
+        entry["per_scene"] = report.per_scene_figure(entry, metric_names, out_dir / f"per_scene_{group}_spp{spp}.png",
+                                                     f"{group}, {spp} spp")
         result["spp"][str(spp)] = entry
     bar.close()
     return result

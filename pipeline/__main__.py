@@ -56,8 +56,6 @@ def _spp(text: str):
 def cmd_train(args) -> int:
     cfg = _config(args)
     if args.model == "isik":
-        if args.spp == "any":
-            raise ConfigError("--spp any: the Isik baseline trains one model per sample count")
         from clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
     from train.cli import cmd_train as train_diffusion

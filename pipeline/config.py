@@ -230,7 +230,10 @@ class EvalConfig:
                                          "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
-    split: str = doc("Store split to evaluate (external scenes are always reported separately).", "test")
+    split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",
+                     "test")
+    stress: bool = doc("Also report the store's 'stress' split (dataset.stress presets) as its own group, never "
+                       "averaged into the split above.", True)
     frames: int = doc("Evaluate at most this many frames of the split (0: all).", 0)
     metrics: list = doc("Metric columns: l1, psnr, ssim, flip (LDR, on the tonemap), hdr_flip, fvvdp.",
                         factory=lambda: ["l1", "psnr", "ssim", "flip", "hdr_flip", "fvvdp"])
@@ -243,6 +246,10 @@ class EvalConfig:
     equal_time_max_spp: int = doc("Cap of the equal-time MC spp ('render'); capped rows are marked.", 4096)
     device: str = doc("Torch device of the Isik and diffusion methods: 'auto', 'cpu', 'cuda', ...", "auto")
     seed: int = doc("Sampling seed of the diffusion methods.", 0)
+    bootstrap_resamples: int = doc("Resamples of the paired bootstrap intervals of the differences between "
+                                   "methods (percentile method, 95 %).", 5000)
+    bootstrap_seed: int = doc("Seed of the paired bootstrap (numpy default_rng): the same numbers give the same "
+                              "intervals.", 0)
     crops: int = doc("Frames in the crop grid per spp.", 4)
     crop_size: int = doc("Side of each crop in pixels.", 64)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
@@ -376,6 +383,9 @@ def validate(cfg: Config, source: str) -> None:
         bad("executor.kind", f"expected 'local' or 'ray', got {cfg.executor.kind!r}")
     if cfg.executor.workers < 1:
         bad("executor.workers", "must be >= 1")
+    if cfg.eval.bootstrap_resamples < 100:
+        bad("eval.bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got "
+            f"{cfg.eval.bootstrap_resamples}")
     if cfg.eval.equal_time not in ("render", "pool", "none"):
         bad("eval.equal_time", f"expected 'render', 'pool' or 'none', got {cfg.eval.equal_time!r}")
     for key in ("objects", "area_lights", "fov"):

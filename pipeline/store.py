@@ -201,6 +201,18 @@ class Store:
         have = rec.get("images", {})
         return all(name in have and self.image_path(scene, frame, name).exists() for name in images)
 
+    def spp_choices(self, spp) -> list[int]:
+        """Sample counts a model for ``spp`` trains on: ``[spp]``, or for 'any' every power-of-two
+        multiple of the stack spp the stacks can pool (4, 8, 16, 32, 64 for 16 stacks of 4 spp)."""
+        sm = self.scene_manifest(self.scenes()[0])
+        n, k = int(sm["stack_spp"]), int(sm["stacks"])
+        if str(spp) == "any":
+            return [n * 2 ** i for i in range(k.bit_length())]
+        spp = int(spp)
+        if spp % n or not 1 <= spp // n <= k:
+            raise StoreError(f"{self.root}: spp {spp} is not a multiple of the stack spp {n} up to {n * k}")
+        return [spp]
+
     # ---- images ------------------------------------------------------------------------
     def write_image(self, scene: str, frame: int, image: str, arrays, constants=None, meta=None,
                     omit_constant: bool = True) -> dict:

@@ -16,7 +16,7 @@ from clean import apply as clean_apply
 from clean.cli import cmd_gt_clean, cmd_train_isik
 from clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
 from clean.model import load_model
-from clean.train import run_dir, save_best, train
+from clean.train import baseline_checkpoint, run_dir, save_best, train
 from pipeline import schema
 from pipeline.config import load_config
 from pipeline.store import Store, image_names
@@ -229,6 +229,27 @@ def test_baseline_trains_from_low_spp(cfg_dir):
     assert folder.name == "isik_spp4" and (folder / "model.safetensors").exists()
     meta = json.loads((folder / "model.json").read_text())
     assert meta["mode"] == "baseline" and meta["spp"] == 4
+
+
+def test_baseline_sppany_draws_every_spp_and_serves_them(cfg_dir):
+    """SPP=any: one Isik model trained on every sample count the stacks pool (4 and 8 spp for the
+    tiny store's two stacks), which the evaluator's lookup finds for a count without its own run
+    (tests/test_evaluate.py checks that a per-spp run wins where there is one)."""
+    cfg = tiny_cfg(cfg_dir, epochs=1)
+    assert cmd_gt_clean(cfg, quiet=True) == 0
+    store = Store(cfg.store)
+    ds = BaselinePairs(store, store.frames("train"), spp=[4, 8], crop=8, crops_per_frame=4, seed=0)
+    seen = []
+    read = store.read
+    store.read = lambda scene, frame, spp, **kw: seen.append(spp) or read(scene, frame, spp, **kw)
+    for i in range(len(ds)):
+        ds[i]
+    assert sorted(set(seen)) == [4, 8]
+    assert cmd_train_isik(cfg, "any", quiet=True) == 0
+    folder = run_dir(cfg, "baseline", "any")
+    meta = json.loads((folder / "model.json").read_text())
+    assert folder.name == "isik_sppany" and meta["spp"] == "any" and meta["spp_choices"] == [4, 8]
+    assert baseline_checkpoint(cfg, 8) == folder and baseline_checkpoint(cfg, 16) is None
 
 
 def test_clean_report_scores_and_draws(cfg_dir):

@@ -7,6 +7,7 @@ pattern, GT1/GT2 (64 spp) and four 4-spp stacks are that pattern with multiplica
 noise of standard deviation 0.7·sqrt(4/spp), so pooling k stacks behaves like k times the
 samples; the per-image render seconds follow t(N) = A + B·N exactly.
 """
+import csv
 import json
 import math
 import subprocess
@@ -21,7 +22,7 @@ import pytest
 from clean.data import IN_CHANNELS
 from clean.model import AffinityDenoiser
 from clean.train import save_best
-from evaluate.run import run_eval
+from evaluate.run import frame_groups, run_eval
 from evaluate.stability import synthetic_buffers
 from pipeline import schema
 from pipeline.config import load_config
@@ -38,27 +39,35 @@ SCENE = "s00001"
 FAKE_DENOISE_SECONDS = 0.05
 
 
-def make_store(root: Path) -> Path:
+def make_store(root: Path, scenes: dict[str, str] | None = None, frames: int = FRAMES) -> Path:
+    """``scenes``: scene id → split (default: SCENE in the test split); every scene as described above."""
+    scenes = scenes or {SCENE: "test"}
     store = Store(root)
     names = image_names(STACKS)
-    store.write_manifest({"config": {}, "scenes": [SCENE], "splits": {"train": [], "val": [], "test": [SCENE]},
-                          "images": names, "packages": {}})
-    store.write_scene_manifest(SCENE, {"scene": SCENE, "index": 1, "split": "test", "frames": FRAMES,
-                                       "resolution": [W, H], "gt_spp": GT_SPP, "stack_spp": 4, "stacks": STACKS,
-                                       "images": names})
-    for f in range(FRAMES):
-        phase = 0.9 * f
-        records = {}
-        for k, name in enumerate(names):
-            spp = GT_SPP if name.startswith("gt") else 4
-            buf = synthetic_buffers(H, W, seed=100 * f + k, noise=0.7 * math.sqrt(4 / spp), spp=spp, phase=phase)
-            records[name] = store.write_image(SCENE, f, name, buf, meta={
-                "image": name, "scene": SCENE, "frame": f, "spp": spp, "render_seconds": A + B * spp})
-        clean = synthetic_buffers(H, W, noise=0.0, phase=phase)["color"]
-        store.write_image(SCENE, f, "gt_clean", {"color": clean, schema.variance_name("color"): np.zeros_like(clean)},
-                          meta={"image": "gt_clean", "scene": SCENE, "frame": f, "source": "gt1"})
-        store.write_frame_record(SCENE, f, {"scene": SCENE, "frame": f, "width": W, "height": H, "images": records})
+    splits = {"train": [], "val": [], "test": []}
+    for scene, split in scenes.items():
+        splits.setdefault(split, []).append(scene)
+    store.write_manifest({"config": {}, "scenes": list(scenes), "splits": splits, "images": names, "packages": {}})
+    for i, (scene, split) in enumerate(scenes.items()):
+        store.write_scene_manifest(scene, {"scene": scene, "index": i + 1, "split": split, "frames": frames,
+                                           "resolution": [W, H], "gt_spp": GT_SPP, "stack_spp": 4, "stacks": STACKS,
+                                           "images": names})
+        for f in range(frames):
+            _write_frame(store, scene, f, 0.9 * f + 0.37 * i, 100 * f + 1000 * i, names)
     return root
+
+
+def _write_frame(store: Store, scene: str, f: int, phase: float, seed: int, names: list[str]) -> None:
+    records = {}
+    for k, name in enumerate(names):
+        spp = GT_SPP if name.startswith("gt") else 4
+        buf = synthetic_buffers(H, W, seed=seed + k, noise=0.7 * math.sqrt(4 / spp), spp=spp, phase=phase)
+        records[name] = store.write_image(scene, f, name, buf, meta={
+            "image": name, "scene": scene, "frame": f, "spp": spp, "render_seconds": A + B * spp})
+    clean = synthetic_buffers(H, W, noise=0.0, phase=phase)["color"]
+    store.write_image(scene, f, "gt_clean", {"color": clean, schema.variance_name("color"): np.zeros_like(clean)},
+                      meta={"image": "gt_clean", "scene": scene, "frame": f, "source": "gt1"})
+    store.write_frame_record(scene, f, {"scene": scene, "frame": f, "width": W, "height": H, "images": records})
 
 
 def save_untrained_isik(folder: Path) -> None:
@@ -193,9 +202,57 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     saved = json.loads((out / "eval.json").read_text())
     assert saved["meta"]["git"]["commit"] and saved["meta"]["packages"]["pyoidn"] != "not installed"
     assert saved["meta"]["config"]["eval"]["methods"] == methods
-    csv = (out / "eval_test_spp4.csv").read_text().splitlines()
-    assert csv[0].startswith("method,label,available,reason,l1,psnr")
-    assert sum(line.startswith("mc_equal_") for line in csv) == 3
+    lines = (out / "eval_test_spp4.csv").read_text().splitlines()
+    assert lines[0].startswith("method,label,available,reason,l1,psnr")
+    assert sum(line.startswith("mc_equal_") for line in lines) == 3
+
+
+TINY_ISIK = ["clean.epochs=1", "clean.batch_size=2", "clean.crop=8", "clean.crops_per_frame=1", "clean.channels=[8, 8]",
+             "clean.embed_channels=8", "clean.affinity_channels=4", "clean.kernel_size=3", "clean.dilations=[1, 2]",
+             "clean.device=cpu"]
+
+
+def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_path):
+    root = make_store(tmp_path / "store", {SCENE: "test", "s00002": "train", "s00003": "val",
+                                           "stress_fireflies": "stress"})
+    runs, out = tmp_path / "runs", tmp_path / "r"
+    proc = cli("train", "--model", "isik", "--spp", "any", "--config", TINY, f"store={root}", f"runs={runs}",
+               *TINY_ISIK, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((runs / "isik_sppany" / "model.json").read_text())
+    assert record["spp"] == "any" and record["spp_choices"] == [4, 8, 16]    # every pooled power of two
+    overrides = [f"store={root}", f"runs={runs}", "eval.methods=[noisy, isik]", "eval.metrics=[l1, psnr]",
+                 "eval.equal_time=none", "eval.device=cpu"]
+
+    def isik_rows():
+        result = run_eval(load_config(TINY, overrides), spps=[4, 16], out=str(out), quiet=True)
+        assert list(result["groups"]) == ["test", "stress"]      # hard cases apart, never averaged in
+        assert all(f.startswith("stress_") for f in result["groups"]["stress"]["frames"])
+        assert not any(f.startswith("stress_") for f in result["groups"]["test"]["frames"])
+        return {spp: result["groups"]["test"]["spp"][spp]["methods"]["isik"] for spp in ("4", "16")}
+
+    rows = isik_rows()
+    assert all(r["available"] and r["checkpoint"] == "isik_sppany" and r["failed_frames"] == 0 for r in rows.values())
+    assert "model isik_sppany" in (out / "eval.md").read_text()
+    save_untrained_isik(runs / "isik_spp4")                  # a per-spp run wins where it exists
+    assert [r["checkpoint"] for r in isik_rows().values()] == ["isik_spp4", "isik_sppany"]
+
+    record["spp_choices"] = [4, 8]                           # isik_sppany never saw 16 spp: not used there
+    (runs / "isik_sppany" / "model.json").write_text(json.dumps(record))
+    rows = isik_rows()
+    assert rows["4"]["available"] and not rows["16"]["available"]
+    assert "SPP=any" in rows["16"]["reason"] and "isik_spp16" in rows["16"]["reason"]
+    md = (out / "eval.md").read_text()
+    assert "| Isik et al. (`isik`) | – | – |" in md.split("### test, 16 spp")[1]
+    assert "not available: `isik`" in md.split("\n\n")[1].split("At 16 spp")[1]     # in the headline, too
+    with open(out / "eval_test_spp16.csv", newline="") as f:
+        isik16 = next(r for r in csv.DictReader(f) if r["method"] == "isik")
+    assert isik16["available"] == "False" and isik16["reason"].startswith("no Isik checkpoint") and isik16["l1"] == ""
+    assert isik16["l1_vs_noisy_hi"] == ""                    # a full row, interval columns empty
+    frames_csv = (out / "eval_frames.csv").read_text()
+    assert "test,16,isik," not in frames_csv and "test,4,isik,s00001/000,ok" in frames_csv
+    assert "stress,16,noisy,stress_fireflies/001,ok" in frames_csv
+    assert list(frame_groups(load_config(TINY, overrides + ["eval.stress=false"]), Store(root))) == ["test"]
 
 
 def test_identical_method_reports_psnr_inf(store_root, tmp_path, monkeypatch):
@@ -223,7 +280,8 @@ def test_identical_method_reports_psnr_inf(store_root, tmp_path, monkeypatch):
     assert m == {"l1": 0.0, "psnr": math.inf, "ssim": 1.0}
     assert json.loads((tmp_path / "r" / "eval.json").read_text())["groups"]["test"]["spp"]["4"]["methods"][
         "ours"]["metrics"]["psnr"] == "inf"
-    assert "| **0.0000** | **inf** | **1.0000** |" in (tmp_path / "r" / "eval.md").read_text()
+    # the same value on every frame: a zero-width interval; inf has none
+    assert "| **0.0000** ± 0.0000 | **inf** | **1.0000** ± 0.0000 |" in (tmp_path / "r" / "eval.md").read_text()
 
 
 def test_cli_missing_store_is_a_clear_error(tmp_path):

@@ -27,17 +27,6 @@ from .sampler import sample
 from .train import PSNR_CEILING, Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
 
 
-def _spp_choices(store: Store, spp) -> list[int]:
-    sm = store.scene_manifest(store.scenes()[0])
-    n, k = int(sm["stack_spp"]), int(sm["stacks"])
-    if str(spp) == "any":
-        return [n * 2 ** i for i in range(int(math.log2(k)) + 1)]
-    spp = int(spp)
-    if spp % n or not 1 <= spp // n <= k:
-        raise TrainError(f"{store.root}: spp {spp} is not a multiple of the stack spp {n} up to {n * k}")
-    return [spp]
-
-
 def _frames(store: Store, split: str) -> list[FrameKey]:
     if split not in store.manifest().get("splits", {}):
         return []
@@ -92,7 +81,7 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     store = Store(cfg.store)
     if not store.manifest_path.exists():
         raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    choices = _spp_choices(store, spp)
+    choices = store.spp_choices(spp)
     train_keys, val_keys = _frames(store, "train"), _frames(store, "val")
     if not train_keys:
         raise TrainError(f"{store.root}: no training frame with gt_clean; run `make gt-clean`")
@@ -163,7 +152,7 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     lcm = math.lcm(model.multiple, *[int(s) for s in p.scales])
     crop = _fit_crop(p.crop, [min(x.shape[:2]) for x in pictures] if pictures else [p.crop], lcm)
     store = Store(cfg.store)
-    spps = _spp_choices(store, "any") if store.manifest_path.exists() and store.scenes() else [4]
+    spps = store.spp_choices("any") if store.manifest_path.exists() and store.scenes() else [4]
     if cfg.diffusion.pack and any(frames):
         frames = _pack_sources(cfg, store, frames, quiet)
     ds = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
