@@ -15,6 +15,8 @@ Names (``eval.methods``):
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
+- ``oidn_isik``: the per-pixel mean of ``oidn`` and ``isik``, the first estimate ours refines by
+  default (``train/estimate.py``).
 - ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
   spp-conditioned ``diffusion_sppany``, else the model shipped in ``train/shipped``), sampled as
   its run was configured; ``base_only``: the same base without its Control Module (the paper's
@@ -50,11 +52,12 @@ from pipeline.exr import StoreError
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
 _DIFFUSION = {"ours": False, "base_only": True}
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", *_DIFFUSION)
+FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
-          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
+          "isik": "Isik et al.", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
+          "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
 
 class MethodUnavailable(Exception):
@@ -143,6 +146,10 @@ class Method(ABC):
         """What the last ``denoise`` did beyond denoising (clamped its range, returned black), or ''."""
         return ""
 
+    def uncertainty(self) -> np.ndarray | None:
+        """The last ``denoise``'s own per-pixel standard deviation (H, W, 3), for methods that give one."""
+        return None
+
 
 @dataclass
 class Noisy(Method):
@@ -188,6 +195,19 @@ class Isik(Method):
 
 
 @dataclass
+class Mean(Method):
+    """The per-pixel mean of other methods' outputs (``oidn_isik``: ours' default first estimate, so its
+    row shows what the diffusion model starts from)."""
+    parts: tuple = ()
+    name: str = "oidn_isik"
+    device: str = "cpu"
+    checkpoint: str = ""
+
+    def denoise(self, buffers):
+        return np.mean([m.denoise(buffers) for m in self.parts], axis=0).astype(np.float32)
+
+
+@dataclass
 class Diffusion(Method):
     """``ours``/``base_only`` through ``train.infer``'s denoiser object, sampled as ``spec`` says."""
 
@@ -199,6 +219,7 @@ class Diffusion(Method):
     device: str = "cpu"
     rotation: object = None
     checkpoint: str = ""          # the run folder it loaded (diffusion_sppany, shipped, ...)
+    last_std: object = None       # per-pixel std of the last call's samples (kN with N > 1)
 
     def set_frame(self, store, key) -> None:
         from train.data import frame_rotation
@@ -215,10 +236,15 @@ class Diffusion(Method):
             return f"{n} pixels above the model's range (radiance 6) kept the first estimate's value"
         return f"{n} pixels above the model's range clamped to radiance 6"
 
+    def uncertainty(self):
+        return self.last_std
+
     def denoise(self, buffers):
         s = self.spec
-        out = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, rotation=self.rotation,
-                                    variance=s.variance, steps=s.steps, start=s.start, samples=s.samples)
+        out, std = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, rotation=self.rotation,
+                                         variance=s.variance, steps=s.steps, start=s.start, samples=s.samples,
+                                         with_std=True)
+        self.last_std = std if s.samples > 1 else None
         return np.asarray(out, dtype=np.float32)
 
 
@@ -242,6 +268,9 @@ class Loader:
             return OIDN(name=name, aux=spec.family == "oidn")
         if spec.family == "isik":
             return self._isik(spp)
+        if spec.family == "oidn_isik":
+            isik = self._isik(spp)
+            return Mean(parts=(OIDN(), isik), name=name, device=isik.device, checkpoint=isik.checkpoint)
         return self._diffusion(name, spec, spp)
 
     def _isik(self, spp: int) -> Method:

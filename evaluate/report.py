@@ -260,6 +260,20 @@ def stability_summary(stab: dict | None) -> list[str]:
     return lines
 
 
+def uncertainty_lines(entry: dict) -> list[str]:
+    """The rows whose method gives its own per-pixel σ: how well σ ranks the actual error."""
+    rows = [(n, r["uncertainty"]) for n, r in entry["methods"].items() if r.get("uncertainty")]
+    if not rows:
+        return []
+    lines = ["Uncertainty (the standard deviation of the samples against the actual error per pixel; "
+             "evaluate/uncertainty.py):", ""]
+    lines += _table(["method", "Spearman ρ (mean over frames)", "frames"],
+                    [[f"`{n}`", fmt("ssim", u["spearman_mean"]), str(u["frames"])] for n, u in rows])
+    if entry.get("uncertainty_plot"):
+        lines += ["", f"Calibration plot: {entry['uncertainty_plot']}"]
+    return lines + [""]
+
+
 def format_markdown(result: dict) -> str:
     meta = result["meta"]
     names = result["metrics"]
@@ -294,6 +308,7 @@ def format_markdown(result: dict) -> str:
             lines += time_table(entry["time_vs_error"]) + [""]
             if entry.get("crops"):
                 lines += [f"Crops: {entry['crops']}", ""]
+            lines += uncertainty_lines(entry)
             if entry.get("per_scene"):
                 lines += [f"Per scene (one dot per frame): {entry['per_scene']}", ""]
         lines += [f"Plain MC convergence ({group}, mean over frames; GT2 is the independent high-spp render):", ""]

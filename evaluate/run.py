@@ -29,7 +29,7 @@ from pipeline.exr import StoreError
 from pipeline.progress import progress
 from pipeline.store import FrameKey, Store
 
-from . import report
+from . import report, uncertainty
 from .compare import annotate
 from .harness import finite_output, run_method
 from .methods import Loader, MethodUnavailable, check_names, curve_kind, label
@@ -148,7 +148,7 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
             except MethodUnavailable as exc:
                 rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
         _warm_up(methods, store, keys[0], spp)
-        crops = []
+        crops, pooled = [], {}
         for i, key in enumerate(keys):
             buffers = store.read(key.scene, key.frame, spp)
             ref = refs[key][1]
@@ -161,6 +161,11 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
                 if oc.output is not None:
                     outputs[name] = finite_output(oc)
                     rec["metrics"] = score(outputs[name], ref, metric_names, opts)
+                    std = method.uncertainty()
+                    if std is not None:
+                        s, err = uncertainty.pixel_pairs(std, outputs[name], ref)
+                        rec["uncertainty"] = {"spearman": uncertainty.rank_correlation(s, err)}
+                        pooled.setdefault(name, []).append((s, err))
                 rows[name]["per_frame"].append(rec)
             if i < e.crops:
                 crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
@@ -172,6 +177,10 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
                 row["seconds"] = _summary([r["seconds"] for r in pf])
                 row["failed_frames"] = sum(r["status"] != "ok" for r in pf)
                 row["input_repaired"] = sum(r["input_repaired"] for r in pf)
+                if name in pooled:
+                    row["uncertainty"] = uncertainty.summarize(
+                        [r["uncertainty"] for r in pf if "uncertainty" in r],
+                        tuple(np.concatenate(x) for x in zip(*pooled[name])))
         entry = {"methods": rows, "equal_time": _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names,
                                                             opts, quiet)}
         entry["time_vs_error"] = _time_vs_error(spp, keys, rows, entry["equal_time"], costs, result["mc_mean"])
@@ -181,6 +190,8 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
             path = out_dir / f"crops_{group}_spp{spp}.png"
             report.crop_figure(crops, titles, path, e.crop_size)
             entry["crops"] = path.name
+        entry["uncertainty_plot"] = uncertainty.plot(rows, out_dir / f"uncertainty_{group}_spp{spp}.png",
+                                                     f"{group}, {spp} spp: predicted vs actual error")
         entry["per_scene"] = report.per_scene_figure(entry, metric_names, out_dir / f"per_scene_{group}_spp{spp}.png",
                                                      f"{group}, {spp} spp")
         result["spp"][str(spp)] = entry

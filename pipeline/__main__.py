@@ -72,6 +72,14 @@ def cmd_pack(args) -> int:
     return run(_config(args), args.split or ["train", "val"], quiet=args.quiet)
 
 
+def cmd_export(args) -> int:
+    from pathlib import Path
+
+    from train.export import export
+    export(_config(args), args.spp, Path(args.out), quiet=args.quiet)
+    return 0
+
+
 def cmd_denoise(args) -> int:
     from train.cli import cmd_denoise as run
     return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
@@ -172,6 +180,13 @@ def main(argv: list[str] | None = None) -> int:
     p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_pretrain)
+
+    p = with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
+                                                  "(the shipped model: train/shipped)"))
+    p.add_argument("--spp", type=_spp, required=True, help="the run (diffusion_spp<N> or any)")
+    p.add_argument("--out", default="train/shipped", help="the model folder to write")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(fn=cmd_export)
 
     p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")

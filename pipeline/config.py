@@ -200,7 +200,9 @@ class PretrainConfig:
     layers_per_block: int = doc("ResNet layers per level of a new base.", 1)
     images: list = doc("Extra folders of images (.png/.jpg, sRGB) or EXRs (R,G,B radiance) for the prior, besides "
                        "every GT_clean frame of the store.", factory=list)
-    epochs: int = doc("Pretraining epochs (an epoch: crops_per_image crops of every image).", 100)
+    epochs: int = doc("Pretraining epochs (an epoch: crops_per_image crops of every image); 0 writes the initialised "
+                      "base (with the refine formulation its zero last layer returns the first estimate exactly; "
+                      "train it with diffusion.train_base=true).", 100)
     batch_size: int = doc("Crops per step.", 8)
     crop: int = doc("Side of the training crops.", 64)
     crops_per_image: int = doc("Crops per image per epoch.", 4)

@@ -129,6 +129,11 @@ def test_eval_runs_the_trained_model(setup, tmp_path):
         l1, psnr_db = (float(c.strip(" *")) for c in row.split("|")[2:4])
         assert 0 <= l1 < 6 and 0 < psnr_db < 100, row
     assert (tmp_path / "rep" / "crops_train_spp4.png").stat().st_size > 1000
+    rows = json.loads((tmp_path / "rep" / "eval.json").read_text())["groups"]["train"]["spp"]["4"]["methods"]
+    u = rows["ours_s3_k2"]["uncertainty"]            # the mean of 2 samples carries their spread
+    assert u["frames"] == 1 and u["calibration"] and all(b["std"] >= 0 and b["rmse"] >= 0 for b in u["calibration"])
+    assert "uncertainty" not in rows["ours"] and (tmp_path / "rep" / "uncertainty_train_spp4.png").exists()
+    assert "Spearman" in md
 
 
 def test_bench_denoise_reports_every_step_count(setup, tmp_path):
@@ -171,3 +176,35 @@ def test_pack_equals_the_store_reader(setup):
         PackPairs(path, crop=None, estimate="none")
     crop = PackPairs(path, crop=8, crops_per_item=2, seed=1, estimate="oidn", spp_choices=[4])
     assert len(crop) == 2 * 2 * len(keys) and crop[0]["aux"].shape[-2:] == (8, 8)
+
+
+def test_export_is_self_contained_and_serves_as_the_shipped_model(setup, tmp_path, monkeypatch):
+    """An exported run loads from anywhere (relative base), denoises exactly as the run does, and is what a
+    config without runs of its own falls back to; diffusion.shipped=false turns the fallback off."""
+    import train.model as tm
+    from pipeline.config import load_config
+    from pipeline.store import Store
+    from train.infer import load_denoiser
+
+    tmp, keys = setup
+    run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
+    out = tmp_path / "moved" / "shipped"
+    run("export", "--spp", "4", "--out", out, *keys)
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["base"] == "base" and (out / "base" / "config.json").exists() and (out / "README.md").exists()
+    store = Store(tmp / "store")
+    key = store.frames("test")[0]
+    buffers = store.read(key.scene, key.frame, 4)
+    a = load_denoiser(tmp / "runs" / "diffusion_spp4", device="cpu").denoise(buffers, spp=4, seed=3)
+    b = load_denoiser(out, device="cpu").denoise(buffers, spp=4, seed=3)
+    np.testing.assert_array_equal(a, b)
+    monkeypatch.setattr(tm, "SHIPPED_MODEL", out)
+    overrides = [k for k in cfg_overrides(keys) if not k.startswith("runs=")] + [f"runs={tmp_path / 'none'}"]
+    cfg = load_config(TINY, overrides)
+    assert tm.find_run(cfg, 16) == out
+    with pytest.raises(Exception, match="no diffusion checkpoint"):
+        tm.find_run(load_config(TINY, [*overrides, "diffusion.shipped=false"]), 16)
+
+
+def cfg_overrides(keys):
+    return [str(k) for k in keys if "=" in str(k)]

@@ -175,3 +175,22 @@ def test_differences_to_oidn_and_noisy_are_attached_to_every_scored_row():
     assert significant(isik["vs"]["noisy"]["psnr"])
     assert entry["equal_time"]["isik"]["vs"]["oidn"]["psnr"]["diff"] > 2     # MC rows are compared too
     assert isik["ci"]["psnr"]["lo"] < isik["metrics"]["psnr"] < isik["ci"]["psnr"]["hi"]
+
+
+def test_uncertainty_rank_and_calibration():
+    """A σ that is the true error's scale ranks the error well and lies on the diagonal; a σ that
+    is noise ranks nothing."""
+    from evaluate.uncertainty import calibration, pixel_pairs, rank_correlation
+
+    rng = np.random.default_rng(0)
+    ref = rng.random((64, 64, 3)).astype(np.float32)
+    sigma = np.repeat(np.exp(rng.normal(-3, 1, (64, 64, 1))), 3, axis=2).astype(np.float32)
+    out = ref + sigma * rng.standard_normal(ref.shape).astype(np.float32)
+    s, e = pixel_pairs(sigma, out, ref)
+    assert rank_correlation(s, e) > 0.6
+    bins = calibration(s, np.abs(out - ref).reshape(-1, 3)[:, 0], bins=8)   # one channel: e ~ |N(0, σ)|
+    for b in bins:
+        assert 0.7 < b["rmse"] / b["std"] < 1.3
+    s_noise, _ = pixel_pairs(rng.random(sigma.shape), out, ref)
+    assert abs(rank_correlation(s_noise, e)) < 0.1
+    assert rank_correlation(np.zeros_like(s), e) is None

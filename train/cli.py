@@ -169,6 +169,12 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     def save_best(record):
         base_lib.save(out, unet, prompt, card | record)
 
+    if p.epochs == 0:   # the initialised base: with the refine formulation it returns its image input exactly
+        save_best({"epoch": 0, "metrics": None, "train_loss": None})
+        if not quiet:
+            print(f"untrained base written to {out}", flush=True)
+        return 0
+
     val_keys = _frames(store, "val") if store.manifest_path.exists() else []
     validate = _validator(store, val_keys, spps, cfg, device, autocast_dtype(cfg.diffusion.precision, device)) \
         if val_keys and not form.paper else None

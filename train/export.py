@@ -1,0 +1,111 @@
+"""Export a trained run as a self-contained model folder (``python -m pipeline export``; the shipped model).
+
+    python -m pipeline export --config configs/ship.yaml --spp any --out train/shipped
+
+The folder holds everything ``train.model.load`` needs, named relative to itself, so it works from
+any checkout and any working directory:
+
+    model.json            the run's record; "base": "base", "isik": "isik" (relative), SHA-256 of each
+    control.safetensors   the Control Module
+    base/                 the base it was trained with (when the base trained too, its trained weights)
+    isik/                 the Isik network of the first estimate (when the estimate uses it)
+    README.md             the model card: data, formulation, training, validation numbers, the command
+
+Weights stay float32 (what was validated is what ships).
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import shutil
+from pathlib import Path
+
+from pipeline.checkpoint import save_safetensors
+from pipeline.config import Config
+from pipeline.exr import StoreError, atomic_write_json, read_json
+from pipeline.store import sha256
+
+from . import base as base_lib
+from .estimate import KINDS
+from .model import FORMAT, formulation, run_dir
+
+
+def export(cfg: Config, spp, out: Path, quiet: bool = False) -> Path:
+    from safetensors.torch import load_file
+
+    folder = run_dir(cfg, spp)
+    meta_path = folder / "model.json"
+    if not meta_path.exists():
+        raise StoreError(f"{folder}: no trained run to export (run `make train SPP={spp}` first)")
+    meta = read_json(meta_path, "model record")
+    state = load_file(str(folder / "control.safetensors"))
+    tmp = out.parent / (out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    _base(meta, state, folder, tmp / "base")
+    record = {**meta, "base": "base", "base_sha256": sha256(tmp / "base" / base_lib.WEIGHTS), "train_base": False}
+    if "isik" in KINDS[formulation(meta).estimate]:
+        shutil.copytree(Path(meta["isik"]), tmp / "isik", ignore=shutil.ignore_patterns("last.safetensors", "*.png"))
+        record.update(isik="isik", isik_sha256=sha256(tmp / "isik" / "model.safetensors"))
+    control = {k: v for k, v in state.items() if k.startswith("control.")}
+    save_safetensors(tmp / "control.safetensors", control, {"format": FORMAT})
+    record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
+    atomic_write_json(tmp / "model.json", record)
+    (tmp / "README.md").write_text(model_card(cfg, record, folder))
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    if not quiet:
+        size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+        print(f"exported {folder} -> {out} ({size / 2**20:.1f} MiB)", flush=True)
+    return out
+
+
+def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
+    """The base folder the run needs: a copy, with the trained weights when the base trained too."""
+    src = Path(meta["base"])
+    src = src if src.is_absolute() else (run / src).resolve()
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns("*.train"))
+    if meta.get("train_base"):
+        unet, prompt = base_lib.load(dest)
+        unet.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("base.")})
+        base_lib.save(dest, unet, prompt)
+
+
+def model_card(cfg: Config, record: dict, run: Path) -> str:
+    """The shipped model's README: what it is, what it saw, how it was trained, how well it did."""
+    train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
+    hist = train.get("history", [])
+    best = train.get("best") or {}
+    f = record.get("formulation", {})
+    d = cfg.dataset
+    lines = [
+        "# The shipped denoiser", "",
+        f"Exported from `{run}` on {record['exported']['date']} by `python -m pipeline export --config <config> "
+        f"--spp {record.get('spp')}`; loaded by `make denoise`, `python -m pipeline denoise --exr IN.exr --out "
+        "OUT.exr` and `make eval`'s `ours` rows wherever a config has no trained run of its own "
+        "(`diffusion.shipped`).", "",
+        "## What it is", "",
+        f"- First estimate: `{f.get('estimate')}` (train/estimate.py); the diffusion model refines its residual "
+        f"(`residual: {f.get('residual')}`, scale {f.get('residual_scale')}), predicting `{f.get('prediction')}` "
+        f"over the `{f.get('schedule')}` schedule; default sampler {f.get('sampler')}, {f.get('steps')} step(s) "
+        f"from `{f.get('start')}`.",
+        "- Base: the stand-in IF-II-layout UNet in `base/`; Control Module: `control.safetensors`; the Isik "
+        "network of the first estimate: `isik/` (when used).",
+        f"- Sample counts: {record.get('spp')} (the spp map is an input).", "",
+        "## Data", "",
+        f"Config `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
+        f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
+        f"GT {d.gt_spp} spp x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
+        "configs/default.yaml's scenes (another seed).", "",
+        "## Training", "",
+        f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
+        f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
+        f"train_base {cfg.diffusion.train_base}. Best epoch {best.get('epoch')} by validation PSNR.", "",
+        "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]
+    for h in hist:
+        v = h.get("val") or {}
+        lines.append(f"| {h['epoch']} | {v.get('psnr', float('nan')):.2f} | {v.get('estimate_psnr', float('nan')):.2f} "
+                     f"| {v.get('noisy_psnr', float('nan')):.2f} | {h.get('seconds')} |")
+    lines += ["", "Evaluation against OIDN, Isik and the noisy input on the default test set: "
+              "docs/example_report/eval.md.", ""]
+    return "\n".join(lines)
