@@ -74,8 +74,8 @@ gt-clean: setup
 clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
-# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline).
-# SPP=any trains one diffusion model for every sample count. Several GPUs/nodes: run the same
+# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline;
+# MODEL=afgsa: AFGSA). SPP=any trains one diffusion (or AFGSA) model for every sample count. Several GPUs/nodes: run the same
 # command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)

@@ -60,6 +60,9 @@ def cmd_train(args) -> int:
             raise ConfigError("--spp any: the Isik baseline trains one model per sample count")
         from clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
+    if args.model == "afgsa":
+        from clean.cli import cmd_train_afgsa
+        return cmd_train_afgsa(cfg, args.spp, quiet=args.quiet)
     from train.cli import cmd_train as train_diffusion
     return train_diffusion(cfg, args.spp, quiet=args.quiet)
 
@@ -158,11 +161,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_gt_clean)
 
-    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours) or isik (baseline); "
-                                                 "runs under torchrun for DDP"))
-    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik"], help="which denoiser")
+    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), isik or afgsa "
+                                                 "(baselines); diffusion runs under torchrun for DDP"))
+    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik", "afgsa"], help="which denoiser")
     p.add_argument("--spp", type=_spp, required=True,
-                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion model for all")
+                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion or AFGSA model "
+                        "for all")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
 
