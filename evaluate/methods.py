@@ -14,6 +14,9 @@ Names (``eval.methods``):
   colour only. OIDN takes world- or view-space normals in [-1, 1] (need not be normalised) and
   albedo in [0, 1]: ours are world space, clamped to those ranges before the call.
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``).
+- ``afgsa``: AFGSA (Yu et al. 2021, ``clean.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
+  all-spp run ``afgsa_sppany`` (``make train MODEL=afgsa SPP=N|any``); both run through
+  ``clean.apply.denoise`` (tiled).
 - ``ours``, ``ours_skipN``: the diffusion denoiser of ``train.infer`` at all 27 super27 steps or
   with N of them skipped; ``base_only``, ``base_only_skipN``: the same base without its Control
   Module (the paper's ablation row). ``ours_small[_skipN]``, ``base_only_small[_skipN]``: the
@@ -43,10 +46,11 @@ from pipeline.exr import StoreError
 # Diffusion families: (without the Control Module, sampler variance). They take a _skipN suffix.
 _DIFFUSION = {"ours": (False, "learned"), "base_only": (True, "learned"),
               "ours_small": (False, "small"), "base_only_small": (True, "small")}
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", *_DIFFUSION)
+FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "afgsa", *_DIFFUSION)
 _NAME = re.compile(r"^(?P<family>[a-z_]+?)(?:_skip(?P<skip>\d+))?$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
-          "isik": "Isik et al.", "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)",
+          "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "ours": "Ours (diffusion)",
+          "base_only": "Base only (no Control Module)",
           "ours_small": "Ours (diffusion), fixed small variance",
           "base_only_small": "Base only (no Control Module), fixed small variance"}
 
@@ -121,7 +125,9 @@ class OIDN(Method):
 
 
 @dataclass
-class Isik(Method):
+class CleanNet(Method):
+    """A network of ``clean`` (the Isik baseline, AFGSA) on ``frame_inputs``, tiled by ``clean.apply``."""
+
     model: object = None
     tile: int = 512
     name: str = "isik"
@@ -177,21 +183,23 @@ class Loader:
             return Noisy()
         if family in ("oidn", "oidn_color"):
             return OIDN(name=name, aux=family == "oidn")
-        if family == "isik":
-            return self._isik(spp)
+        if family in ("isik", "afgsa"):
+            return self._clean_net(family, spp)
         return self._diffusion(name, family, skip, spp)
 
-    def _isik(self, spp: int) -> Method:
+    def _clean_net(self, family: str, spp: int) -> Method:
         from clean.model import load_model
         from clean.train import run_dir
 
-        folder = run_dir(self.cfg, "baseline", spp)
-        if not (folder / "model.safetensors").exists():
-            raise MethodUnavailable(f"no Isik checkpoint in {folder}: run `make train MODEL=isik SPP={spp}`")
-        key = ("isik", spp)
-        if key not in self._models:
-            self._models[key] = load_model(folder, self.device())[0]
-        return Isik(model=self._models[key], tile=self.cfg.clean.tile, device=self.device())
+        mode, section = ("baseline", self.cfg.clean) if family == "isik" else ("afgsa", self.cfg.afgsa)
+        folders = [run_dir(self.cfg, mode, spp)] + ([run_dir(self.cfg, mode, "any")] if family == "afgsa" else [])
+        folder = next((f for f in folders if (f / "model.safetensors").exists()), None)
+        if folder is None:
+            raise MethodUnavailable(f"no {'Isik' if family == 'isik' else 'AFGSA'} checkpoint in "
+                                    f"{' or '.join(map(str, folders))}: run `make train MODEL={family} SPP={spp}`")
+        if folder not in self._models:
+            self._models[folder] = load_model(folder, self.device())[0]
+        return CleanNet(model=self._models[folder], tile=section.tile, name=family, device=self.device())
 
     def _diffusion(self, name: str, family: str, skip: int, spp: int) -> Method:
         base_only, variance = _DIFFUSION[family]

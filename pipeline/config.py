@@ -212,11 +212,11 @@ class PretrainConfig:
 @dataclass
 class EvalConfig:
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
-                        "ours, ours_skipN (N of the 27 steps skipped), base_only[_skipN] (the base without the "
+                        "afgsa, ours, ours_skipN (N of the 27 steps skipped), base_only[_skipN] (the base without the "
                         "Control Module), ours_small[_skipN] / base_only_small[_skipN] (sampled with the fixed "
                         "posterior variance instead of the learned one). A method whose model is missing is "
                         "listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip12",
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "afgsa", "ours", "ours_skip12",
                                          "ours_skip18", "ours_skip24", "ours_small_skip18", "ours_small_skip24",
                                          "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "

@@ -12,9 +12,12 @@ from clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
 from clean.losses import critic_loss, generator_loss, log_radiance
 from clean.model import load_model
 from clean.train import make_recipe, run_dir, save_best, train
+from evaluate.methods import Loader, MethodUnavailable, label
+from evaluate.stability import run_stability
 from pipeline.config import load_config
 from pipeline.store import Store
 from tests.test_clean_train import make_store
+from tests.test_stability import TINY
 
 # A network that runs in a fraction of a second on the tiny store.
 TINY_NET = ["afgsa.channels=8", "afgsa.extractor_channels=4", "afgsa.blocks=1", "afgsa.heads=2",
@@ -223,3 +226,38 @@ def test_any_spp_draws_every_count_and_validates_each(store_root):
     assert err[1] < err[0]
     tr = BaselinePairs(store, store.frames("train"), [4, 8], crop=8, crops_per_frame=8, seed=0)
     assert len(tr) == 8 * len(store.frames("train"))
+
+
+# ---- evaluation ----------------------------------------------------------------------------------
+
+
+def _save_untrained(folder):
+    torch.manual_seed(0)
+    model = AFGSANet(IN_CHANNELS, channels=8, extractor_channels=4, blocks=1, block_size=4, halo=1)
+    save_best(folder, model, {"format": "mcdenoise-afgsa", "hparams": model.hparams}, "mcdenoise-afgsa")
+
+
+def test_eval_loads_afgsa_and_says_why_it_cannot(tmp_path):
+    cfg = load_config(None, [f"runs={tmp_path}", "eval.device=cpu"])
+    with pytest.raises(MethodUnavailable, match=r"no AFGSA checkpoint.*make train MODEL=afgsa SPP=16"):
+        Loader(cfg).load("afgsa", 16)
+    _save_untrained(tmp_path / "afgsa_sppany")
+    method = Loader(cfg).load("afgsa", 16)           # falls back to the all-spp run
+    assert method.name == "afgsa" and isinstance(method.model, AFGSANet)
+    assert "afgsa" in cfg.eval.methods and label("afgsa").startswith("AFGSA")
+
+
+def test_stability_suite_runs_afgsa_finite_on_every_case(tmp_path):
+    """The generator's output is finite on every small case of make stability (NaN/Inf repaired by
+    the harness, 1e5, all black, fireflies, sizes down to 8x8), with its run time; the log-space
+    residual keeps 1e5 in the 1e5 range (an untrained head moves it by a small factor only)."""
+    _save_untrained(tmp_path / "runs" / "afgsa_spp4")
+    cfg = load_config(TINY, [f"runs={tmp_path / 'runs'}", "eval.methods=[noisy, afgsa]", "eval.device=cpu"])
+    data = run_stability(cfg, large=False, out=tmp_path / "r", quiet=True)
+    for case, row in data["results"].items():
+        cell = row["afgsa"]
+        assert cell["status"] == "ok" and cell["seconds"] > 0, (case, cell)
+        assert cell["out_min"] >= 0 and np.isfinite(cell["out_max"])
+    assert 1e4 < data["results"]["radiance_1e5"]["afgsa"]["out_mean"] < 1e6
+    assert data["results"]["size_33x17"]["afgsa"]["shape"] == [17, 33, 3]
+    assert "`afgsa`" in (tmp_path / "r" / "stability.md").read_text()
