@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from clean.afgsa_report import fine_energy
 from clean.afgsa import AFGSANet, GuidedAttention, PatchCritic, branch_channels, window_attention
 from clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
 from clean.losses import critic_loss, generator_loss, log_radiance
@@ -261,3 +262,47 @@ def test_stability_suite_runs_afgsa_finite_on_every_case(tmp_path):
     assert 1e4 < data["results"]["radiance_1e5"]["afgsa"]["out_mean"] < 1e6
     assert data["results"]["size_33x17"]["afgsa"]["shape"] == [17, 33, 3]
     assert "`afgsa`" in (tmp_path / "r" / "stability.md").read_text()
+
+
+# ---- the GT_clean-vs-GT1 report ------------------------------------------------------------------
+
+
+def test_fine_energy_sees_noise_not_smooth_ramps():
+    yy, xx = np.mgrid[0:32, 0:32] / 32.0
+    ramp = np.repeat((0.2 + 0.5 * xx + 0.2 * yy)[..., None], 3, axis=2)
+    noisy = ramp * (1 + 0.1 * np.random.default_rng(0).standard_normal(ramp.shape))
+    assert fine_energy(ramp) < 0.01 * fine_energy(noisy)       # a ramp is (almost) all large scale
+    assert fine_energy(np.zeros((4, 4, 3))) == 0.0
+
+
+def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root):
+    """Both runs (GT_clean and GT1 targets) load, the GT1 row is GT1's own metrics against GT_clean,
+    and the crop grid is a picture. The tiny store's gt_clean is written here: the mean of GT1 and GT2."""
+    from PIL import Image
+
+    from clean.afgsa_report import run_afgsa_report
+    from pipeline.metrics import all_metrics
+
+    root = _linked(tmp_path, store_root, "report")
+    store = Store(root / "store")
+    for key in store.frames():
+        g1, g2 = (store.read_image(key.scene, key.frame, n, ["color"])[0]["color"] for n in ("gt1", "gt2"))
+        if not store.image_path(key.scene, key.frame, "gt_clean").exists():
+            store.write_image(key.scene, key.frame, "gt_clean", {"color": (g1 + g2) / 2, "color.variance": 0 * g1},
+                              meta={"image": "gt_clean", "scene": key.scene, "frame": key.frame})
+    for target in ("gt_clean", "gt1"):
+        train(afgsa_cfg(root, epochs=1, target=target), "afgsa", 4, quiet=True)
+    cfg = load_config(None, [f"store={root / 'store'}", f"runs={root / 'runs'}", "eval.split=val", "afgsa.device=cpu"])
+    r = run_afgsa_report(cfg, spp=4, out=str(tmp_path / "out"), crops=2)
+    keys = store.frames("val")
+    read = lambda k, n: store.read_image(k.scene, k.frame, n, ["color"])[0]["color"]
+    assert r["frames"] == len(keys) == 2
+    assert r["rows"]["GT1"]["psnr"] == pytest.approx(np.mean([all_metrics(read(k, "gt1"), read(k, "gt_clean"))["psnr"]
+                                                              for k in keys]))
+    assert list(r["rows"]) == ["noisy input", "AFGSA -> GT_clean", "AFGSA -> GT1", "GT1"]
+    assert r["rows"]["noisy input"]["fine_energy_ratio"] > r["rows"]["GT1"]["fine_energy_ratio"] > 1
+    assert r["training"]["AFGSA -> GT1"]["epochs"] == 1
+    md = (tmp_path / "out" / "afgsa_targets.md").read_text()
+    assert "| AFGSA -> GT1 |" in md and "afgsa_gt1_spp4" in md
+    with Image.open(tmp_path / "out" / "afgsa_targets_crops.png") as im:
+        assert im.size[0] > im.size[1] > 100 and np.asarray(im.convert("L")).std() > 5
