@@ -306,3 +306,23 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
     assert "| AFGSA -> GT1 |" in md and "afgsa_gt1_spp4" in md
     with Image.open(tmp_path / "out" / "afgsa_targets_crops.png") as im:
         assert im.size[0] > im.size[1] > 100 and np.asarray(im.convert("L")).std() > 5
+
+
+def test_spp_any_means_4_16_64_on_the_default_stacks():
+    from clean.train import spp_choices
+
+    class Default:                                    # 16 stacks of 4 spp, as configs/default.yaml
+        def scenes(self):
+            return ["s00000"]
+
+        def scene_manifest(self, scene):
+            return {"stack_spp": 4, "stacks": 16}
+
+    assert spp_choices(Default(), "any") == [4, 16, 64] and spp_choices(Default(), 16) == [16]
+
+
+def test_spp_any_trains_one_run_for_every_count(tmp_path, store_root):
+    d = _linked(tmp_path, store_root, "any")
+    summary = train(afgsa_cfg(d, epochs=1), "afgsa", "any", quiet=True)
+    assert summary["folder"].endswith("afgsa_gt1_sppany") and summary["epochs"] == 1
+    assert json.loads((d / "runs" / "afgsa_gt1_sppany" / "model.json").read_text())["spp"] == "any"
