@@ -9,10 +9,12 @@ the same network, seed and crops trained against the raw GT1 (``afgsa.target=gt1
 - ``fine_energy`` ratio: the pixel-scale energy of an image over GT_clean's. Above 1 the image has
   more pixel-to-pixel variation than GT_clean (noise-like texture), below 1 it is smoother. GT1's
   own ratio says how much noise there was to learn;
+- PSNR against the first run's output: how far apart the runs are. Another seed of the same target
+  (``--run``) shows how far apart training alone puts two runs;
 - the noisy input and GT1 itself as reference rows.
 
-``--run LABEL=FOLDER`` adds any other AFGSA run (e.g. the L1-only ablation, ``afgsa.adv_weight=0``
-in another runs folder). Writes ``<out>/afgsa_targets.md``, ``.json`` and ``afgsa_targets_crops.png``.
+``--run LABEL=FOLDER`` adds any other AFGSA run (e.g. the L1-only ablation, ``afgsa.adv_weight=0``,
+or another ``seed``, in another runs folder). Writes ``<out>/afgsa_targets.md``, ``.json`` and ``afgsa_targets_crops.png``.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from pipeline.store import FrameKey, Store
 
 from .data import frame_inputs
 from .model import load_model
-from .train import TrainError, pick_device, run_dir
+from .train import TrainError, pick_device, run_dir, wall_seconds
 
 DIFF_GAIN = 20.0          # the two outputs differ by ~1e-3 on the x/(1+x) scale: invisible unscaled
 
@@ -55,9 +57,12 @@ def _frames(store: Store, split: str) -> list[FrameKey]:
     return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
 
 
-def _score(images: dict[str, np.ndarray], ref: np.ndarray, eps: float) -> dict[str, dict]:
+def _score(images: dict[str, np.ndarray], ref: np.ndarray, eps: float, first: np.ndarray) -> dict[str, dict]:
+    """Metrics against ``ref`` and the fine-energy ratio of every image; ``psnr_vs_first``: PSNR against
+    the first run's output, how far apart two runs are (compare it with two seeds of one target)."""
     ref_energy = max(fine_energy(ref), 1e-30)
-    return {name: {**all_metrics(img, ref, eps), "fine_energy_ratio": fine_energy(img) / ref_energy}
+    return {name: {**all_metrics(img, ref, eps), "fine_energy_ratio": fine_energy(img) / ref_energy,
+                   "psnr_vs_first": min(all_metrics(img, first, eps)["psnr"], 999.0)}
             for name, img in images.items()}
 
 
@@ -71,7 +76,7 @@ def _training(folder: Path) -> dict | None:
         return None
     hist = json.loads(path.read_text())
     return {"epochs": len(hist["history"]), "best_epoch": hist["best"]["epoch"],
-            "seconds": float(max(h["seconds"] for h in hist["history"])), "curve": str(folder / "loss.png")}
+            "seconds": wall_seconds(hist["history"]), "curve": str(folder / "loss.png")}
 
 
 def run_afgsa_report(cfg: Config, spp: int = 4, out: str = "reports/afgsa", runs: dict[str, Path] | None = None,
@@ -94,7 +99,9 @@ def run_afgsa_report(cfg: Config, spp: int = 4, out: str = "reports/afgsa", runs
         ref, gt1 = (store.read_image(key.scene, key.frame, n, ["color"])[0]["color"] for n in ("gt_clean", "gt1"))
         inputs, radiance = frame_inputs(buffers)
         outs = {label: denoise(m, inputs, radiance, tile=cfg.afgsa.tile, device=device) for label, m in models.items()}
-        per_frame.append(_score({"noisy input": buffers["color"], **outs, "GT1": gt1}, ref, cfg.clean.smape_eps))
+        first = next(iter(outs.values()))
+        per_frame.append(_score({"noisy input": buffers["color"], **outs, "GT1": gt1}, ref, cfg.clean.smape_eps,
+                                first))
         if len(grid) < crops:
             grid.append((str(key), [buffers["color"], *outs.values(), gt1, ref]))
     names = list(per_frame[0])
@@ -120,19 +127,22 @@ def _crops(grid: list, labels: list[str], path: Path) -> None:
         rows.append((name, imgs + diff))
     titles = ["noisy", *labels, "GT1", "GT_clean"]
     if len(labels) >= 2:
-        titles.append(f"|{labels[1]} - {labels[0]}| x{DIFF_GAIN:g}")
+        titles.append(f"|2nd - 1st run| x{DIFF_GAIN:g}")
     figures.crop_grid(rows, titles, path, reference=len(labels) + 2)
 
 
 def format_markdown(r: dict) -> str:
     lines = [f"# AFGSA: trained against GT_clean vs against GT1 ({r['spp']} spp, {r['split']} split, "
              f"{r['frames']} frames, scored against GT_clean)", "",
-             "| image | PSNR dB (x/(1+x)) | L1 (HDR, [0,6]) | SMAPE | fine-scale energy / GT_clean's |",
-             "| --- | --- | --- | --- | --- |"]
+             "| image | PSNR dB (x/(1+x)) | L1 (HDR, [0,6]) | SMAPE | fine-scale energy / GT_clean's | "
+             f"PSNR dB against {next(iter(r['runs']))} |", "| --- | --- | --- | --- | --- | --- |"]
     for name, m in r["rows"].items():
-        lines.append(f"| {name} | {m['psnr']:.2f} | {m['l1']:.5f} | {m['smape']:.4f} | {m['fine_energy_ratio']:.3f} |")
+        lines.append(f"| {name} | {m['psnr']:.2f} | {m['l1']:.5f} | {m['smape']:.4f} | {m['fine_energy_ratio']:.3f} | "
+                     + ("-" if name == next(iter(r["runs"])) else f"{m['psnr_vs_first']:.2f}") + " |")
     lines += ["", "Fine-scale energy: mean squared difference between the x/(1+x) image and its 3x3 box blur, over "
-              "GT_clean's (1 = as much pixel-scale variation as GT_clean; GT1's row is its noise).", ""]
+              "GT_clean's (1 = as much pixel-scale variation as GT_clean; GT1's row is its noise). The last column "
+              "says how far each image is from the first run's output (two runs of the same target with another "
+              "seed show how far apart training alone puts them).", ""]
     for label, t in r["training"].items():
         if t:
             lines.append(f"- {label}: {r['runs'][label]}, {t['epochs']} epochs in {t['seconds']:.0f} s, best epoch "

@@ -402,6 +402,14 @@ def _write_history(folder: Path, recipe: Recipe, history: list, best, only_if_ch
     atomic_write_json(path, record)
 
 
+def wall_seconds(history: list[dict]) -> float:
+    """Training wall time over every invocation: an entry's ``seconds`` count from the start of the
+    invocation that trained it, so a resumed run starts counting again (a drop) and each
+    invocation contributes its last value."""
+    secs = [float(h["seconds"]) for h in history]
+    return sum(t for t, nxt in zip(secs, secs[1:] + [0.0]) if nxt < t)
+
+
 def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:
     epochs = history[-1]["epoch"] if history else 0
     line = f"{folder.name}: {epochs} epochs ({trained} this run, {seconds:.1f} s)"

@@ -326,3 +326,11 @@ def test_spp_any_trains_one_run_for_every_count(tmp_path, store_root):
     summary = train(afgsa_cfg(d, epochs=1), "afgsa", "any", quiet=True)
     assert summary["folder"].endswith("afgsa_gt1_sppany") and summary["epochs"] == 1
     assert json.loads((d / "runs" / "afgsa_gt1_sppany" / "model.json").read_text())["spp"] == "any"
+
+
+def test_wall_seconds_adds_the_invocations_of_a_resumed_run():
+    from clean.train import wall_seconds
+
+    # 2 epochs in one invocation (10 s, 20 s), then 2 more after a resume (5 s, 15 s)
+    assert wall_seconds([{"seconds": s} for s in (10, 20, 5, 15)]) == 35
+    assert wall_seconds([{"seconds": s} for s in (10, 20)]) == 20 and wall_seconds([]) == 0
