@@ -26,7 +26,8 @@ Inputs are the project's encoding (``clean.data.frame_inputs``): the radiance bu
 extractor; albedo, normal, depth, roughness, metallic, transmission and their variance features
 feed the auxiliary one (``branch_channels``). The network predicts a log-space residual of the
 noisy colour; ``forward`` returns HDR radiance (``expm1``, clamped to [0, ``LOG_MAX``] in log
-space, so finite for every finite input), with the Isik network's signature
+space, so finite for every finite input, and to at most twice the brightest noisy pixel nearby
+plus 1, ``BOUND_RADIUS``), with the Isik network's signature
 ``forward(inputs, radiance)``, so ``clean.apply.denoise`` (tiling) and the evaluator run both.
 
 Sizes (``afgsa`` config section), ours vs the paper's: 32 vs 256 transformer channels, 32 vs 256
@@ -36,6 +37,8 @@ critic (the paper uses a VGG-style critic on 128² crops; the WGAN-GP formulatio
 ``clean.losses``).
 """
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -49,6 +52,11 @@ from .model import INPUT_CLAMP
 # Output clamp in log1p space: expm1(25) ≈ 7e10 is far above any radiance we render (1e5 in the
 # stability suite) and keeps the HDR output finite whatever the weights predict.
 LOG_MAX = 25.0
+# Inference bound: a pixel's output is at most 2·m + 1, m the brightest noisy pixel within this
+# radius (log1p(2m + 1) = log1p(m) + log 2). A denoiser averages; an untrained or out-of-range
+# network otherwise extrapolates in log space (1e5 everywhere came out as 3e6). The radius stays
+# inside clean.apply's tile margin, so tiling does not change the bound.
+BOUND_RADIUS = 8
 FORMAT = "mcdenoise-afgsa"
 
 
@@ -216,7 +224,13 @@ class AFGSANet(nn.Module):
     def forward(self, inputs: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
         if inputs.shape[-2:] != radiance.shape[-2:]:
             raise ValueError(f"inputs {tuple(inputs.shape)} and radiance {tuple(radiance.shape)} differ in size")
-        return torch.expm1(self.log_forward(inputs).clamp(0.0, LOG_MAX))
+        return torch.expm1(torch.minimum(self.log_forward(inputs), self.log_bound(inputs)).clamp(0.0, LOG_MAX))
+
+    def log_bound(self, inputs: torch.Tensor) -> torch.Tensor:
+        """log1p(2·m + 1) per pixel, m the brightest noisy colour within ``BOUND_RADIUS`` (see there)."""
+        colour = inputs[:, self.colour].clamp(0.0, INPUT_CLAMP)
+        local = F.max_pool2d(colour, 2 * BOUND_RADIUS + 1, stride=1, padding=BOUND_RADIUS)
+        return local + math.log(2.0)
 
 
 class PatchCritic(nn.Module):
