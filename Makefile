@@ -75,9 +75,9 @@ gt-clean: setup
 clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
-# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline).
-# SPP=any trains one model for every sample count (diffusion: runs/<..>/diffusion_sppany; Isik:
-# isik_sppany, which make eval uses at every spp without its own isik_spp<N>). Several GPUs/nodes: run the same
+# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline;
+# MODEL=afgsa: AFGSA). SPP=any trains one model for every sample count (diffusion_sppany, isik_sppany,
+# afgsa_sppany; make eval uses them at every spp without a run of their own). Several GPUs/nodes: run the same
 # command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)

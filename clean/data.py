@@ -26,8 +26,8 @@ Pairs (dicts of float32 tensors ``inputs`` (C, h, w), ``radiance`` (3, h, w), ``
 - ``CleanerPairs``: GT1 and GT2 of a frame, swapped at random (paper eq. 1): inputs and
   radiance of one, target the other one's ``color``.
 - ``BaselinePairs``: the low-spp buffers at ``spp`` (``Store.read``, random stacks in training,
-  the first stacks in validation) → target ``gt_clean``; with a list of sample counts (the
-  Isik baseline's ``SPP=any``) each item draws one.
+  the first stacks in validation) → target ``gt_clean`` (or another image, e.g. ``gt1``); with a
+  list of sample counts (``SPP=any``) each training item draws one.
 
 Training items are random crops with random horizontal/vertical flips; validation items are
 whole frames in a fixed order. Randomness comes from ``numpy.random.default_rng([seed, epoch,
@@ -227,37 +227,33 @@ class CleanerPairs(_Pairs):
 
 
 class BaselinePairs(_Pairs):
-    """Low-spp buffers (random stacks in training, the first ones in validation) → gt_clean.
+    """Low-spp buffers at ``spp`` (random stacks in training, the first ones in validation) → ``target``
+    (gt_clean; AFGSA's experiment also trains against gt1).
 
-    ``spp`` is one sample count or a list of them (the spp-conditioned model, ``SPP=any``): a
-    training item draws its count from the list; validation frame i uses the list's entry
-    i mod len, so every count is validated at the cost of one pass over the frames. The network
-    needs no spp input: the inputs carry the pooled variance, i.e. the noise level.
-    """
+    ``spp`` may be a list (one model for several sample counts): training draws one per item,
+    validation has every frame at every count."""
 
     def __init__(self, store: Store, keys: list[FrameKey], spp: int | list[int], crop: int | None,
-                 crops_per_frame: int = 1, seed: int = 0):
+                 crops_per_frame: int = 1, seed: int = 0, target: str = "gt_clean"):
         super().__init__(store, keys, crop, crops_per_frame, seed)
-        self.spps = [int(s) for s in (spp if isinstance(spp, (list, tuple)) else [spp])]
+        self.spps = [int(s) for s in spp] if isinstance(spp, (list, tuple)) else [int(spp)]
+        self.target = target
+
+    def __len__(self) -> int:
+        return super().__len__() * (1 if self.train else len(self.spps))
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = self._rng(index)
-        frame = index // self.crops_per_frame
-        key = self.keys[frame]
         if self.train:
+            key = self.keys[index // self.crops_per_frame]
             spp = self.spps[int(rng.integers(len(self.spps)))] if len(self.spps) > 1 else self.spps[0]
             inputs, radiance = frame_inputs(self.store.read(key.scene, key.frame, spp, rng=rng))
         else:
-            inputs, radiance = self._image(key, f"spp{self.spps[frame % len(self.spps)]}")
-        target = self._target(key, "gt_clean")
+            key, spp = self.keys[index // len(self.spps)], self.spps[index % len(self.spps)]
+            inputs, radiance = self.cache.get((key.scene, key.frame, f"spp{spp}"),
+                                              lambda: frame_inputs(self.store.read(key.scene, key.frame, spp)))
+        target = self._target(key, self.target)
         return self._item(inputs, radiance, target, rng)
-
-    def _image(self, key: FrameKey, image: str):
-        if image.startswith("spp"):
-            spp = int(image[3:])
-            return self.cache.get((key.scene, key.frame, image),
-                                  lambda: frame_inputs(self.store.read(key.scene, key.frame, spp)))
-        return super()._image(key, image)
 
 
 def usable_frames(store: Store, split: str, images: list[str]) -> list[FrameKey]:
@@ -271,7 +267,7 @@ def usable_frames(store: Store, split: str, images: list[str]) -> list[FrameKey]
     return out
 
 
-def baseline_images(store: Store, key: FrameKey, spp: int) -> list[str]:
-    """Images the baseline needs for ``key`` at ``spp``: the stacks it averages and gt_clean."""
+def baseline_images(store: Store, key: FrameKey, spp: int, target: str = "gt_clean") -> list[str]:
+    """Images the baseline needs for ``key`` at ``spp``: the stacks it averages and its target."""
     sm = store.scene_manifest(key.scene)
-    return [stack_name(k) for k in range(max(1, spp // int(sm["stack_spp"])))] + ["gt_clean"]
+    return [stack_name(k) for k in range(max(1, spp // int(sm["stack_spp"])))] + [target]

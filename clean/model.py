@@ -283,8 +283,17 @@ class AffinityDenoiser(nn.Module):
 # ---- weights on disk: safetensors + a JSON sidecar ------------------------------------------
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[AffinityDenoiser, dict]:
-    """Load ``model.safetensors`` and its sidecar ``model.json`` (hparams, epoch, metrics, ...).
+def _network_class(fmt: str | None) -> type[nn.Module]:
+    """The class a sidecar's ``format`` names: the affinity network, or AFGSA (``clean.afgsa``)."""
+    if fmt == "mcdenoise-afgsa":
+        from .afgsa import AFGSANet
+        return AFGSANet
+    return AffinityDenoiser
+
+
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, dict]:
+    """Load ``model.safetensors`` and its sidecar ``model.json`` (format, hparams, epoch, metrics, ...):
+    an ``AffinityDenoiser``, or an ``AFGSANet`` where the sidecar's format says so.
 
     ``path`` is the .safetensors file or the run folder holding ``model.safetensors``.
     """
@@ -298,7 +307,7 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Af
         path = path / "model.safetensors"
     meta = read_json(path.with_suffix(".json"), "model sidecar")
     try:
-        model = AffinityDenoiser(**meta["hparams"])
+        model = _network_class(meta.get("format"))(**meta["hparams"])
         # safetensors only: a pickle (torch.save) checkpoint is refused here, never unpickled.
         model.load_state_dict(load_file(str(path), device=str(device)))
     except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as exc:

@@ -26,7 +26,7 @@ from pipeline.store import Store
 
 from .data import frame_inputs
 from .model import load_model
-from .train import baseline_checkpoint, pick_device, run_dir
+from .train import baseline_checkpoint, pick_device, run_dir, wall_seconds
 
 
 def _mean_rows(rows: list[dict]) -> dict:
@@ -129,9 +129,9 @@ def run_report(cfg: Config, out: str = "reports/cleaner", spp: int | None = None
     train_json = run_dir(cfg, "cleaner") / "train.json"
     if train_json.exists():
         hist = json.loads(train_json.read_text())
-        # each epoch records the run's cumulative wall seconds; the curve is loss.png beside it
+        # the curve is loss.png beside it; seconds over every invocation of a resumed run
         result["training"] = {"epochs": len(hist["history"]), "best_epoch": hist["best"]["epoch"],
-                              "seconds": float(max(h["seconds"] for h in hist["history"])),
+                              "seconds": wall_seconds(hist["history"]),
                               "val_smape_per_epoch": [h["val"]["smape"] for h in hist["history"] if h.get("val")]}
     if spp is not None:
         result["baseline"] = baseline_metrics(cfg, store, spp)

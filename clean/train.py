@@ -1,22 +1,33 @@
-"""Training of the affinity network: the GT cleaner (GT1 ↔ GT2, paper eq. 1) or the Isik baseline
-(low-spp buffers at ``spp`` → GT_clean).
+"""Training of this package's networks, one loop for three recipes: the GT cleaner (GT1 ↔ GT2,
+paper eq. 1), the Isik baseline (low-spp buffers at ``spp`` → GT_clean) and AFGSA (low-spp → GT_clean,
+or GT1 for the experiment of issue 14; L1 in log space + WGAN-GP adversarial loss).
 
     train(cfg, mode="cleaner")          → runs/<...>/cleaner/
     train(cfg, mode="baseline", spp=4)  → runs/<...>/isik_spp4/
     train(cfg, mode="baseline", spp="any") → runs/<...>/isik_sppany/ (trained at 4, 8, ... 64 spp)
+    train(cfg, mode="afgsa", spp=4)     → runs/<...>/afgsa_spp4/   (afgsa.target=gt1: afgsa_gt1_spp4/;
+                                          spp="any": afgsa_sppany/, crops drawn at 4, 8, ... 64 spp)
 
-Loss SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW, random crops and flips from
-the train split; after every epoch a validation pass over the whole frames of the val split
-(SMAPE, L1 and PSNR). Files of a run folder:
+A ``Recipe`` holds what differs between them: the networks, their optimizers, one optimisation
+step, and the config section with the loop's settings (``clean`` or ``afgsa``). The cleaner and
+the Isik baseline: SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW. AFGSA: one
+critic step, then one generator step per batch (``clean.losses``; Adam, as the paper).
+
+The loop (``train``): random crops and flips from the train split; a NaN guard (a step whose loss
+or gradient norm is not finite is skipped and counted, ``nan_limit`` in a row stop the run with an
+error); after every epoch a validation pass over the whole frames of the val split (SMAPE, L1 and
+PSNR). Files of a run folder:
 
 - ``model.safetensors`` + ``model.json``: the best epoch so far (lowest validation SMAPE; the
   training loss where the val split is empty). What ``clean.apply`` and the evaluator load
   (``clean.model.load_model``).
 - ``last.safetensors``: the state after the last finished epoch, one file written atomically:
-  weights (``model.*``), AdamW moments (``optim.*``), the torch RNG state, and in the safetensors
-  metadata a JSON record (epoch, history, best, optimizer hyper-parameters, config fingerprint).
-  A rerun resumes from it and gives bitwise the weights of an uninterrupted run: each epoch's
-  crops come from ``default_rng([seed, epoch, item])``, independent of what ran before.
+  weights (``model.*``; AFGSA's generator and critic), optimizer moments (``optim.*``), the torch
+  RNG state, and in the safetensors metadata a JSON record (epoch, history, best, optimizer
+  hyper-parameters, config fingerprint). A rerun resumes from it and gives bitwise the weights of
+  an uninterrupted run: each epoch's crops come from ``default_rng([seed, epoch, item])`` and each
+  step's other random draws from a generator seeded by (seed, epoch, step), independent of what
+  ran before.
 - ``loss.png``: training and validation loss per epoch; ``train.json``: the history as JSON.
 
 No pickle anywhere: everything is safetensors or JSON.
@@ -25,7 +36,9 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -33,13 +46,13 @@ from torch.utils.data import DataLoader
 
 from pipeline.config import Config
 from pipeline.progress import progress
-from pipeline.checkpoint import load_last, plot_curves, save_last, save_safetensors
+from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, save_safetensors
 from pipeline.exr import StoreError, atomic_write_json
 from pipeline.metrics import all_metrics
 from pipeline.store import Store
 
 from .data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
-from .losses import smape
+from .losses import critic_loss, generator_loss, log_radiance, smape
 from .model import AffinityDenoiser
 
 FORMAT = "mcdenoise-affinity"
@@ -56,8 +69,11 @@ def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) ->
     if mode == "cleaner":
         return Path(cfg.runs) / "cleaner"
     if mode == "baseline":
-        return Path(cfg.runs) / f"isik_spp{spp if str(spp) == 'any' else int(spp)}"
-    raise ValueError(f"mode must be 'cleaner' or 'baseline', got {mode!r}")
+        return Path(cfg.runs) / f"isik_spp{'any' if str(spp) == 'any' else int(spp)}"
+    if mode == "afgsa":
+        target = "" if cfg.afgsa.target == "gt_clean" else f"_{cfg.afgsa.target}"
+        return Path(cfg.runs) / f"afgsa{target}_spp{'any' if str(spp) == 'any' else int(spp)}"
+    raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
 
 
 def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
@@ -104,13 +120,116 @@ def build_model_hparams(cfg: Config) -> dict:
             "variance_channel": COLOR_VARIANCE_CHANNEL if c.range_term else None, "range_patch": c.range_patch}
 
 
+# ---- recipes ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Recipe:
+    """What one trainer optimises; ``train`` runs any of them."""
+    mode: str
+    spp: object                   # int, "any" or None (the cleaner)
+    settings: object              # cfg.clean or cfg.afgsa: epochs, batch_size, crop, crops_per_frame,
+    #                               grad_clip, nan_limit, time_budget_s, tile, device
+    model: torch.nn.Module        # validated, saved as model.safetensors
+    state: torch.nn.Module        # saved in last.safetensors (the model, or the model and its critic)
+    optimizers: object            # an optimizer, or a dict name -> optimizer
+    step: Callable                # (batch on the device, torch.Generator) -> ({"loss": ..., terms}, finite)
+    fingerprint: dict
+    fmt: str
+    title: str
+    loss_label: str
+    target: str = "gt_clean"
+    meta: dict = field(default_factory=dict)
+
+
+def apply_update(loss: torch.Tensor, opt: torch.optim.Optimizer, params: list, grad_clip: float) -> bool:
+    """Backward, clip, step; a non-finite loss or gradient norm skips the step (returns False)."""
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    # max_norm inf measures without clipping (the gradients are multiplied by exactly 1).
+    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip > 0 else float("inf"))
+    if not (torch.isfinite(loss) and torch.isfinite(norm)):
+        opt.zero_grad(set_to_none=True)
+        return False
+    opt.step()
+    return True
+
+
+def affinity_recipe(cfg: Config, mode: str, spp: int | None, device) -> Recipe:
+    """The cleaner (mode 'cleaner') or the Isik baseline ('baseline'): SMAPE, AdamW."""
+    c = cfg.clean
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=c.lr, weight_decay=c.weight_decay)
+    params = list(model.parameters())
+
+    def step(batch: dict, generator: torch.Generator) -> tuple[dict, bool]:
+        loss = smape(model(batch["inputs"], batch["radiance"]), batch["target"], c.smape_eps)
+        return {"loss": float(loss.detach())}, apply_update(loss, opt, params, c.grad_clip)
+
+    title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
+    return Recipe(mode, spp, c, model, model, opt, step, fingerprint(cfg, mode, spp), FORMAT, title, "SMAPE",
+                  meta={"smape_eps": c.smape_eps, "clean": vars(c).copy()})
+
+
+def afgsa_hparams(cfg: Config) -> dict:
+    a = cfg.afgsa
+    return {"in_channels": IN_CHANNELS, "channels": a.channels, "extractor_channels": a.extractor_channels,
+            "blocks": a.blocks, "heads": a.heads, "block_size": a.block_size, "halo": a.halo}
+
+
+def afgsa_recipe(cfg: Config, spp, device) -> Recipe:
+    """AFGSA: per batch one WGAN-GP critic step, then one generator step on L1 (log space) +
+    adv_weight x the adversarial term (the authors' order); adv_weight 0 trains the generator on L1
+    alone and never touches the critic."""
+    from .afgsa import FORMAT as AFGSA_FORMAT, AFGSANet, PatchCritic
+
+    a = cfg.afgsa
+    torch.manual_seed(cfg.seed)
+    generator = AFGSANet(**afgsa_hparams(cfg)).to(device)
+    critic = PatchCritic(a.critic_channels, a.critic_levels).to(device)
+    opts = {"generator": torch.optim.Adam(generator.parameters(), lr=a.lr),
+            "critic": torch.optim.Adam(critic.parameters(), lr=a.lr_critic)}
+    g_params, d_params = list(generator.parameters()), list(critic.parameters())
+    adversarial = a.adv_weight > 0
+
+    def step(batch: dict, rng: torch.Generator) -> tuple[dict, bool]:
+        fake, real = generator.log_forward(batch["inputs"]), log_radiance(batch["target"])
+        ok, terms = True, {}
+        if adversarial:
+            d_loss, terms = critic_loss(critic, real, fake, a.gp_weight, rng)
+            ok = apply_update(d_loss, opts["critic"], d_params, a.grad_clip)
+        g_loss, g_terms = generator_loss(fake, real, critic if adversarial else None, a.adv_weight)
+        ok = apply_update(g_loss, opts["generator"], g_params, a.grad_clip) and ok
+        return {"loss": g_terms.pop("l1"), **g_terms, **terms}, ok
+
+    fp = {"mode": "afgsa", "spp": spp, "seed": cfg.seed, "hparams": afgsa_hparams(cfg), "critic": critic.hparams,
+          **{k: getattr(a, k) for k in ("target", "batch_size", "crop", "crops_per_frame", "lr", "lr_critic",
+                                         "adv_weight", "gp_weight", "grad_clip")}}
+    title = f"AFGSA, {spp} spp -> {a.target} (adv. weight {a.adv_weight:g})"
+    state = torch.nn.ModuleDict({"generator": generator, "critic": critic})
+    return Recipe("afgsa", spp, a, generator, state, opts, step, fp, AFGSA_FORMAT, title, "L1 (log1p)",
+                  target=a.target, meta={"smape_eps": cfg.clean.smape_eps, "target": a.target, "afgsa": vars(a).copy()})
+
+
+def make_recipe(cfg: Config, mode: str, spp) -> Recipe:
+    if mode in ("baseline", "afgsa") and not spp:
+        model = "isik" if mode == "baseline" else "afgsa"
+        raise TrainError(f"the {model} model needs an spp (make train MODEL={model} SPP=4)")
+    if mode == "afgsa":
+        return afgsa_recipe(cfg, spp, pick_device(cfg.afgsa.device))
+    if mode not in ("cleaner", "baseline"):
+        raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
+    return affinity_recipe(cfg, mode, spp, pick_device(cfg.clean.device))
+
+
 # ---- data ------------------------------------------------------------------------------------
 
 
-def datasets(cfg: Config, mode: str, spp: int | str | None):
+def datasets(cfg: Config, recipe: Recipe):
     store = Store(cfg.store)
-    c = cfg.clean
-    spps = store.spp_choices(spp) if mode == "baseline" else None
+    s, mode = recipe.settings, recipe.mode
+    spps = store.spp_choices(recipe.spp) if mode != "cleaner" else []
 
     def keys(split: str) -> list:
         if split not in store.manifest()["splits"]:
@@ -118,15 +237,19 @@ def datasets(cfg: Config, mode: str, spp: int | str | None):
         if mode == "cleaner":
             return usable_frames(store, split, ["gt1", "gt2"])
         return [k for k in usable_frames(store, split, ["gt1"])
-                if all(store.image_path(k.scene, k.frame, n).exists() for n in baseline_images(store, k, max(spps)))]
+                if all(store.image_path(k.scene, k.frame, n).exists()
+                       for n in baseline_images(store, k, max(spps), recipe.target))]
 
     train_keys, val_keys = keys("train"), keys("val")
     if not train_keys:
-        need = "gt1/gt2" if mode == "cleaner" else f"gt_clean and the stacks for {spp} spp (run make gt-clean)"
+        need = ("gt1/gt2" if mode == "cleaner" else
+                f"{recipe.target} and the stacks for {max(spps)} spp" + (" (run make gt-clean)"
+                                                                         if recipe.target == "gt_clean" else ""))
         raise TrainError(f"{store.root}: no complete training frame with {need}")
     make = ((lambda k, crop, n: CleanerPairs(store, k, crop, n, cfg.seed)) if mode == "cleaner" else
-            (lambda k, crop, n: BaselinePairs(store, k, spps, crop, n, cfg.seed)))
-    train_ds = make(train_keys, c.crop, c.crops_per_frame)
+            (lambda k, crop, n: BaselinePairs(store, k, spps if len(spps) > 1 else spps[0], crop, n, cfg.seed,
+                                              recipe.target)))
+    train_ds = make(train_keys, s.crop, s.crops_per_frame)
     val_ds = make(val_keys, None, 1) if val_keys else None
     return train_ds, val_ds
 
@@ -134,25 +257,28 @@ def datasets(cfg: Config, mode: str, spp: int | str | None):
 # ---- checkpoints -----------------------------------------------------------------------------
 
 
-def save_best(folder: Path, model: AffinityDenoiser, record: dict) -> None:
-    save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": FORMAT})
+def save_best(folder: Path, model: torch.nn.Module, record: dict, fmt: str = FORMAT) -> None:
+    save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": fmt})
     atomic_write_json(folder / "model.json", record)
 
 
-def plot_curve(path: Path, history: list[dict], title: str) -> None:
-    """Training and validation SMAPE per epoch (log scale) as a PNG, written atomically."""
+def plot_curve(path: Path, history: list[dict], title: str, loss_label: str = "SMAPE") -> None:
+    """Training loss and validation SMAPE per epoch as a PNG (log scale), written atomically; the
+    critic's Wasserstein estimate, where there is one, on the right axis."""
+    curves = {f"train {loss_label}": [(h["epoch"], h["train_loss"]) for h in history if h["train_loss"] is not None]}
     val = [(h["epoch"], h["val"]["smape"]) for h in history if h.get("val")]
-    curves = {"train SMAPE": [(h["epoch"], h["train_loss"]) for h in history]}
     if val:
         curves["val SMAPE"] = val
-    plot_curves(path, curves, title, xlabel="epoch", ylabel="loss")
+    critic = [(h["epoch"], h["terms"]["wasserstein"]) for h in history if "wasserstein" in h.get("terms", {})]
+    right = {"critic: E[D(target)] - E[D(output)]": critic} if critic else None
+    plot_curves(path, curves, title, xlabel="epoch", ylabel="loss", right=right, right_label="critic")
 
 
 # ---- loops -----------------------------------------------------------------------------------
 
 
 @torch.no_grad()
-def validate(model: AffinityDenoiser, ds, cfg: Config, device) -> dict[str, float]:
+def validate(model: torch.nn.Module, ds, tile: int, eps: float, device) -> dict[str, float]:
     """Mean SMAPE / L1 (HDR, clamped to [0, 6]) / PSNR (x/(1+x), peak 1) over whole frames."""
     from .apply import denoise
 
@@ -160,26 +286,52 @@ def validate(model: AffinityDenoiser, ds, cfg: Config, device) -> dict[str, floa
     rows = []
     for i in range(len(ds)):
         item = ds[i]
-        out = denoise(model, item["inputs"].numpy(), item["radiance"].numpy(), tile=cfg.clean.tile, device=device)
-        row = all_metrics(out, np.moveaxis(item["target"].numpy(), 0, 2), eps=cfg.clean.smape_eps)
+        out = denoise(model, item["inputs"].numpy(), item["radiance"].numpy(), tile=tile, device=device)
+        row = all_metrics(out, np.moveaxis(item["target"].numpy(), 0, 2), eps=eps)
         # Identical images have PSNR inf, which JSON cannot hold: record a ceiling instead.
         rows.append({**row, "psnr": min(row["psnr"], PSNR_CEILING)})
     model.train()
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
-def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: bool = False) -> dict:
+def _step_generator(seed: int, epoch: int, step: int) -> torch.Generator:
+    """The random draws of one step (AFGSA's gradient-penalty mix), a pure function of its position."""
+    return torch.Generator().manual_seed(int(np.random.default_rng([seed, epoch, step]).integers(2 ** 62)))
+
+
+def _run_epoch(recipe: Recipe, ds, epoch: int, seed: int, device, quiet: bool, name: str) -> tuple[list, int]:
+    """One pass over the epoch's crops; returns (terms of the finite steps, skipped steps)."""
+    s = recipe.settings
+    ds.set_epoch(epoch)
+    order = np.random.default_rng([seed, epoch]).permutation(len(ds)).tolist()
+    loader = DataLoader(ds, batch_size=s.batch_size, sampler=order, num_workers=0)
+    recipe.state.train()
+    kept, guard = [], NanGuard(name, s.nan_limit, TrainError)
+    bar = progress(loader, desc=f"{name} epoch {epoch + 1}/{s.epochs}", unit="step", disable=quiet, leave=False)
+    for i, batch in enumerate(bar):
+        terms, finite = recipe.step({k: v.to(device) for k, v in batch.items()}, _step_generator(seed, epoch, i))
+        if guard.ok(finite, epoch, i):
+            kept.append(terms)
+            bar.set_postfix(loss=f"{np.mean([t['loss'] for t in kept]):.4f}")
+    return kept, guard.skipped
+
+
+def _epoch_entry(epoch: int, kept: list[dict], skipped: int, val, seconds: float) -> dict:
+    entry = {"epoch": epoch + 1, "train_loss": float(np.mean([t["loss"] for t in kept])) if kept else None}
+    extra = sorted({k for t in kept for k in t} - {"loss"})
+    if extra:
+        entry["terms"] = {k: float(np.mean([t[k] for t in kept])) for k in extra}
+    entry.update(skipped_steps=skipped, val=val, seconds=seconds)
+    return entry
+
+
+def train(cfg: Config, mode: str = "cleaner", spp: int | str | None = None, quiet: bool = False) -> dict:
     """Train (or resume) and return a summary dict; the best weights end up in ``run_dir``."""
     t_start = time.perf_counter()
-    if mode == "baseline" and not spp:
-        raise TrainError("the Isik baseline needs an spp (make train MODEL=isik SPP=4)")
-    c = cfg.clean
+    recipe = make_recipe(cfg, mode, spp)
+    s = recipe.settings
     folder = run_dir(cfg, mode, spp)
-    device = pick_device(c.device)
-    torch.manual_seed(cfg.seed)
-    model = build_model(cfg).to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=c.lr, weight_decay=c.weight_decay)
-    fp = fingerprint(cfg, mode, spp)
+    device = pick_device(s.device)
     history: list[dict] = []
     best: dict | None = None
     start = 0
@@ -188,64 +340,44 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     for tmp in folder.glob(".*.tmp") if folder.is_dir() else ():
         tmp.unlink(missing_ok=True)
     if last.exists():
-        record = load_last(last, model, opt, device, fingerprint=fp)
+        record = load_last(last, recipe.state, recipe.optimizers, device, fingerprint=recipe.fingerprint)
         start, history, best = int(record["epoch"]), record["history"], record["best"]
-    title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
-    if start >= c.epochs:
+    if start >= s.epochs:
         if history:
-            _write_history(folder, mode, spp, history, best, title, only_if_changed=True)
+            _write_history(folder, recipe, history, best, only_if_changed=True)
         summary = _summary(folder, mode, spp, history, best, 0, time.perf_counter() - t_start)
         if not quiet:
             print(f"{folder.name}: already trained ({start} epochs); {summary['line']}")
         return summary
 
-    train_ds, val_ds = datasets(cfg, mode, spp)
+    train_ds, val_ds = datasets(cfg, recipe)
     spps = getattr(train_ds, "spps", None)
     trained = 0
-    for epoch in range(start, c.epochs):
-        train_ds.set_epoch(epoch)
-        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_ds)).tolist()
-        loader = DataLoader(train_ds, batch_size=c.batch_size, sampler=order, num_workers=0)
-        model.train()
-        losses = []
-        bar = progress(loader, desc=f"{folder.name} epoch {epoch + 1}/{c.epochs}", unit="step", disable=quiet,
-                       leave=False)
-        for batch in bar:
-            inputs, radiance, target = (batch[k].to(device) for k in ("inputs", "radiance", "target"))
-            loss = smape(model(inputs, radiance), target, c.smape_eps)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if c.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), c.grad_clip)
-            opt.step()
-            losses.append(float(loss.detach()))
-            bar.set_postfix(smape=f"{np.mean(losses):.4f}")
-        entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
-                 "val": validate(model, val_ds, cfg, device) if val_ds is not None else None,
-                 "seconds": time.perf_counter() - t_start}
+    for epoch in range(start, s.epochs):
+        kept, skipped = _run_epoch(recipe, train_ds, epoch, cfg.seed, device, quiet, folder.name)
+        val = validate(recipe.model, val_ds, s.tile, cfg.clean.smape_eps, device) if val_ds is not None else None
+        entry = _epoch_entry(epoch, kept, skipped, val, time.perf_counter() - t_start)
         history.append(entry)
         trained += 1
         score = entry["val"]["smape"] if entry["val"] else entry["train_loss"]
-        if best is None or score < best["score"]:
+        if score is not None and (best is None or score < best["score"]):
             best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
-            save_best(folder, model, {"format": FORMAT, "mode": mode, "spp": spp, "spp_choices": spps,
-                                      "hparams": model.hparams,
-                                      "input_channels": channel_names(), "epoch": epoch + 1,
-                                      "metrics": entry["val"], "train_loss": entry["train_loss"],
-                                      "smape_eps": c.smape_eps, "store": str(cfg.store), "clean": vars(c).copy()})
+            save_best(folder, recipe.model, {"format": recipe.fmt, "mode": mode, "spp": spp, "spp_choices": spps,
+                                             "hparams": recipe.model.hparams, "input_channels": channel_names(),
+                                             "epoch": epoch + 1, "metrics": entry["val"],
+                                             "train_loss": entry["train_loss"], "store": str(cfg.store),
+                                             **recipe.meta}, recipe.fmt)
         # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
         # reruns the epoch (same result) and rewrites the files above.
-        _write_history(folder, mode, spp, history, best, title)
-        save_last(last, model, opt, {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": fp},
-                  FORMAT)
+        _write_history(folder, recipe, history, best)
+        save_last(last, recipe.state, recipe.optimizers,
+                  {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": recipe.fingerprint},
+                  recipe.fmt)
         if not quiet:
-            val = entry["val"]
-            print(f"{folder.name} epoch {epoch + 1}: train SMAPE {entry['train_loss']:.4f}"
-                  + (f", val SMAPE {val['smape']:.4f} L1 {val['l1']:.4f} PSNR {val['psnr']:.2f} dB" if val else ""),
-                  flush=True)
-        if c.time_budget_s > 0 and time.perf_counter() - t_start >= c.time_budget_s and epoch + 1 < c.epochs:
+            print(_epoch_line(folder.name, recipe.loss_label, entry), flush=True)
+        if s.time_budget_s > 0 and time.perf_counter() - t_start >= s.time_budget_s and epoch + 1 < s.epochs:
             if not quiet:
-                print(f"{folder.name}: time budget of {c.time_budget_s:g} s reached after epoch {epoch + 1}; "
+                print(f"{folder.name}: time budget of {s.time_budget_s:g} s reached after epoch {epoch + 1}; "
                       f"rerun to resume")
             break
     summary = _summary(folder, mode, spp, history, best, trained, time.perf_counter() - t_start)
@@ -254,10 +386,20 @@ def train(cfg: Config, mode: str = "cleaner", spp: int | None = None, quiet: boo
     return summary
 
 
-def _write_history(folder: Path, mode: str, spp, history: list, best, title: str,
-                   only_if_changed: bool = False) -> None:
+def _epoch_line(name: str, loss_label: str, entry: dict) -> str:
+    val, loss = entry["val"], entry["train_loss"]
+    line = f"{name} epoch {entry['epoch']}: train {loss_label} " + ("n/a" if loss is None else f"{loss:.4f}")
+    line += "".join(f", {k} {v:.4g}" for k, v in entry.get("terms", {}).items())
+    if entry["skipped_steps"]:
+        line += f", {entry['skipped_steps']} non-finite steps skipped"
+    if val:
+        line += f", val SMAPE {val['smape']:.4f} L1 {val['l1']:.4f} PSNR {val['psnr']:.2f} dB"
+    return line
+
+
+def _write_history(folder: Path, recipe: Recipe, history: list, best, only_if_changed: bool = False) -> None:
     """train.json and loss.png from the history (repaired if a kill left them an epoch behind)."""
-    record = {"mode": mode, "spp": spp, "history": history, "best": best}
+    record = {"mode": recipe.mode, "spp": recipe.spp, "history": history, "best": best}
     path = folder / "train.json"
     if only_if_changed and path.exists():
         try:
@@ -265,8 +407,16 @@ def _write_history(folder: Path, mode: str, spp, history: list, best, title: str
                 return
         except (OSError, ValueError):
             pass
-    plot_curve(folder / "loss.png", history, title)
+    plot_curve(folder / "loss.png", history, recipe.title, recipe.loss_label)
     atomic_write_json(path, record)
+
+
+def wall_seconds(history: list[dict]) -> float:
+    """Training wall time over every invocation: an entry's ``seconds`` count from the start of the
+    invocation that trained it, so a resumed run starts counting again (a drop) and each
+    invocation contributes its last value."""
+    secs = [float(h["seconds"]) for h in history]
+    return sum(t for t, nxt in zip(secs, secs[1:] + [0.0]) if nxt < t)
 
 
 def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:
@@ -276,7 +426,7 @@ def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, tra
         v = best["val"]
         line += (f"; best epoch {best['epoch']}: " + (f"val SMAPE {v['smape']:.4f}, L1 {v['l1']:.4f}, "
                                                       f"PSNR {v['psnr']:.2f} dB" if v else
-                                                      f"train SMAPE {best['train_loss']:.4f}"))
+                                                      f"train loss {best['train_loss']:.4f}"))
     line += f" -> {folder / 'model.safetensors'}"
     return {"mode": mode, "spp": spp, "folder": str(folder), "epochs": epochs, "trained_epochs": trained,
             "best": best, "seconds": seconds, "line": line}

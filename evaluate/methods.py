@@ -15,6 +15,9 @@ Names (``eval.methods``):
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
+- ``afgsa``: AFGSA (Yu et al. 2021, ``clean.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
+  all-spp run ``afgsa_sppany`` (``make train MODEL=afgsa SPP=N|any``); Isik and AFGSA both run
+  through ``clean.apply.denoise`` (tiled).
 - ``oidn_isik``: the per-pixel mean of ``oidn`` and ``isik``, the first estimate ours refines by
   default (``train/estimate.py``).
 - ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
@@ -52,11 +55,11 @@ from pipeline.exr import StoreError
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
 _DIFFUSION = {"ours": False, "base_only": True}
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "oidn_isik", *_DIFFUSION)
+FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
-          "isik": "Isik et al.", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
+          "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
 
@@ -179,7 +182,9 @@ class OIDN(Method):
 
 
 @dataclass
-class Isik(Method):
+class CleanNet(Method):
+    """A network of ``clean`` (the Isik baseline, AFGSA) on ``frame_inputs``, tiled by ``clean.apply``."""
+
     model: object = None
     tile: int = 512
     name: str = "isik"
@@ -266,26 +271,36 @@ class Loader:
             return Noisy()
         if spec.family in ("oidn", "oidn_color"):
             return OIDN(name=name, aux=spec.family == "oidn")
-        if spec.family == "isik":
-            return self._isik(spp)
+        if spec.family in ("isik", "afgsa"):
+            return self._clean_net(spec.family, spp)
         if spec.family == "oidn_isik":
-            isik = self._isik(spp)
+            isik = self._clean_net("isik", spp)
             return Mean(parts=(OIDN(), isik), name=name, device=isik.device, checkpoint=isik.checkpoint)
         return self._diffusion(name, spec, spp)
 
-    def _isik(self, spp: int) -> Method:
+    def _clean_net(self, family: str, spp: int) -> Method:
         from clean.model import load_model
         from clean.train import baseline_checkpoint, run_dir
 
-        folder = baseline_checkpoint(self.cfg, spp)
-        if folder is None:
-            raise MethodUnavailable(f"no Isik checkpoint in {run_dir(self.cfg, 'baseline', spp)}, and "
-                                    f"{run_dir(self.cfg, 'baseline', 'any')} has none trained at {spp} spp: run "
-                                    f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
+        if family == "isik":
+            folder = baseline_checkpoint(self.cfg, spp)
+            if folder is None:
+                raise MethodUnavailable(f"no Isik checkpoint in {run_dir(self.cfg, 'baseline', spp)}, and "
+                                        f"{run_dir(self.cfg, 'baseline', 'any')} has none trained at {spp} spp: run "
+                                        f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
+            tile = self.cfg.clean.tile
+        else:
+            folders = [run_dir(self.cfg, "afgsa", spp), run_dir(self.cfg, "afgsa", "any")]
+            folder = next((f for f in folders if (f / "model.safetensors").exists()), None)
+            if folder is None:
+                raise MethodUnavailable(f"no AFGSA checkpoint in {' or '.join(map(str, folders))}: run "
+                                        f"`make train MODEL=afgsa SPP={spp}` (or SPP=any)")
+            tile = self.cfg.afgsa.tile
         # One spp-conditioned model serves every spp: load it once.
         if folder not in self._models:
             self._models[folder] = load_model(folder, self.device())[0]
-        return Isik(model=self._models[folder], tile=self.cfg.clean.tile, device=self.device(), checkpoint=folder.name)
+        return CleanNet(model=self._models[folder], tile=tile, name=family, device=self.device(),
+                        checkpoint=folder.name)
 
     def diffusion_folder(self, spp: int, variant: str) -> Path:
         """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from .config import ConfigError, documentation_markdown, load_config, to_dict
 from .exr import StoreError
@@ -58,6 +59,9 @@ def cmd_train(args) -> int:
     if args.model == "isik":
         from clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
+    if args.model == "afgsa":
+        from clean.cli import cmd_train_afgsa
+        return cmd_train_afgsa(cfg, args.spp, quiet=args.quiet)
     from train.cli import cmd_train as train_diffusion
     return train_diffusion(cfg, args.spp, quiet=args.quiet)
 
@@ -89,6 +93,19 @@ def cmd_denoise(args) -> int:
 def cmd_clean_report(args) -> int:
     from clean.report import run_report
     run_report(_config(args), out=args.out, spp=args.spp)
+    return 0
+
+
+def cmd_afgsa_report(args) -> int:
+    from clean.afgsa_report import default_runs, run_afgsa_report
+    cfg = _config(args)
+    runs = default_runs(cfg, args.spp)
+    for text in args.runs or []:
+        label, sep, folder = text.partition("=")
+        if not sep or not label or not folder:
+            raise ConfigError(f"--run {text!r}: expected LABEL=FOLDER")
+        runs[label] = Path(folder)
+    run_afgsa_report(cfg, spp=args.spp, out=args.out, runs=runs, crops=cfg.eval.crops)
     return 0
 
 
@@ -169,11 +186,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_gt_clean)
 
-    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours) or isik (baseline); "
-                                                 "runs under torchrun for DDP"))
-    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik"], help="which denoiser")
+    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), isik or afgsa "
+                                                 "(baselines); diffusion runs under torchrun for DDP"))
+    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik", "afgsa"], help="which denoiser")
     p.add_argument("--spp", type=_spp, required=True,
-                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion model for all")
+                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion or AFGSA model "
+                        "for all")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
 
@@ -214,6 +232,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="reports/cleaner")
     p.add_argument("--spp", type=int, default=None)
     p.set_defaults(fn=cmd_clean_report)
+
+    p = with_config(sub.add_parser("afgsa-report", help="AFGSA trained against GT_clean vs against GT1, both "
+                                                        "scored against GT_clean: table and crop grid"))
+    p.add_argument("--spp", type=int, default=4)
+    p.add_argument("--out", default="reports/afgsa")
+    p.add_argument("--run", action="append", default=None, metavar="LABEL=FOLDER", dest="runs",
+                   help="another AFGSA run folder to compare (e.g. the adv_weight=0 ablation); repeatable")
+    p.set_defaults(fn=cmd_afgsa_report)
 
     p = with_config(sub.add_parser("eval", help="every method on the test frames per spp: tables, error vs time, "
                                                 "crops (reports/<run>/)"))

@@ -5,10 +5,13 @@ code when it is loaded.
 
 - ``save_safetensors``: tensors + string metadata, written atomically.
 - ``save_last`` / ``load_last``: the resumable state after a finished epoch in one file: a
-  module's weights (``model.*``), the optimizer's moments (``optim.*``), the torch RNG state and,
+  module's weights (``model.*``), the optimizer's moments (``optim.*``; several optimizers, a
+  dict, under ``optim.<name>.*``), the torch RNG state and,
   in the metadata, a JSON record (epoch, history, optimizer hyper-parameters, ...). Loading
   restores all of it in place and returns the record.
 - ``plot_curves``: named (x, y) series as a PNG (log y when every value is positive).
+- ``NanGuard``: counts the optimisation steps skipped for a non-finite loss or gradient and stops
+  the run after ``limit`` of them in a row.
 """
 from __future__ import annotations
 
@@ -26,20 +29,31 @@ def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dic
     atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
 
 
-def save_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, record: dict, fmt: str,
+def _optimizers(opt) -> dict[str, torch.optim.Optimizer]:
+    """One optimizer is stored under ``optim.``; several (a dict, e.g. a GAN's generator and critic)
+    under ``optim.<name>.``, with their param groups under the same names in the record."""
+    return opt if isinstance(opt, dict) else {"": opt}
+
+
+def save_last(path: Path, model: torch.nn.Module, opt, record: dict, fmt: str,
               extra: dict[str, torch.Tensor] | None = None) -> None:
-    sd = opt.state_dict()
+    """``opt``: an optimizer, or a dict name → optimizer."""
     tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
-    for idx, state in sd["state"].items():
-        for key, value in state.items():
-            tensors[f"optim.{idx}.{key}"] = torch.as_tensor(value)
+    groups = {}
+    for name, o in _optimizers(opt).items():
+        sd = o.state_dict()
+        prefix = f"optim.{name}." if name else "optim."
+        for idx, state in sd["state"].items():
+            for key, value in state.items():
+                tensors[f"{prefix}{idx}.{key}"] = torch.as_tensor(value)
+        groups[name] = sd["param_groups"]
     tensors["rng.torch"] = torch.get_rng_state()
     tensors.update({f"extra.{k}": v for k, v in (extra or {}).items()})
-    record = {**record, "param_groups": sd["param_groups"]}
+    record = {**record, "param_groups": groups if isinstance(opt, dict) else groups[""]}
     save_safetensors(path, tensors, {"format": fmt, "state": json.dumps(record, allow_nan=False)})
 
 
-def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, device,
+def load_last(path: Path, model: torch.nn.Module, opt, device,
               extra: dict[str, torch.Tensor] | None = None, fingerprint: dict | None = None) -> dict:
     """Restore ``model``, ``opt``, the torch RNG (and fill ``extra`` with saved extras); return the record.
 
@@ -64,17 +78,41 @@ def load_last(path: Path, model: torch.nn.Module, opt: torch.optim.Optimizer, de
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()[0]
         raise StoreError(f"{path}: made for a different model ({first}); {start_over}") from None
-    state: dict[int, dict] = {}
-    for k, v in tensors.items():
-        if k.startswith("optim."):
-            _, idx, key = k.split(".", 2)
-            state.setdefault(int(idx), {})[key] = v if key == "step" else v.to(device)
-    groups = [{**g, "betas": tuple(g["betas"])} if "betas" in g else g for g in record["param_groups"]]
-    opt.load_state_dict({"state": state, "param_groups": groups})
+    for name, o in _optimizers(opt).items():
+        prefix = f"optim.{name}." if name else "optim."
+        state: dict[int, dict] = {}
+        for k, v in tensors.items():
+            if k.startswith(prefix):
+                idx, key = k[len(prefix):].split(".", 1)
+                state.setdefault(int(idx), {})[key] = v if key == "step" else v.to(device)
+        saved = record["param_groups"][name] if isinstance(opt, dict) else record["param_groups"]
+        groups = [{**g, "betas": tuple(g["betas"])} if "betas" in g else g for g in saved]
+        o.load_state_dict({"state": state, "param_groups": groups})
     torch.set_rng_state(tensors["rng.torch"])
     if extra is not None:
         extra.update({k[6:]: v for k, v in tensors.items() if k.startswith("extra.")})
     return record
+
+
+class NanGuard:
+    """``ok(finite, epoch, step)``: True for a finite step; a non-finite one is counted (``skipped``)
+    and returns False, so the caller skips its update; ``limit`` of them in a row raise ``error``."""
+
+    def __init__(self, name: str, limit: int, error: type[Exception] = StoreError):
+        self.name, self.limit, self.error = name, int(limit), error
+        self.skipped = self.in_row = 0
+
+    def ok(self, finite: bool, epoch: int, step: int) -> bool:
+        if finite:
+            self.in_row = 0
+            return True
+        self.skipped += 1
+        self.in_row += 1
+        if self.in_row >= self.limit:
+            raise self.error(f"{self.name}: {self.in_row} steps in a row had a non-finite loss or gradient "
+                             f"(epoch {epoch + 1}, step {step}); check the data (python -m pipeline inspect) "
+                             "or lower the learning rate")
+        return False
 
 
 def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title: str, xlabel: str = "epoch",

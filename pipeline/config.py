@@ -115,6 +115,44 @@ class CleanConfig:
                     "(bounded memory).", 512)
     device: str = doc("Torch device of the cleaner and the Isik baseline: 'auto' (CUDA if available), 'cpu', "
                       "'cuda', ...", "auto")
+    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
+                         "an error after this many such steps in a row.", 10)
+
+
+@dataclass
+class AfgsaConfig:
+    target: str = doc("Training target: 'gt_clean' (as the paper) or 'gt1' (the raw reference; the GT_clean-vs-GT1 "
+                      "experiment). gt1 runs are kept apart, in runs/<..>/afgsa_gt1_spp<N>.", "gt_clean")
+    epochs: int = doc("Training epochs (an epoch: crops_per_frame crops of every train frame).", 12)
+    batch_size: int = doc("Crops per optimisation step.", 8)
+    crop: int = doc("Side of the random training crops in pixels (paper: 128).", 64)
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    lr: float = doc("Adam learning rate of the generator (paper: 1e-4; higher for minutes of CPU training).", 5e-4)
+    lr_critic: float = doc("Adam learning rate of the discriminator (paper: 1e-4).", 5e-4)
+    adv_weight: float = doc("Weight of the adversarial (WGAN-GP) term in the generator loss, next to L1 in log "
+                            "space with weight 1 (paper: 5e-3). 0: the L1-only ablation, no discriminator trained.",
+                            5e-3)
+    gp_weight: float = doc("Weight of the discriminator's gradient penalty (WGAN-GP; paper: 10).", 10.0)
+    channels: int = doc("Feature channels of the transformer blocks (paper: 256).", 32)
+    extractor_channels: int = doc("Channels of each 1x1/3x3/5x5 branch of the multi-scale feature extractors "
+                                  "(paper: 256).", 32)
+    blocks: int = doc("Transformer blocks with auxiliary-feature-guided self-attention (paper: 5).", 2)
+    heads: int = doc("Attention heads; channels / heads must be even (paper: 4).", 2)
+    block_size: int = doc("Side of the square query blocks of the block-wise attention (paper: 8).", 8)
+    halo: int = doc("Halo around each block: its pixels attend to the (block_size + 2 halo)^2 neighbourhood "
+                    "(paper: 3).", 3)
+    critic_channels: int = doc("Channels of the patch discriminator's first layer, doubled at each stride-2 level "
+                               "(the paper's VGG-style critic: 64).", 16)
+    critic_levels: int = doc("Stride-2 levels of the patch discriminator.", 3)
+    grad_clip: float = doc("Clip the global L2 norm of the generator's and of the critic's gradient to this "
+                           "value (0: no clipping).", 1.0)
+    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
+                         "an error after this many such steps in a row.", 10)
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
+                               "limit); a rerun resumes.", 0.0)
+    tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles (bounded "
+                    "memory).", 256)
+    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
 
 
 @dataclass
@@ -223,12 +261,13 @@ class PretrainConfig:
 @dataclass
 class EvalConfig:
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
-                        "ours, base_only (the base without the Control Module); ours and base_only take options "
-                        "after an optional run variant: sN (sampler steps), skipN, kN (mean of N samples), small "
-                        "(paper formulation: fixed posterior variance), noise/render/estimate (start), e.g. "
-                        "ours_s3_k4 or ours_paper_skip24 (run diffusion_spp<N>_paper; see evaluate/methods.py). "
-                        "A method whose model is missing is listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_s3", "ours_s9",
+                        "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
+                        "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
+                        "steps), skipN, kN (mean of N samples), small (paper formulation: fixed posterior variance), "
+                        "noise/render/estimate (start), e.g. ours_s3_k4 or ours_paper_skip24 (run "
+                        "diffusion_spp<N>_paper; see evaluate/methods.py). A method whose model is missing is listed "
+                        "as not available.",
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", "ours",
                                          "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
@@ -269,6 +308,8 @@ class Config:
     runs: str = doc("Folder for checkpoints, loss curves and logs of the training stages.", "runs/default")
     clean: CleanConfig = doc("GT cleaner (make gt-clean) and the Isik baseline (make train MODEL=isik).",
                              factory=CleanConfig)
+    afgsa: AfgsaConfig = doc("AFGSA, the paper's third competitor (make train MODEL=afgsa SPP=4).",
+                             factory=AfgsaConfig)
     diffusion: DiffusionConfig = doc("Diffusion denoiser: frozen base + Control Module (make train SPP=4).",
                                      factory=DiffusionConfig)
     pretrain: PretrainConfig = doc("The small stand-in base (make pretrain).", factory=PretrainConfig)
@@ -412,10 +453,26 @@ def validate(cfg: Config, source: str) -> None:
             bad(f"{sec}.{key}", "must be >= 1")
     if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
         bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
+    _validate_afgsa(cfg.afgsa, bad)
     if not cfg.pretrain.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in cfg.pretrain.channels):
         bad("pretrain.channels", f"expected positive multiples of 16 (group norm), got {cfg.pretrain.channels!r}")
     if not all(isinstance(k, int) and k >= 1 for k in cfg.pretrain.scales) or not cfg.pretrain.scales:
         bad("pretrain.scales", f"expected integers >= 1, got {cfg.pretrain.scales!r}")
+
+
+def _validate_afgsa(a: AfgsaConfig, bad) -> None:
+    if a.target not in ("gt_clean", "gt1"):
+        bad("afgsa.target", f"expected 'gt_clean' or 'gt1', got {a.target!r}")
+    for key in ("epochs", "batch_size", "crop", "crops_per_frame", "channels", "extractor_channels", "heads",
+                "block_size", "critic_channels", "tile"):
+        if getattr(a, key) < 1:
+            bad(f"afgsa.{key}", "must be >= 1")
+    if a.blocks < 0 or a.halo < 0 or a.critic_levels < 0:
+        bad("afgsa.blocks/halo/critic_levels", "must be >= 0")
+    if a.channels % a.heads or (a.channels // a.heads) % 2:
+        bad("afgsa.channels/heads", f"{a.channels} channels must split into {a.heads} heads of an even size")
+    if a.adv_weight < 0 or a.gp_weight < 0:
+        bad("afgsa.adv_weight/gp_weight", "must be >= 0")
 
 
 def to_dict(cfg: Any) -> dict:

@@ -85,15 +85,18 @@ class FakeDiffusion:
         from train.sampler import PAPER
         self.folder, self.device, self.base_only, self.formulation = Path(folder), device, base_only, PAPER
 
-    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None, steps=None, start=None, samples=1):
+    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None, steps=None, start=None, samples=1,
+                with_std=False):
         FakeDiffusion.calls.append({"spp": spp, "skip": skip, "seed": seed, "base_only": self.base_only,
                                     "variance": variance, "keys": sorted(buffers)})
         time.sleep(FAKE_DENOISE_SECONDS * (27 - (skip or 0)) / 27)
         c = buffers["color"]
         if self.base_only:
-            return c * 1.5
-        p = np.pad(c, ((1, 1), (1, 1), (0, 0)), mode="edge")
-        return sum(p[i:i + c.shape[0], j:j + c.shape[1]] for i in range(3) for j in range(3)) / 9
+            out = c * 1.5
+        else:
+            p = np.pad(c, ((1, 1), (1, 1), (0, 0)), mode="edge")
+            out = sum(p[i:i + c.shape[0], j:j + c.shape[1]] for i in range(3) for j in range(3)) / 9
+        return (out, np.zeros_like(out)) if with_std else out
 
 
 def fake_infer_module() -> types.ModuleType:

@@ -11,8 +11,8 @@ its whole process group (worker processes too), then the same command is rerun t
   manifests identical but for timings, ``verify`` clean;
 - ``gt-clean``: the cleaner's final weights and optimizer state bitwise equal, the same loss
   history, identical gt_clean images and cleaner.json;
-- ``train --model M``: resumed from the last checkpoint with the same per-epoch losses and
-  bitwise-equal final weights. ``TRAIN_CASES`` lists the models: the diffusion trainer joins by
+- ``train --model M`` (isik, afgsa with its critic, diffusion): resumed from the last checkpoint
+  with the same per-epoch losses and bitwise-equal final weights. ``TRAIN_CASES`` lists the models: the diffusion trainer joins by
   adding one ``TrainCase``;
 - a worker process killed mid-frame (local pool and Ray): the task is retried, resumes from the
   images already written, and the dataset completes identical to the reference.
@@ -47,6 +47,9 @@ KILL_SEED = 20261122
 CLEAN_TINY = ["clean.epochs=5", "clean.batch_size=4", "clean.crop=16", "clean.crops_per_frame=8",
               "clean.channels=[8, 8]", "clean.embed_channels=8", "clean.affinity_channels=4",
               "clean.kernel_size=3", "clean.dilations=[1, 2]", "clean.device=cpu"]
+AFGSA_TINY = ["afgsa.epochs=8", "afgsa.batch_size=4", "afgsa.crop=16", "afgsa.crops_per_frame=8",
+              "afgsa.channels=8", "afgsa.extractor_channels=4", "afgsa.blocks=1", "afgsa.block_size=4",
+              "afgsa.halo=1", "afgsa.critic_channels=4", "afgsa.critic_levels=2", "afgsa.device=cpu"]
 # Fields that legitimately differ between two runs: wall-clock times, and what depends on them
 # (file bytes and SHA-256 of EXRs whose headers hold a render time), resume bookkeeping, paths.
 VOLATILE = TIMING_KEYS | {"seconds", "sha256", "bytes", "store_bytes", "checkpoint"}
@@ -264,7 +267,8 @@ class TrainCase:
 
 
 TRAIN_CASES = [
-    pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY), id="isik"),
+    pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY + ["clean.epochs=8"]), id="isik"),
+    pytest.param(TrainCase("afgsa", 4, "afgsa_spp4", AFGSA_TINY), id="afgsa"),
     pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
                            ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
                             "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2"],
@@ -279,13 +283,17 @@ def test_training_killed_resumes_with_the_same_trajectory(case, cleaned, tmp_pat
     ref_runs, runs = tmp_path / "ref", tmp_path / "killed"
     base = ["train", "--model", case.model, "--spp", str(case.spp), "--config", str(TINY), f"store={store}",
             *case.overrides]
+    t0 = time.time()
     cli(*base, f"runs={ref_runs}", "--quiet")
+    t_ref = time.time() - t0
     ref = ref_runs / case.folder
     epochs = len(history(ref, case.history_file))
     assert epochs >= 4
     done = epochs_done(runs / case.folder, case.checkpoint)
     e1 = rng.randint(1, epochs // 2)
-    t_kill = rng.uniform(1.0, 4.0)
+    # A fraction of the reference run's time, not fixed seconds: on a quiet machine the tiny runs
+    # finished most epochs within 3 s, and the later kill points then found nothing left to kill.
+    t_kill = rng.uniform(0.1, 0.3) * t_ref
     points = [
         (f"{t_kill:.1f} s after start", lambda t: t >= t_kill, 0.0),
         (f"{e1} epochs done", more(done, e1), rng.uniform(0, 0.5)),

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.checkpoint import load_last, plot_curves, save_last
+from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last
 from pipeline.exr import StoreError, atomic_write_json
 from pipeline.progress import progress
 
@@ -151,7 +151,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
     per_rank = len(job.train_ds) // world
     steps_per_epoch = max(1, per_rank // job.batch_size)
     total_steps = job.epochs * steps_per_epoch
-    bad_in_row = skipped = trained = 0
+    guard, trained = NanGuard(job.name, job.nan_limit, TrainError), 0
     for epoch in range(start, job.epochs):
         job.train_ds.set_epoch(epoch)
         order = np.random.default_rng([job.seed, epoch]).permutation(len(job.train_ds))
@@ -171,15 +171,8 @@ def fit(job: Job, quiet: bool = False) -> dict:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             norm = torch.nn.utils.clip_grad_norm_(job.params, job.grad_clip if job.grad_clip > 0 else float("inf"))
-            if not (torch.isfinite(loss) and torch.isfinite(norm)):
-                skipped += 1
-                bad_in_row += 1
-                if bad_in_row >= job.nan_limit:
-                    raise TrainError(f"{job.name}: {bad_in_row} steps in a row had a non-finite loss or gradient "
-                                     f"(epoch {epoch + 1}, step {i}); check the data (python -m pipeline inspect) "
-                                     "or lower the learning rate")
+            if not guard.ok(bool(torch.isfinite(loss) and torch.isfinite(norm)), epoch, i):
                 continue
-            bad_in_row = 0
             opt.step()
             losses.append(float(loss.detach()))
             for k in parts:
@@ -188,7 +181,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan"),
                  "mse": float(np.mean(parts["mse"])) if losses else None,
                  "vb": float(np.mean(parts["vb"])) if losses else None,
-                 "skipped_steps": skipped, "lr": opt.param_groups[0]["lr"]}
+                 "skipped_steps": guard.skipped, "lr": opt.param_groups[0]["lr"]}
         if rank == 0:
             entry["val"] = job.validate(model) if job.validate is not None else None
             entry["seconds"] = round(time.perf_counter() - t_start, 2)
@@ -219,7 +212,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
     if world > 1:
         _check_in_sync(job.trainable, world)
     summary = _summary(job, history, best, trained, time.perf_counter() - t_start)
-    summary["skipped_steps"] = skipped
+    summary["skipped_steps"] = guard.skipped
     if not quiet:
         print(summary["line"], flush=True)
     return summary
