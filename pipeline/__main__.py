@@ -84,6 +84,14 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_gpu_prepare(args) -> int:
+    from pathlib import Path
+
+    from train.gpu_recipe import prepare
+    prepare(_config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels)
+    return 0
+
+
 def cmd_denoise(args) -> int:
     from train.cli import cmd_denoise as run
     return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
@@ -205,6 +213,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="train/shipped", help="the model folder to write")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_export)
+
+    p = with_config(sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe (train/gpu_recipe.py): crop "
+                                                       "packs from the training packs and the wheels a bare GPU "
+                                                       "machine lacks"))
+    p.add_argument("--out", default=".gpu")
+    p.add_argument("--train-crops", type=int, default=48)
+    p.add_argument("--val-crops", type=int, default=12)
+    p.add_argument("--side", type=int, default=48)
+    p.add_argument("--no-wheels", action="store_true", help="crop packs only")
+    p.set_defaults(fn=cmd_gpu_prepare)
 
     p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")

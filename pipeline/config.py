@@ -158,8 +158,10 @@ class AfgsaConfig:
 @dataclass
 class DiffusionConfig:
     base: str = doc("Base model folder in the diffusers layout (config.json, diffusion_pytorch_model.safetensors, "
-                    "prompt_embeds.safetensors). Empty: the small base shipped in train/base_model "
-                    "(made by make pretrain). A DeepFloyd IF-II checkpoint's unet/ folder works the same way.", "")
+                    "prompt_embeds.safetensors); a DeepFloyd IF-II checkpoint's unet/ folder works the same way. "
+                    "Empty: for the paper formulation the small stand-in shipped in train/base_model_paper, for the "
+                    "refine formulation a new base with a zero last layer written into the run folder (it returns "
+                    "the first estimate exactly and must train: diffusion.train_base=true).", "")
     tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
                        "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
     epochs: int = doc("Training epochs of the Control Module (an epoch: crops_per_frame crops of every train frame).", 100)
@@ -172,7 +174,9 @@ class DiffusionConfig:
     grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
     nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
                          "an error after this many such steps in a row.", 10)
-    train_base: bool = doc("Train the base as well as the Control Module (for comparison; the paper freezes it).", False)
+    train_base: bool = doc("Train the base as well as the Control Module. The paper freezes it (false); with the "
+                           "refine formulation's new base (diffusion.base empty) it must train (docs/diffusion.md: a "
+                           "frozen base that returns the estimate passes the Control Module no gradient).", True)
     control: bool = doc("Use the Control Module; false trains/evaluates the base alone (the paper's ablation row).",
                         True)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
@@ -193,7 +197,7 @@ class DiffusionConfig:
     estimate: str = doc("First estimate the model refines and reads as its image input: 'oidn' (OIDN with albedo "
                         "and normal), 'isik' (the Isik network of isik_run), 'oidn+isik' (their mean; both are also "
                         "condition channels) or 'none' (the noisy render, as the paper). See train/estimate.py.",
-                        "oidn")
+                        "oidn+isik")
     isik_run: str = doc("Isik run folder of the 'isik' estimates; empty: <runs>/isik_sppany "
                         "(make train MODEL=isik SPP=any).", "")
     residual: bool = doc("Diffuse the residual (x - estimate)/residual_scale instead of the image.", True)
@@ -203,8 +207,9 @@ class DiffusionConfig:
     snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
                            "step whose output is the one-step estimate).", 1.0)
     t_focus: float = doc("Probability that a training timestep is drawn from the timesteps the sampler visits with "
-                         "train_steps steps (else uniform over 0..999).", 0.5)
-    train_steps: list = doc("Step counts whose timesteps t_focus draws from.", factory=lambda: [1, 3, 9, 27])
+                         "one of train_steps steps (else uniform over 0..999).", 0.8)
+    train_steps: list = doc("Step counts whose timesteps t_focus draws from (each count equally likely).",
+                            factory=lambda: [1, 3, 9])
     sampler: str = doc("Sampler of the refine formulation: 'ddim' (deterministic) or 'ddpm' (diffusers).", "ddim")
     steps: int = doc("Sampler steps (trailing spacing over the 1000 training steps) of the refine formulation; "
                      "the paper formulation always uses IF's 27 super27 steps.", 1)
@@ -254,8 +259,8 @@ class PretrainConfig:
                       "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.75)
     time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: none).",
                                0.0)
-    out: str = doc("Where make pretrain writes the new base; empty: <runs>/base. Copy it to train/base_model to "
-                   "ship it.", "")
+    out: str = doc("Where make pretrain writes the new base; empty: <runs>/base (use it with diffusion.base=...).",
+                   "")
 
 
 @dataclass
@@ -268,7 +273,7 @@ class EvalConfig:
                         "diffusion_spp<N>_paper; see evaluate/methods.py). A method whose model is missing is listed "
                         "as not available.",
                         factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", "ours",
-                                         "ours_s3_k4", "base_only"])
+                                         "ours_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",
@@ -448,9 +453,11 @@ def validate(cfg: Config, source: str) -> None:
     if not 0 < f.threshold_ratio <= 1:
         bad("diffusion.threshold_ratio", "must be in (0, 1]")
     for sec, key in (("diffusion", "epochs"), ("diffusion", "batch_size"), ("diffusion", "crop"),
-                     ("pretrain", "epochs"), ("pretrain", "batch_size"), ("pretrain", "crop")):
+                     ("pretrain", "batch_size"), ("pretrain", "crop")):
         if getattr(getattr(cfg, sec), key) < 1:
             bad(f"{sec}.{key}", "must be >= 1")
+    if cfg.pretrain.epochs < 0:
+        bad("pretrain.epochs", "must be >= 0 (0: write the initialised base)")
     if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
         bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
     _validate_afgsa(cfg.afgsa, bad)

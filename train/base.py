@@ -33,8 +33,9 @@ from pipeline.exr import StoreError, atomic_write_bytes, atomic_write_json
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PROMPT = "prompt_embeds.safetensors"
 PROMPT_TOKENS = 8
-# The base shipped with the repository (trained by `make pretrain` on the default dataset).
-SHIPPED = Path(__file__).resolve().parent / "base_model"
+# The paper formulation's stand-in base shipped with the repository (an IF-II-style super-resolution
+# prior, ε-prediction with learned variance; train/base_model_paper/README.md).
+PAPER_BASE = Path(__file__).resolve().parent / "base_model_paper"
 
 
 def default_config(channels: list[int], layers_per_block: int = 1, text_dim: int = 64,
@@ -113,3 +114,16 @@ def save(folder: str | Path, unet, prompt: torch.Tensor, card: dict | None = Non
                                                                tmp))
     if card is not None:
         atomic_write_json(folder / "training.json", card)
+
+
+def write_new(folder: str | Path, channels: list[int], layers_per_block: int = 1, seed: int = 0) -> Path:
+    """A new base in ``default_config``'s layout whose last convolution is zero: with the refine
+    formulation it returns its image input (the first estimate) exactly; it has to train with the
+    Control Module (``diffusion.train_base``), since a frozen zero layer passes no gradient back."""
+    from torch import nn
+
+    unet, prompt = build(default_config(list(channels), layers_per_block), seed=seed)
+    for p in unet.conv_out.parameters():
+        nn.init.zeros_(p)
+    save(folder, unet, prompt, {"what": "new base, last convolution zero (train/base.py: write_new)", "seed": seed})
+    return Path(folder)

@@ -12,8 +12,10 @@ included), so it includes the tiling overhead.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from pipeline.bench import best_time
 from pipeline.config import Config
 from pipeline.exr import StoreError, atomic_write_json
 
+from . import base as base_lib
 from .formulation import Formulation
 from .infer import Denoiser
 from .model import build, estimator, find_run, load, load_run_estimator
@@ -45,6 +48,10 @@ def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
         model, meta = load(folder, device)
         name = str(folder)
     except StoreError:
+        if not cfg.diffusion.base and not Formulation.from_config(f).paper:   # a new base, written to a temp folder
+            tmp = Path(tempfile.mkdtemp(prefix="bench_base_"))
+            base_lib.write_new(tmp, cfg.pretrain.channels, cfg.pretrain.layers_per_block, cfg.seed)
+            cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(f, base=str(tmp)))
         model = build(cfg).to(device).eval()
         meta = {"tonemap": f.tonemap, "formulation": Formulation.from_config(f).record(),
                 "threshold_ratio": f.threshold_ratio, "variance": f.variance}

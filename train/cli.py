@@ -20,7 +20,7 @@ from pipeline.store import FrameKey, Store, sha256
 from . import base as base_lib
 from .data import DenoisePairs, from_model, frame_rotation
 from .formulation import Formulation
-from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder, run_dir, save
+from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder, new_base, run_dir, save
 from .pack import PackPairs, ensure_pack, pack_path
 from .pretrain import RestorationPairs, gather_pictures
 from .sampler import sample
@@ -89,7 +89,9 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
         raise TrainError("diffusion.control=false with train_base=false leaves nothing to train; the base-only "
                          "ablation needs no training (the evaluator runs it from the base)")
     device = pick_device(f.device)
-    model = build(cfg).to(device)
+    folder = run_dir(cfg, spp)
+    new_base(cfg, folder)
+    model = build(cfg, run=folder).to(device)
     sides = [min(store.scene_manifest(s)["resolution"]) for s in {k.scene for k in train_keys}]
     crop = _fit_crop(f.crop, sides, model.multiple)
     form = Formulation.from_config(f)
@@ -103,8 +105,7 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
         ds = DenoisePairs(store, train_keys, choices, crop, f.crops_per_frame, cfg.seed, f.tonemap,
                           estimator=_estimator(cfg)[0])
     autocast = autocast_dtype(f.precision, device)
-    folder = run_dir(cfg, spp)
-    fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg), "crop": crop,
+    fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg, folder), "crop": crop,
           "formulation": form.record(), "train_steps": list(f.train_steps),
           **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr", "weight_decay",
                                          "warmup_steps", "grad_clip", "train_base", "control", "epochs")}}
@@ -128,9 +129,9 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     return 0
 
 
-def _base_hash(cfg: Config) -> str:
+def _base_hash(cfg: Config, run: Path) -> str:
     from pipeline.store import sha256
-    path = base_folder(cfg) / base_lib.WEIGHTS
+    path = base_folder(cfg, run) / base_lib.WEIGHTS
     if not path.exists():
         raise TrainError(f"{path}: base weights missing; run `make pretrain` or set diffusion.base")
     return sha256(path)

@@ -11,7 +11,9 @@ any checkout and any working directory:
     isik/                 the Isik network of the first estimate (when the estimate uses it)
     README.md             the model card: data, formulation, training, validation numbers, the command
 
-Weights stay float32 (what was validated is what ships).
+Weights are stored in float16 (half the size in the repository and in a GPU run's 64 MiB; loading
+turns them back into float32): the shipped model is evaluated from the exported files, so the
+numbers its card and ``docs/example_report`` give are those of what ships.
 """
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False) -> Path:
     if "isik" in KINDS[formulation(meta).estimate]:
         shutil.copytree(Path(meta["isik"]), tmp / "isik", ignore=shutil.ignore_patterns("last.safetensors", "*.png"))
         record.update(isik="isik", isik_sha256=sha256(tmp / "isik" / "model.safetensors"))
-    control = {k: v for k, v in state.items() if k.startswith("control.")}
+    control = {k: _half(v) for k, v in state.items() if k.startswith("control.")}
     save_safetensors(tmp / "control.safetensors", control, {"format": FORMAT})
     record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
     atomic_write_json(tmp / "model.json", record)
@@ -60,15 +62,20 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False) -> Path:
     return out
 
 
+def _half(v):
+    return v.half().contiguous() if v.is_floating_point() else v
+
+
 def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
-    """The base folder the run needs: a copy, with the trained weights when the base trained too."""
+    """The base folder the run needs (float16 weights), with the trained weights when the base trained too."""
+    from safetensors.torch import load_file, save_file
+
     src = Path(meta["base"])
     src = src if src.is_absolute() else (run / src).resolve()
-    shutil.copytree(src, dest, ignore=shutil.ignore_patterns("*.train"))
-    if meta.get("train_base"):
-        unet, prompt = base_lib.load(dest)
-        unet.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("base.")})
-        base_lib.save(dest, unet, prompt)
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns("*.train", base_lib.WEIGHTS))
+    weights = ({k[5:]: v for k, v in state.items() if k.startswith("base.")} if meta.get("train_base")
+               else load_file(str(src / base_lib.WEIGHTS)))
+    save_file({k: _half(v) for k, v in weights.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
 
 
 def model_card(cfg: Config, record: dict, run: Path) -> str:

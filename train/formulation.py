@@ -55,12 +55,12 @@ class FormulationError(ConfigError):
 class Formulation:
     prediction: str = "sample"
     schedule: str = "zero_snr"
-    estimate: str = "oidn"
+    estimate: str = "oidn+isik"
     residual: bool = True
     residual_scale: float = 0.05
     snr_gamma: float = 5.0
     snr_floor: float = 1.0
-    t_focus: float = 0.5
+    t_focus: float = 0.8
     sampler: str = "ddim"
     steps: int = 1
     start: str = "estimate"

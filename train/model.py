@@ -34,8 +34,27 @@ FORMAT = "mcdenoise-control"
 SHIPPED_MODEL = Path(__file__).resolve().parent / "shipped"
 
 
-def base_folder(cfg: Config) -> Path:
-    return Path(cfg.diffusion.base) if cfg.diffusion.base else base_lib.SHIPPED
+def base_folder(cfg: Config, run: Path | None = None) -> Path:
+    """``diffusion.base``; empty: the paper formulation's shipped stand-in (train/base_model_paper), or for
+    the refine formulation a new base with a zero last layer in the run folder (``base_init``, written
+    by ``new_base``: training starts exactly at the first estimate)."""
+    if cfg.diffusion.base:
+        return Path(cfg.diffusion.base)
+    if Formulation.from_config(cfg.diffusion).paper:
+        return base_lib.PAPER_BASE
+    return Path(run if run is not None else run_dir(cfg, "any")) / "base_init"
+
+
+def new_base(cfg: Config, run: Path) -> None:
+    """Write the run's new base (``base_folder``) if the config asks for one and it is not there yet."""
+    folder = base_folder(cfg, run)
+    if cfg.diffusion.base or Formulation.from_config(cfg.diffusion).paper or (folder / base_lib.WEIGHTS).exists():
+        return
+    if not cfg.diffusion.train_base:
+        raise StoreError("a new base (diffusion.base empty) starts with a zero last layer and must train with the "
+                         "Control Module: set diffusion.train_base=true, or pretrain one (make pretrain) and set "
+                         "diffusion.base to it")
+    base_lib.write_new(folder, cfg.pretrain.channels, cfg.pretrain.layers_per_block, cfg.seed)
 
 
 def run_name(spp: int | str, variant: str = "") -> str:
@@ -76,9 +95,9 @@ def estimator(cfg: Config, device="cpu") -> Estimator:
     return load_estimator(Formulation.from_config(cfg.diffusion).estimate, isik_folder(cfg), device)
 
 
-def build(cfg: Config, seed: int | None = None) -> ControlledDenoiser:
-    """The frozen base from ``diffusion.base`` plus a fresh Control Module (or none, ``control: false``)."""
-    unet, prompt = base_lib.load(base_folder(cfg))
+def build(cfg: Config, seed: int | None = None, run: Path | None = None) -> ControlledDenoiser:
+    """The base (``base_folder``) plus a fresh Control Module (or none, ``control: false``)."""
+    unet, prompt = base_lib.load(base_folder(cfg, run))
     torch.manual_seed(cfg.seed if seed is None else seed)
     aux = len(aux_names(Formulation.from_config(cfg.diffusion).estimate))
     control = ControlModule(unet, aux) if cfg.diffusion.control else None
@@ -95,7 +114,7 @@ def trainable_state(model: ControlledDenoiser) -> dict[str, torch.Tensor]:
 
 
 def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict) -> None:
-    base = base_folder(cfg)
+    base = base_folder(cfg, folder)
     form = Formulation.from_config(cfg.diffusion)
     isik = {}
     if "isik" in KINDS[form.estimate]:
