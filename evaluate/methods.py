@@ -234,6 +234,8 @@ class Diffusion(Method):
         den = self.denoiser
         if getattr(den, "last_black", False):
             return "input black everywhere: returned black"
+        if getattr(den, "last_estimate_only", False):
+            return "no renderer variance/albedo/normal in the input: returned the first estimate (OIDN)"
         n = getattr(den, "last_clamped", 0)
         if not n:
             return ""

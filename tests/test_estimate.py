@@ -58,3 +58,15 @@ def test_an_isik_estimate_needs_a_trained_network(tmp_path):
     assert est.kind == "oidn+isik" and est.isik is not None
     with pytest.raises(StoreError, match="unknown first estimate"):
         load("bm3d", None)
+
+
+def test_an_input_without_the_renderers_buffers_gets_oidn_for_isik():
+    """An EXR from elsewhere (R, G, B, maybe albedo and normal, no variance): the Isik network never saw such
+    inputs, so OIDN stands in for it and the mean is OIDN's output."""
+    b = frame(2)
+    rgb_only = {"color": b["color"]}
+    est, parts = Estimator("oidn+isik", isik_model())(rgb_only)
+    np.testing.assert_array_equal(est, oidn.denoise(rgb_only))
+    assert len(parts) == 2 and np.array_equal(parts[0], parts[1])
+    no_variance = {k: v for k, v in b.items() if k != "color.variance"}
+    np.testing.assert_array_equal(Estimator("oidn+isik", isik_model())(no_variance)[0], oidn.denoise(no_variance))

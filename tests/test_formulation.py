@@ -187,21 +187,36 @@ def tiny_denoiser(estimate="oidn"):
 @pytest.mark.parametrize("estimate", ["oidn", "none"])
 def test_black_in_black_out(estimate):
     den = tiny_denoiser(estimate)
-    buffers = {"color": np.zeros((16, 16, 3), np.float32), "albedo": np.full((16, 16, 3), 0.5, np.float32)}
+    from evaluate.stability import synthetic_buffers
+
+    buffers = synthetic_buffers(16, 16, seed=2)
+    buffers["color"][:] = 0
     out, std = den.denoise(buffers, spp=4, with_std=True)
     assert den.last_black and not out.any() and not std.any()
     buffers["color"][3, 4] = 0.2                                          # one lit pixel: the network runs
-    assert den.denoise(buffers, spp=4).any() and not den.last_black
+    assert den.denoise(buffers, spp=4).any() and not den.last_black and not den.last_estimate_only
 
 
 def test_radiance_beyond_the_model_range_keeps_the_first_estimate():
-    den = tiny_denoiser("oidn")
-    color = np.full((16, 16, 3), 0.3, np.float32)
-    color[4:8, 4:8] = 1e5
+    from evaluate.stability import synthetic_buffers
     from pipeline import oidn
-    est = oidn.denoise({"color": color})
-    out = den.denoise({"color": color}, spp=4)
+
+    den = tiny_denoiser("oidn")
+    buffers = synthetic_buffers(16, 16, seed=1)          # the renderer's buffers: the network runs
+    buffers["color"][4:8, 4:8] = 1e5
+    est = oidn.denoise(buffers)
+    out = den.denoise(buffers, spp=4)
+    assert not den.last_estimate_only
     over = (est > 6).any(axis=2)
     assert over.any() and den.last_clamped == int(over.sum())
     np.testing.assert_array_equal(out[over], est[over])
     assert out[~over].max() <= 6.0
+
+
+def test_an_rgb_only_input_returns_the_first_estimate():
+    from pipeline import oidn
+    den = tiny_denoiser("oidn")
+    color = np.random.default_rng(3).gamma(1.0, 0.3, (16, 16, 3)).astype(np.float32)
+    out = den.denoise({"color": color}, spp=16)
+    assert den.last_estimate_only
+    np.testing.assert_array_equal(out, oidn.denoise({"color": color}))

@@ -10,7 +10,9 @@ people's scenes, the Isik network on ours (kernel prediction, variance-guided); 
 either alone on the default validation frames (37.8 dB against 37.4 and 37.0 at 4 spp, 42.0
 against 41.3 and 41.9 at 64; docs/diffusion.md). When the estimate has several components, each
 is also a condition channel of the Control Module (``extra_names``), so the network can learn
-where to trust which; the mean is the base's image input and the residual's origin.
+where to trust which; the mean is the base's image input and the residual's origin. An input
+without the renderer's variance, albedo and normal (``RENDERER_BUFFERS``: an EXR from elsewhere)
+gets OIDN in place of the Isik component.
 """
 from __future__ import annotations
 
@@ -22,6 +24,14 @@ import numpy as np
 from pipeline.exr import StoreError
 
 KINDS = {"none": (), "oidn": ("oidn",), "isik": ("isik",), "oidn+isik": ("oidn", "isik")}
+# What the Isik network (and the diffusion model, trained on the same buffers) needs beyond R, G, B: the
+# renderer's per-pixel variance and the first-hit features. An EXR from elsewhere often has none of
+# them; then OIDN (with albedo and normal where present) stands in for the Isik component.
+RENDERER_BUFFERS = ("color.variance", "albedo", "normal")
+
+
+def has_renderer_buffers(buffers: dict) -> bool:
+    return all(k in buffers for k in RENDERER_BUFFERS)
 
 
 def extra_names(kind: str) -> list[str]:
@@ -54,7 +64,9 @@ class Estimator:
         return denoise(self.isik, inputs, radiance, tile=self.tile, device=self.device)
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> tuple[np.ndarray | None, list[np.ndarray]]:
-        parts = [self._component(p, buffers) for p in KINDS[self.kind]]
+        names = [p if has_renderer_buffers(buffers) else "oidn" for p in KINDS[self.kind]]
+        done = {p: self._component(p, buffers) for p in dict.fromkeys(names)}   # each method once
+        parts = [done[p] for p in names]
         if not parts:
             return None, []
         return np.mean(parts, axis=0).astype(np.float32), parts

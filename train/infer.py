@@ -14,8 +14,12 @@ What the model cannot represent is said, not hidden:
 - the model space holds radiance in [0, 6] (as the paper); with a first estimate (the refine
   formulation) a pixel whose estimate is above 6 keeps the estimate's value, without one the
   output is clamped at 6. ``den.last_clamped`` counts such pixels;
-- a frame (or tile) whose noisy radiance is exactly 0 everywhere carried no light at all: it is
-  returned black (``den.last_black``), never an invented image.
+- a frame whose noisy radiance is exactly 0 everywhere carried no light at all: it is returned
+  black (``den.last_black``), never an invented image;
+- an input without the renderer's variance, albedo and normal (``train.estimate.RENDERER_BUFFERS``,
+  e.g. an EXR with only R, G, B) is not what the network was trained on: the refine formulation
+  returns its first estimate, OIDN with whatever albedo and normal there are
+  (``den.last_estimate_only``).
 """
 from __future__ import annotations
 
@@ -29,7 +33,7 @@ import torch
 from pipeline.numerics import repair_nonfinite
 
 from .data import CLAMP, from_model, model_inputs, to_planar
-from .estimate import Estimator
+from .estimate import Estimator, has_renderer_buffers
 from .model import formulation, load, load_run_estimator, run_dir
 from .sampler import sample_tiled
 from .train import autocast_dtype, pick_device
@@ -55,7 +59,7 @@ class Denoiser:
         self.autocast = autocast_dtype(precision, device)
         self.name = "base_only" if model.control is None else "ours"
         self.last_repaired = self.last_clamped = 0
-        self.last_black = False
+        self.last_black = self.last_estimate_only = False
         self.last_seconds = 0.0
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
@@ -70,8 +74,11 @@ class Denoiser:
         est, parts = self.estimator(buffers)
         noisy, aux = model_inputs(buffers, spp, rotation, tonemap, parts)
         self.last_black = not np.any(buffers["color"])
+        self.last_estimate_only = est is not None and not has_renderer_buffers(buffers)
         if self.last_black:
             hdr, std = np.zeros_like(buffers["color"]), np.zeros_like(buffers["color"])
+        elif self.last_estimate_only:   # not the buffers the network was trained on: the first estimate alone
+            hdr, std = est, np.zeros_like(est)
         else:
             hdr, std = self._sample(noisy, aux, est, tonemap, skip, seed, variance, steps, start, samples)
             hdr, self.last_clamped = self._beyond_range(hdr, est if est is not None else buffers["color"])
