@@ -8,8 +8,8 @@ over R, G, B):
   the pixels the denoiser is least sure of are exactly those it gets most wrong, 0 when s says
   nothing about e;
 - **calibration**: pixels pooled over frames and binned by s (equal-count bins); per bin the mean s
-  and the root-mean-square error. A calibrated σ lies on the diagonal; below it the denoiser is
-  over-confident.
+  and the root-mean-square error. A calibrated σ lies on the diagonal; above it the denoiser is
+  over-confident. A method whose samples all agree (σ = 0 everywhere) has no curve.
 """
 from __future__ import annotations
 
@@ -53,7 +53,8 @@ def summarize(per_frame: list[dict], pooled: tuple[np.ndarray, np.ndarray]) -> d
 
 def plot(rows: dict[str, dict], path: Path, title: str) -> str | None:
     """Calibration curves (RMS error against predicted σ, log-log) of every method with an uncertainty."""
-    curves = {n: r["uncertainty"]["calibration"] for n, r in rows.items() if r.get("uncertainty")}
+    curves = {n: r["uncertainty"]["calibration"] for n, r in rows.items()
+              if r.get("uncertainty") and any(b["std"] > 0 for b in r["uncertainty"]["calibration"])}
     if not curves:
         return None
     import matplotlib
