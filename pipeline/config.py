@@ -224,6 +224,9 @@ class DiffusionConfig:
     variance: str = doc("Paper formulation's sampler variance: 'learned' (IF's learned range, the paper) or 'small' "
                         "(the fixed posterior variance; ignores the network's variance output). eval compares both "
                         "as ours_paper[_skipN] and ours_paper_small[_skipN].", "learned")
+    ema: float = doc("Decay of an exponential moving average of the trained weights (diffusers' EMAModel, with "
+                     "its warm-up), which is what validation scores and the run saves; 0: the weights themselves.",
+                     0.999)
     pack: bool = doc("Train from compact packs (<runs>/pack/<split>_<estimate>.safetensors, built on first use or "
                      "by make pack: decoded once, float16, only what the model reads; train/pack.py) instead of "
                      "decoding the store's EXRs for every item.", True)

@@ -271,7 +271,8 @@ TRAIN_CASES = [
     pytest.param(TrainCase("afgsa", 4, "afgsa_spp4", AFGSA_TINY), id="afgsa"),
     pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
                            ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
-                            "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2"],
+                            "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2",
+                            "diffusion.estimate=oidn", "pretrain.channels=[16,32]"],   # the EMA state resumes too
                            best="control.safetensors"), id="diffusion"),
 ]
 

@@ -106,7 +106,7 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
                           estimator=_estimator(cfg)[0])
     autocast = autocast_dtype(f.precision, device)
     fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg, folder), "crop": crop,
-          "formulation": form.record(), "train_steps": list(f.train_steps),
+          "formulation": form.record(), "train_steps": list(f.train_steps), "ema": f.ema,
           **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr", "weight_decay",
                                          "warmup_steps", "grad_clip", "train_base", "control", "epochs")}}
 
@@ -118,7 +118,8 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     job = Job(name=folder.name, folder=folder, model=model, trainable=trainable, params=model.trainable_parameters(),
               train_ds=ds, validate=_validator(store, val_keys, choices, cfg, device, autocast),
               objective=None if form.paper else form.objective(list(f.train_steps)),
-              validate_initial=not form.paper, save_best=save_best, epochs=f.epochs, batch_size=f.batch_size, lr=f.lr, weight_decay=f.weight_decay,
+              validate_initial=not form.paper, ema=f.ema, save_best=save_best, epochs=f.epochs,
+              batch_size=f.batch_size, lr=f.lr, weight_decay=f.weight_decay,
               warmup_steps=f.warmup_steps, grad_clip=f.grad_clip, nan_limit=f.nan_limit,
               time_budget_s=f.time_budget_s, seed=cfg.seed, fingerprint=fp, device=device, autocast=autocast,
               fmt=FORMAT, title=f"Control Module, {spp} spp -> GT_clean")

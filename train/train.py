@@ -23,6 +23,7 @@ their weights and fail loudly if they diverged.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -74,6 +75,7 @@ class Job:
     title: str = ""
     objective: Callable | None = None   # (net, batch, gen, device, autocast) -> (loss, terms); None: IF's hybrid loss
     validate_initial: bool = False      # score the model before the first step (a candidate for "best")
+    ema: float = 0.0                    # EMA decay of the trainable weights (validated and saved); 0: none
 
 
 def lr_factor(step: int, total: int, warmup: int) -> float:
@@ -132,9 +134,14 @@ def fit(job: Job, quiet: bool = False) -> dict:
     history: list[dict] = []
     best: dict | None = None
     start = 0
+    ema = _make_ema(job)
     if last.exists():
-        record = load_last(last, job.trainable, opt, device, fingerprint=job.fingerprint)
+        extra: dict = {}
+        record = load_last(last, job.trainable, opt, device, extra=extra, fingerprint=job.fingerprint)
         start, history, best = int(record["epoch"]), record["history"], record["best"]
+        if ema is not None:
+            ema.shadow_params = [extra[f"ema.{i}"].to(device) for i in range(len(ema.shadow_params))]
+            ema.optimization_step = int(record["ema_step"])
     if start >= job.epochs:
         summary = _summary(job, history, best, 0, time.perf_counter() - t_start)
         if not quiet:
@@ -147,7 +154,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
         net = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
     objective = job.objective or diffusion.objective(device)
     if start == 0 and job.validate_initial and job.validate is not None and rank == 0:
-        best = _initial(job, history)
+        best = _initial(job, history)   # the EMA equals the weights here
     per_rank = len(job.train_ds) // world
     steps_per_epoch = max(1, per_rank // job.batch_size)
     total_steps = job.epochs * steps_per_epoch
@@ -174,6 +181,8 @@ def fit(job: Job, quiet: bool = False) -> dict:
             if not guard.ok(bool(torch.isfinite(loss) and torch.isfinite(norm)), epoch, i):
                 continue
             opt.step()
+            if ema is not None:
+                ema.step(job.trainable.parameters())
             losses.append(float(loss.detach()))
             for k in parts:
                 parts[k].append(float(terms[k]))
@@ -183,19 +192,24 @@ def fit(job: Job, quiet: bool = False) -> dict:
                  "vb": float(np.mean(parts["vb"])) if losses else None,
                  "skipped_steps": guard.skipped, "lr": opt.param_groups[0]["lr"]}
         if rank == 0:
-            entry["val"] = job.validate(model) if job.validate is not None else None
-            entry["seconds"] = round(time.perf_counter() - t_start, 2)
-            history.append(entry)
-            score = entry["val"]["psnr"] if entry["val"] else -entry["train_loss"]
-            if best is None or score > best["score"]:
-                best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
-                job.save_best({"epoch": epoch + 1, "metrics": entry["val"], "train_loss": entry["train_loss"]})
+            with _ema_weights(ema, job.trainable):   # validated and saved: the EMA of the weights, if any
+                entry["val"] = job.validate(model) if job.validate is not None else None
+                entry["seconds"] = round(time.perf_counter() - t_start, 2)
+                history.append(entry)
+                score = entry["val"]["psnr"] if entry["val"] else -entry["train_loss"]
+                if best is None or score > best["score"]:
+                    best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
+                    job.save_best({"epoch": epoch + 1, "metrics": entry["val"], "train_loss": entry["train_loss"]})
             # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
             # reruns the epoch (same result) and rewrites the files above.
             _plot(job, history)
             atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best})
-            save_last(last, job.trainable, opt, {"epoch": epoch + 1, "history": history, "best": best,
-                                                 "fingerprint": job.fingerprint}, job.fmt)
+            state = {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": job.fingerprint}
+            extras = None
+            if ema is not None:
+                state["ema_step"] = ema.optimization_step
+                extras = {f"ema.{i}": p for i, p in enumerate(ema.shadow_params)}
+            save_last(last, job.trainable, opt, state, job.fmt, extra=extras)
             if not quiet:
                 v = entry["val"]
                 print(f"{job.name} epoch {epoch + 1}: loss {entry['train_loss']:.4f} (mse {entry['mse']:.4f}, "
@@ -216,6 +230,29 @@ def fit(job: Job, quiet: bool = False) -> dict:
     if not quiet:
         print(summary["line"], flush=True)
     return summary
+
+
+def _make_ema(job: Job):
+    """``diffusers``' EMAModel over the trainable weights (with its warm-up: early on the average follows
+    the weights closely), or None."""
+    if job.ema <= 0:
+        return None
+    from diffusers.training_utils import EMAModel
+    return EMAModel(job.trainable.parameters(), decay=job.ema, use_ema_warmup=True, power=0.75)
+
+
+@contextlib.contextmanager
+def _ema_weights(ema, module: torch.nn.Module):
+    """Inside: ``module`` holds the EMA weights; after: its own again."""
+    if ema is None:
+        yield
+        return
+    ema.store(module.parameters())
+    ema.copy_to(module.parameters())
+    try:
+        yield
+    finally:
+        ema.restore(module.parameters())
 
 
 def _initial(job: Job, history: list[dict]) -> dict:
