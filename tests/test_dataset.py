@@ -1,7 +1,7 @@
 """The dataset stage end to end on configs/tiny.yaml, through the real command line.
 
-Renders a tiny store once per module (seconds), then checks the layout, manifests and splits,
-resume after SIGKILL, the Ray executor and the errors users will meet.
+Uses the tiny store rendered once per test run (tests/conftest.py) and checks the layout, manifests
+and splits, resume after SIGKILL, the Ray executor and the errors users will meet.
 """
 import json
 import os
@@ -12,52 +12,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
 import pytest
 
 from pipeline import schema
 from pipeline.exr import read_image
 from pipeline.store import Store, image_names
-
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ROOT / "configs" / "tiny.yaml"
-# Not deterministic across runs: wall-clock fields. Everything else must match exactly.
-TIMING_KEYS = {"render_seconds", "timing", "reused", "reused_images", "skipped"}
-
-
-def cli(*args, check=True, timeout=600):
-    proc = subprocess.run([sys.executable, "-m", "pipeline", *map(str, args)], cwd=ROOT, capture_output=True,
-                          text=True, timeout=timeout)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}")
-    return proc
-
-
-@pytest.fixture(scope="module")
-def tiny_store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tiny") / "store"
-    proc = cli("dataset", "--config", TINY, f"store={root}")
-    return root, proc
-
-
-def exr_payload(path: Path) -> dict:
-    """Pixel data and header record without wall-clock fields."""
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        chans = {k: v.pixels.copy() for k, v in f.channels().items()}
-        rec = json.loads(f.header()["mcdenoise"])
-    return {"channels": chans, "record": {k: v for k, v in rec.items() if k not in TIMING_KEYS}}
-
-
-def assert_same_store(a: Path, b: Path):
-    files_a = sorted(p.relative_to(a) for p in a.rglob("*.exr"))
-    files_b = sorted(p.relative_to(b) for p in b.rglob("*.exr"))
-    assert files_a == files_b and files_a
-    for rel in files_a:
-        pa, pb = exr_payload(a / rel), exr_payload(b / rel)
-        assert pa["record"] == pb["record"], rel
-        assert pa["channels"].keys() == pb["channels"].keys(), rel
-        for ch in pa["channels"]:
-            np.testing.assert_array_equal(pa["channels"][ch], pb["channels"][ch], err_msg=f"{rel}:{ch}")
+from tests.helpers import ROOT, TINY, assert_same_store, cli
 
 
 def test_tiny_dataset_layout(tiny_store):

@@ -258,7 +258,6 @@ def test_sampler_is_finite_and_deterministic_for_extreme_inputs(skip):
         b = sample(m, x, aux, skip=skip, seed=5)
         assert a.shape == x.shape and torch.isfinite(a).all(), name
         assert torch.equal(a, b), name
-        assert a.min() >= -1 and a.max() <= 1
 
 
 def test_tiled_sampling_covers_the_frame():

@@ -39,14 +39,10 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from pipeline.verify import verify_store
-from tests.test_dataset import TIMING_KEYS, TINY, assert_same_store, cli, exr_payload, tiny_store  # noqa: F401
+from tests.helpers import CLEAN_TINY, TIMING_KEYS, TINY, assert_same_store, cli, exr_payload
 
 ROOT = Path(__file__).resolve().parents[1]
 KILL_SEED = 20261122
-# A small but real cleaner/baseline: a few optimisation steps per epoch on the tiny store.
-CLEAN_TINY = ["clean.epochs=5", "clean.batch_size=4", "clean.crop=16", "clean.crops_per_frame=8",
-              "clean.channels=[8, 8]", "clean.embed_channels=8", "clean.affinity_channels=4",
-              "clean.kernel_size=3", "clean.dilations=[1, 2]", "clean.device=cpu"]
 AFGSA_TINY = ["afgsa.epochs=8", "afgsa.batch_size=4", "afgsa.crop=16", "afgsa.crops_per_frame=8",
               "afgsa.channels=8", "afgsa.extractor_channels=4", "afgsa.blocks=1", "afgsa.block_size=4",
               "afgsa.halo=1", "afgsa.critic_channels=4", "afgsa.critic_levels=2", "afgsa.device=cpu"]
@@ -202,17 +198,6 @@ def test_dataset_killed_at_random_moments(tiny_store, tmp_path, capsys):
 
 
 # ---- gt-clean --------------------------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def cleaned(tiny_store, tmp_path_factory):
-    """The tiny store after an uninterrupted gt-clean: the reference, and the baselines' input."""
-    reference, _ = tiny_store
-    base = tmp_path_factory.mktemp("cleaned")
-    store, runs = base / "store", base / "runs"
-    shutil.copytree(reference, store)
-    cli("gt-clean", "--config", TINY, f"store={store}", f"runs={runs}", *CLEAN_TINY, "--quiet")
-    return store, runs
-
 
 def test_gt_clean_killed_at_random_moments(tiny_store, cleaned, tmp_path, capsys):
     reference, _ = tiny_store

@@ -12,7 +12,7 @@ from pipeline import schema
 from pipeline.config import load_config
 from pipeline.plan import MEASURED, calibrate_from_store, estimate, measure, raw_bytes_per_pixel
 from pipeline.store import Store
-from tests.test_dataset import TINY, cli, tiny_store  # noqa: F401
+from tests.helpers import TINY, cli
 
 PAPER = "configs/paper.yaml"
 

@@ -23,7 +23,7 @@ import torch
 
 from pipeline.exr import StoreError
 from pipeline.store import Store
-from tests.test_dataset import TINY, cli
+from tests.helpers import TINY, cli
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipeline", "render", "clean", "train", "evaluate")

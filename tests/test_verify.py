@@ -12,8 +12,7 @@ import pytest
 
 from pipeline.exr import checksum
 from pipeline.verify import verify_store
-from tests.test_dataset import cli
-from tests.test_faults import cleaned, tiny_store  # noqa: F401  (module fixtures)
+from tests.helpers import cli
 
 FRAME = "scenes/s00000/000"
 
