@@ -300,7 +300,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from pipeline.exr import StoreError, read_json
+    from pipeline.errors import CheckpointError
+    from pipeline.exr import read_json
 
     path = Path(path)
     if path.is_dir():
@@ -312,5 +313,5 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn
         model.load_state_dict(load_file(str(path), device=str(device)))
     except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise StoreError(f"{path}: not a usable safetensors checkpoint of this model ({first})") from None
+        raise CheckpointError(f"{path}: not a usable safetensors checkpoint of this model ({first})") from None
     return model.to(device).eval(), meta

@@ -47,7 +47,8 @@ from torch.utils.data import DataLoader
 from pipeline.config import Config
 from pipeline.progress import progress
 from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, save_safetensors
-from pipeline.exr import StoreError, atomic_write_json
+from pipeline.errors import TrainError
+from pipeline.exr import atomic_write_json
 from pipeline.metrics import all_metrics
 from pipeline.store import Store
 
@@ -57,12 +58,6 @@ from .model import AffinityDenoiser
 
 FORMAT = "mcdenoise-affinity"
 PSNR_CEILING = 999.0
-
-
-class TrainError(StoreError):
-    """The run cannot proceed (no data, incompatible checkpoint); the message says what to do.
-
-    A ``StoreError``, so ``python -m pipeline`` prints it as one line and exits with status 2."""
 
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:

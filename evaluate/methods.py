@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import Config, ConfigError
+from pipeline.errors import PipelineError
 from pipeline.exr import StoreError
 
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
@@ -63,7 +64,7 @@ LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_c
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
 
-class MethodUnavailable(Exception):
+class MethodUnavailable(PipelineError):
     """The method cannot run here (missing package, module or checkpoint); the message says why."""
 
 

@@ -1,8 +1,9 @@
 """Command line: ``python -m pipeline <stage> [--config FILE] [key=value ...]``.
 
 Every stage reads the same typed config (``pipeline.config``); ``key=value`` overrides any key
-(dotted for sections: ``dataset.scenes=4``). Errors in input (config, store, scene files) print
-one line naming the culprit and exit with status 2; nothing half-written is left behind.
+(dotted for sections: ``dataset.scenes=4``). Errors in input (config, store, scene files,
+checkpoints: every ``pipeline.errors.PipelineError``) print one line naming the culprit and exit
+with status 2; nothing half-written is left behind.
 """
 from __future__ import annotations
 
@@ -12,8 +13,7 @@ import sys
 from pathlib import Path
 
 from .config import ConfigError, documentation_markdown, load_config, to_dict
-from .exr import StoreError
-from .mitsuba_env import MitsubaSetupError
+from .errors import PipelineError
 
 
 def _config(args):
@@ -327,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = list(args.overrides) + extra
     try:
         return args.fn(args)
-    except (ConfigError, StoreError, MitsubaSetupError) as exc:
+    except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

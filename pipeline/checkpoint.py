@@ -20,7 +20,8 @@ from pathlib import Path
 
 import torch
 
-from .exr import StoreError, atomic_write_bytes
+from .errors import CheckpointError, StoreError
+from .exr import atomic_write_bytes
 
 
 def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
@@ -67,17 +68,17 @@ def load_last(path: Path, model: torch.nn.Module, opt, device,
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except (SafetensorError, OSError, KeyError, ValueError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise StoreError(f"{path}: not a checkpoint this trainer wrote ({first}); delete it to start over") from None
+        raise CheckpointError(f"{path}: not a checkpoint this trainer wrote ({first}); delete it to start over") from None
     start_over = f"delete {Path(path).parent} or set another 'runs' folder to start over"
     if fingerprint is not None and record.get("fingerprint") != fingerprint:
         old = record.get("fingerprint") or {}
         changed = sorted(k for k in set(fingerprint) | set(old) if old.get(k) != fingerprint.get(k))
-        raise StoreError(f"{path}: made with different settings ({', '.join(changed)}); {start_over}")
+        raise CheckpointError(f"{path}: made with different settings ({', '.join(changed)}); {start_over}")
     try:
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()[0]
-        raise StoreError(f"{path}: made for a different model ({first}); {start_over}") from None
+        raise CheckpointError(f"{path}: made for a different model ({first}); {start_over}") from None
     for name, o in _optimizers(opt).items():
         prefix = f"optim.{name}." if name else "optim."
         state: dict[int, dict] = {}

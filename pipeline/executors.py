@@ -18,10 +18,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator
 
 from .config import ExecutorConfig
-
-
-class TaskFailed(RuntimeError):
-    pass
+from .errors import TaskFailed
 
 
 def run_local(tasks: list, fn: Callable, cfg: ExecutorConfig) -> Iterator[tuple[Any, Any, BaseException | None]]:

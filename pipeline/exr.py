@@ -35,6 +35,7 @@ import numpy as np
 import OpenEXR
 
 from . import schema
+from .errors import StoreError, StoreWriteError
 from .numerics import constant_value
 
 FORMAT = "mcdenoise-image"
@@ -53,16 +54,6 @@ MAGIC = b"\x76\x2f\x31\x01"
 # EXR compression code -> (name, scanlines per chunk); only lossless ones are accepted.
 LOSSLESS = {0: ("NO", 1), 1: ("RLE", 1), 2: ("ZIPS", 1), 3: ("ZIP", 16), 4: ("PIZ", 32)}
 PIXEL_TYPES = {1: np.dtype(np.float16), 2: np.dtype(np.float32)}   # 0 (uint) is never written
-
-
-class StoreError(RuntimeError):
-    """Something in the store is missing, corrupt or not what the schema expects."""
-
-
-class StoreWriteError(StoreError, OSError):
-    """Writing into the store failed (full disk, read-only folder, ...); nothing was left behind.
-
-    Also an ``OSError``, so code that handles I/O errors generically still catches it."""
 
 
 def atomic_write_bytes(path: Path, writer) -> None:

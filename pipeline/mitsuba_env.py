@@ -12,6 +12,8 @@ import re
 import shutil
 import subprocess
 
+from .errors import MitsubaSetupError
+
 MIN_LLVM = 16
 _SEARCH = (
     "/usr/lib/x86_64-linux-gnu/libLLVM-{v}.so",
@@ -21,10 +23,6 @@ _SEARCH = (
     "/usr/lib64/libLLVM-{v}.so",
     "/usr/local/opt/llvm@{v}/lib/libLLVM.dylib",
 )
-
-
-class MitsubaSetupError(RuntimeError):
-    pass
 
 
 def _llvm_version(path: str) -> int | None:

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-class OIDNUnavailable(ImportError):
-    """pyoidn cannot be imported here."""
+from .errors import OIDNUnavailable
 
 
 def available() -> str | None:

@@ -10,9 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.errors import PipelineError
 
-class ExternalSceneError(RuntimeError):
-    pass
+
+class ExternalSceneError(PipelineError, RuntimeError):
+    """A Mitsuba scene file from the user cannot be rendered; the message names the file or what is missing."""
 
 
 def load_external_scene(mi, xml: str):

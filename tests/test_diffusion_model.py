@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.errors import CheckpointError
 from train import base as base_lib
 from train import diffusion
 from train.control import ControlledDenoiser, ControlModule
@@ -206,9 +207,9 @@ def test_resume_refuses_other_settings(tmp_path):
     fit(job(tmp_path, m, 1), quiet=True)
     j = job(tmp_path, tiny_model(), 2)
     j.fingerprint = {"x": 2}
-    # pipeline.checkpoint.load_last refuses before loading any weight; the CLI prints StoreErrors
+    # pipeline.checkpoint.load_last refuses before loading any weight; the CLI prints its errors
     # as one line (exit status 2), and the message names the setting that changed.
-    with pytest.raises(base_lib.StoreError, match=r"different settings \(x\); delete"):
+    with pytest.raises(CheckpointError, match=r"different settings \(x\); delete"):
         fit(j, quiet=True)
 
 
@@ -231,12 +232,12 @@ def test_base_folder_round_trip_and_diffusers_layout(tmp_path):
             # Same weights; diffusers' loader can change float summation order by ~1e-6.
             torch.testing.assert_close(ControlledDenoiser(u2, p2, None)(z, noisy, None, t), ref, rtol=1e-5, atol=1e-5)
     (tmp_path / "if_layout" / base_lib.PROMPT).unlink()
-    with pytest.raises(base_lib.StoreError, match="prompt_embeds.safetensors: missing"):
+    with pytest.raises(CheckpointError, match="prompt_embeds.safetensors: missing"):
         base_lib.load(tmp_path / "if_layout")
     bad = dict(TINY, in_channels=4, out_channels=4)
     u3, p3 = base_lib.build(bad)
     base_lib.save(tmp_path / "bad", u3, p3)
-    with pytest.raises(base_lib.StoreError, match="expected 6/6"):
+    with pytest.raises(CheckpointError, match="expected 6/6"):
         base_lib.load(tmp_path / "bad")
 
 

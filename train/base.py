@@ -28,7 +28,8 @@ from pathlib import Path
 
 import torch
 
-from pipeline.exr import StoreError, atomic_write_bytes, atomic_write_json
+from pipeline.errors import CheckpointError
+from pipeline.exr import atomic_write_bytes, atomic_write_json
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PROMPT = "prompt_embeds.safetensors"
@@ -71,8 +72,8 @@ def check_layout(unet, source) -> None:
     """The base must take and return 6 channels (IF-II: z_t ⊕ image → ε ⊕ variance)."""
     cfg = unet.config
     if cfg.in_channels != 6 or cfg.out_channels != 6:
-        raise StoreError(f"{source}: base UNet has in/out channels {cfg.in_channels}/{cfg.out_channels}, expected 6/6 "
-                         "(the IF stage II layout: noisy sample + low-quality image in, epsilon + variance out)")
+        raise CheckpointError(f"{source}: base UNet has in/out channels {cfg.in_channels}/{cfg.out_channels}, expected 6/6 "
+                              "(the IF stage II layout: noisy sample + low-quality image in, epsilon + variance out)")
 
 
 def load(folder: str | Path, dtype: torch.dtype = torch.float32):
@@ -83,21 +84,21 @@ def load(folder: str | Path, dtype: torch.dtype = torch.float32):
     folder = Path(folder)
     for name in ("config.json", WEIGHTS, PROMPT):
         if not (folder / name).is_file():
-            raise StoreError(f"{folder / name}: missing; a base folder needs config.json, {WEIGHTS} and {PROMPT} "
-                             "(run `make pretrain`, or see the README for DeepFloyd IF-II)")
+            raise CheckpointError(f"{folder / name}: missing; a base folder needs config.json, {WEIGHTS} and {PROMPT} "
+                                  "(run `make pretrain`, or see the README for DeepFloyd IF-II)")
     try:
         unet = UNet2DConditionModel.from_pretrained(str(folder), local_files_only=True, torch_dtype=dtype, low_cpu_mem_usage=False,
                                                     use_safetensors=True)
     except (OSError, ValueError, json.JSONDecodeError) as exc:
-        raise StoreError(f"{folder}: cannot load the base UNet: {exc}") from exc
+        raise CheckpointError(f"{folder}: cannot load the base UNet: {exc}") from exc
     check_layout(unet, folder)
     tensors = load_file(str(folder / PROMPT))
     if "prompt_embeds" not in tensors:
-        raise StoreError(f"{folder / PROMPT}: no tensor named 'prompt_embeds'")
+        raise CheckpointError(f"{folder / PROMPT}: no tensor named 'prompt_embeds'")
     prompt = tensors["prompt_embeds"].to(dtype)
     hid = unet.config.encoder_hid_dim or unet.config.cross_attention_dim
     if prompt.dim() != 3 or prompt.shape[0] != 1 or prompt.shape[-1] != hid:
-        raise StoreError(f"{folder / PROMPT}: prompt_embeds has shape {tuple(prompt.shape)}, expected (1, L, {hid})")
+        raise CheckpointError(f"{folder / PROMPT}: prompt_embeds has shape {tuple(prompt.shape)}, expected (1, L, {hid})")
     return unet, prompt
 
 

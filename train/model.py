@@ -17,7 +17,8 @@ import torch
 
 from pipeline.checkpoint import save_safetensors
 from pipeline.config import Config
-from pipeline.exr import StoreError, atomic_write_json, read_json
+from pipeline.errors import CheckpointError, StoreError
+from pipeline.exr import atomic_write_json, read_json
 from pipeline.store import sha256
 
 from . import base as base_lib
@@ -73,7 +74,7 @@ def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
 def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
-    ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); StoreError if none."""
+    ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError) if none."""
     own = run_dir(cfg, spp, variant)
     candidates = [own] if str(spp) == "any" else [own, run_dir(cfg, "any", variant)]
     if not (variant if variant is not None else cfg.diffusion.name) and cfg.diffusion.shipped and cfg.diffusion.control:
@@ -81,9 +82,9 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     for folder in candidates:
         if (folder / "model.json").exists():
             return folder
-    raise StoreError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
-                     f"`make train SPP={spp}` or `make train SPP=any`" +
-                     (f" with diffusion.name={variant}" if variant else ""))
+    raise CheckpointError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
+                          f"`make train SPP={spp}` or `make train SPP=any`" +
+                          (f" with diffusion.name={variant}" if variant else ""))
 
 
 def isik_folder(cfg: Config) -> Path:
@@ -134,10 +135,10 @@ def _checked(folder: Path, meta: dict, key: str, weights: str) -> Path:
     where = Path(meta[key])
     where = where if where.is_absolute() else (folder / where).resolve()
     if not (where / weights).exists():
-        raise StoreError(f"{folder / 'model.json'}: its {key} {where} is missing; retrain, or restore that folder")
+        raise CheckpointError(f"{folder / 'model.json'}: its {key} {where} is missing; retrain, or restore that folder")
     if sha256(where / weights) != meta[f"{key}_sha256"]:
-        raise StoreError(f"{where / weights}: the {key} changed since {folder} was trained (SHA-256 differs); "
-                         f"retrain the Control Module for it")
+        raise CheckpointError(f"{where / weights}: the {key} changed since {folder} was trained (SHA-256 differs); "
+                              f"retrain the Control Module for it")
     return where
 
 
@@ -161,15 +162,15 @@ def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[Contro
     folder = Path(folder)
     meta_path, weights = folder / "model.json", folder / "control.safetensors"
     if not meta_path.exists() or not weights.exists():
-        raise StoreError(f"{folder}: no trained diffusion denoiser (model.json/control.safetensors missing); "
-                         "run `make train SPP=<n>`")
+        raise CheckpointError(f"{folder}: no trained diffusion denoiser (model.json/control.safetensors missing); "
+                              "run `make train SPP=<n>`")
     meta = read_json(meta_path, "model record")
     if meta.get("format") != FORMAT:
-        raise StoreError(f"{meta_path}: not a {FORMAT} record")
+        raise CheckpointError(f"{meta_path}: not a {FORMAT} record")
     names = aux_names(formulation(meta).estimate)
     if meta.get("aux_channels") != names:
-        raise StoreError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
-                         f"channels, this code makes {len(names)}); retrain")
+        raise CheckpointError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
+                              f"channels, this code makes {len(names)}); retrain")
     base = _checked(folder, meta, "base", base_lib.WEIGHTS)
     unet, prompt = base_lib.load(base)
     control = ControlModule(unet, len(names)) if meta["control"] else None

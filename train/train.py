@@ -36,16 +36,13 @@ import torch
 from torch.utils.data import DataLoader
 
 from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last
-from pipeline.exr import StoreError, atomic_write_json
+from pipeline.errors import TrainError
+from pipeline.exr import atomic_write_json
 from pipeline.progress import progress
 
 from . import diffusion
 
 PSNR_CEILING = 999.0
-
-
-class TrainError(StoreError):
-    """The run cannot proceed; printed as one line by ``python -m pipeline`` (exit status 2)."""
 
 
 @dataclass
