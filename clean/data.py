@@ -131,11 +131,6 @@ def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     return inputs, radiance
 
 
-def to_tensors(inputs: np.ndarray, radiance: np.ndarray, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched (1, C, H, W) tensors for the model."""
-    return (torch.from_numpy(inputs)[None].to(device), torch.from_numpy(radiance)[None].to(device))
-
-
 def crop_and_flip(arrays: list[np.ndarray], crop: int, rng: np.random.Generator) -> list[np.ndarray]:
     """The same random crop×crop window and flips of several (C, H, W) arrays.
 

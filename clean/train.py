@@ -49,7 +49,7 @@ from pipeline.progress import progress
 from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, save_safetensors
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
-from pipeline.metrics import all_metrics
+from pipeline.metrics import PSNR_CEILING, all_metrics
 from pipeline.store import Store
 
 from .data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
@@ -57,7 +57,6 @@ from .losses import critic_loss, generator_loss, log_radiance, smape
 from .model import AffinityDenoiser
 
 FORMAT = "mcdenoise-affinity"
-PSNR_CEILING = 999.0
 
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:

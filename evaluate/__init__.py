@@ -1,6 +1,6 @@
 """Stage 4: evaluation — methods, metrics, tables, error against run time, stability.
 
-    python -m pipeline eval [--spp 4 ...] [--scenes a.xml ...]   (make eval)
+    python -m pipeline eval [--spp 4 ...] [--scene a.xml ...]    (make eval)
     python -m pipeline stability                                  (make stability)
 
 Modules: ``methods`` (the denoisers behind one interface), ``harness`` (input repair, timing,

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import Config, ConfigError
+from pipeline.config import PAPER_STEPS, Config, ConfigError
 from pipeline.errors import PipelineError
 from pipeline.exr import StoreError
 
@@ -328,8 +328,8 @@ class Loader:
                                         f"{type(exc).__name__}: {exc}") from None
         den = self._models[key]
         f = den.formulation
-        if f.paper and not 0 <= (spec.skip or 0) < 27:
-            raise MethodUnavailable(f"{name}: skip must be 0..26 of the 27 super27 steps")
+        if f.paper and not 0 <= (spec.skip or 0) < PAPER_STEPS:
+            raise MethodUnavailable(f"{name}: skip must be 0..{PAPER_STEPS - 1} of the {PAPER_STEPS} super27 steps")
         if not f.paper and not 0 <= (spec.skip or 0) < (spec.steps or f.steps):
             raise MethodUnavailable(f"{name}: skip must be below the number of steps")
         return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device(),

@@ -1,7 +1,7 @@
 """``make eval`` → ``python -m pipeline eval``: every method on the test frames, per spp.
 
 For each group of frames (the ``eval.split`` split against GT_clean; the store's ``stress``
-split against GT_clean; the store's ``external`` split, e.g. scenes given with ``--scenes``,
+split against GT_clean; the store's ``external`` split, e.g. scenes given with ``--scene``,
 against GT_clean where it exists, else GT1 — the paper does not post-process its external test
 scenes) and each spp of ``eval.spp``:
 
@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.config import Config, ConfigError
 from pipeline.exr import StoreError
 from pipeline.progress import progress
-from pipeline.store import FrameKey, Store
+from pipeline.store import FrameKey, Store, poolable
 
 from . import report, uncertainty
 from .compare import annotate
@@ -98,7 +98,7 @@ def _spp_problem(store: Store, keys: list[FrameKey], spp: int) -> str | None:
     for scene in sorted({k.scene for k in keys}):
         sm = store.scene_manifest(scene)
         n, K = int(sm["stack_spp"]), int(sm["stacks"])
-        if spp % n or not 1 <= spp // n <= K:
+        if not poolable(spp, n, K):
             return f"not in the store: {scene} has {K} stacks of {n} spp (pools {n}..{n * K} spp)"
     return None
 

@@ -81,3 +81,11 @@ def inverse_gamma_compress(y, a: float = GAMMA_A, gamma: float = GAMMA):
     """``(max(y, 0) / a)^(1/gamma)``."""
     y = _clamp(_asarray(y), 0.0)
     return (y / a) ** (1.0 / gamma)
+
+
+def srgb_to_linear(c):
+    """The sRGB transfer function's inverse (IEC 61966-2-1): display values in [0, 1] to linear RGB.
+
+    Lists and tuples become numpy arrays (float64); arrays and tensors keep their dtype."""
+    c = c if _is_torch(c) else np.asarray(c)
+    return _lib(c).where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)

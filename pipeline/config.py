@@ -153,6 +153,11 @@ class AfgsaConfig:
     device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
 
 
+# The paper formulation samples with IF's super27 respacing of the 1000 training steps
+# (train.diffusion.super27): this many steps, of which diffusion.skip / val_skip skip the first.
+PAPER_STEPS = 27
+
+
 @dataclass
 class DiffusionConfig:
     base: str = doc("Base model folder in the diffusers layout (config.json, diffusion_pytorch_model.safetensors, "
@@ -447,8 +452,9 @@ def validate(cfg: Config, source: str) -> None:
     if f.precision not in ("auto", "fp32", "bf16"):
         bad("diffusion.precision", f"expected 'auto', 'fp32' or 'bf16', got {f.precision!r}")
     for key in ("skip", "val_skip"):
-        if not 0 <= getattr(f, key) <= 26:
-            bad(f"diffusion.{key}", "must be in [0, 26] (super27 has 27 steps; at least one must run)")
+        if not 0 <= getattr(f, key) < PAPER_STEPS:
+            bad(f"diffusion.{key}", f"must be in [0, {PAPER_STEPS - 1}] (super27 has {PAPER_STEPS} steps; "
+                                    "at least one must run)")
     if f.variance not in ("learned", "small"):
         bad("diffusion.variance", f"expected 'learned' or 'small', got {f.variance!r}")
     if not 0 < f.threshold_ratio <= 1:

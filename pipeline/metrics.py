@@ -47,6 +47,11 @@ def mse(pred, ref):
     return _mean((pred - ref) ** 2)
 
 
+# Training validation averages PSNR over frames and writes it to JSON, which cannot hold inf: an
+# identical frame counts as this ceiling there. The evaluation keeps inf (reported as "inf").
+PSNR_CEILING = 999.0
+
+
 def psnr(pred, ref) -> float:
     """PSNR in dB of the Reinhard-tonemapped images, peak 1; ``inf`` when they are identical."""
     err = float(mse(reinhard(pred), reinhard(ref)))

@@ -14,7 +14,6 @@ Every file is written to a temporary name and renamed, so a file that exists is 
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,6 +61,12 @@ def sha256(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def poolable(spp: int, stack_spp: int, stacks: int) -> bool:
+    """Whether ``spp`` samples per pixel can be pooled from ``stacks`` stacks of ``stack_spp`` each:
+    a multiple of ``stack_spp``, from one stack up to all of them."""
+    return spp % stack_spp == 0 and 1 <= spp // stack_spp <= stacks
 
 
 def combine_stacks(images: list[dict[str, np.ndarray]], spp_each: int) -> dict[str, np.ndarray]:
@@ -209,7 +214,7 @@ class Store:
         if str(spp) == "any":
             return [n * 2 ** i for i in range(k.bit_length())]
         spp = int(spp)
-        if spp % n or not 1 <= spp // n <= k:
+        if not poolable(spp, n, k):
             raise StoreError(f"{self.root}: spp {spp} is not a multiple of the stack spp {n} up to {n * k}")
         return [spp]
 
@@ -237,7 +242,7 @@ class Store:
         n, total = int(sm["stack_spp"]), int(sm["stacks"])
         if spp == int(sm["gt_spp"]) and stacks is None:
             return self.read_image(scene, frame, "gt1", buffers)[0]
-        if spp % n or not 1 <= spp // n <= total:
+        if not poolable(spp, n, total):
             raise StoreError(f"{self.scene_dir(scene)}: spp {spp} is not a multiple of the stack spp {n} "
                              f"between {n} and {n * total} (or the GT spp {sm['gt_spp']})")
         k = spp // n
@@ -268,7 +273,3 @@ def _count(data: dict, key: str, path: Path, top: int) -> int:
     if type(value) is not int or not 1 <= value <= top:
         raise StoreError(f"{path}: key {key!r} must be an integer in 1..{top}, got {value!r}")
     return value
-
-
-def describe(record: dict) -> str:
-    return json.dumps(record, indent=1, sort_keys=True)

@@ -2,8 +2,8 @@
 
 Runs inside a worker process (local executor) or a Ray task. The scene of the previous task is
 kept while consecutive tasks belong to the same scene, so only the camera changes between
-frames; drjit reuses its compiled kernel as long as the previous scene was freed first
-(DESIGN.md), hence the explicit ``del`` + ``gc.collect()`` before building another one.
+frames; drjit reuses its compiled kernel as long as the previous scene was freed first,
+hence the explicit ``del`` + ``gc.collect()`` before building another one.
 
 Images already on disk are kept (writes are atomic, so an existing file is complete): a frame
 interrupted half-way resumes at the first missing image, and the same seeds make the resumed

@@ -16,7 +16,7 @@ import trimesh
 
 PRIMITIVES = ("box", "icosphere", "uv_sphere", "cylinder", "capsule", "cone", "torus", "vase")
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
-MAX_FACES = 10_000          # DESIGN.md: load_dict time grows with triangles; ~10k per mesh is the budget
+MAX_FACES = 10_000          # load_dict time grows with triangles; ~10k per mesh is the budget
 SMOOTH_ANGLE_DEG = 35.0     # edges sharper than this stay hard (box edges, cylinder caps)
 
 

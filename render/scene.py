@@ -128,7 +128,7 @@ def _rect_dict(mi, r: dict, tex: TextureCache) -> dict:
 def build_scene(mi, desc: dict, max_depth: int = 8):
     """The Mitsuba scene of a description, without a sensor (the renderer makes its own, see
     ``build_sensor``). A default ``path`` integrator is included because wrapping a scene that has
-    none crashed Mitsuba natively (DESIGN.md); renderers pass their own integrator anyway."""
+    none crashed Mitsuba natively; renderers pass their own integrator anyway."""
     tex = TextureCache(mi)
     scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}}
     for i, obj in enumerate(desc.get("objects", [])):

@@ -9,13 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.color import srgb_to_linear
+
 KINDS = ("checker", "stripes", "noise", "cells", "dots", "gradient")
 DEFAULT_SIZE = 256
-
-
-def srgb_to_linear(c):
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 def random_color(rng: np.random.Generator, saturation: float | None = None, value: float | None = None) -> list:
@@ -27,7 +24,7 @@ def random_color(rng: np.random.Generator, saturation: float | None = None, valu
     f = h * 6 - int(h * 6)
     p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
     rgb = [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
-    return [round(float(x), 4) for x in srgb_to_linear(rgb)]
+    return [round(float(x), 4) for x in srgb_to_linear(np.asarray(rgb, dtype=np.float64))]
 
 
 def random_texture_params(rng: np.random.Generator, size: int = DEFAULT_SIZE) -> dict:

@@ -95,6 +95,10 @@ def test_q_sample_inverse_and_vlb():
     assert terms["mse"] == 0 and torch.isfinite(loss)
 
 
+def test_paper_step_count_is_ifs_super27():
+    assert len(diffusion.super27()) == diffusion.PAPER_STEPS == 27
+
+
 def test_lr_schedule():
     assert lr_factor(0, 100, 10) == pytest.approx(0.1)
     assert lr_factor(9, 100, 10) == pytest.approx(1.0)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from pipeline.bench import best_time
-from pipeline.config import Config
+from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, atomic_write_json
 
 from . import base as base_lib
@@ -31,7 +31,7 @@ from .infer import Denoiser
 from .model import build, estimator, find_run, load, load_run_estimator
 from .train import pick_device
 
-STEPS = (1, 3, 9, 27)
+STEPS = (1, 3, 9, PAPER_STEPS)
 
 
 def _frame(side: int, seed: int = 0) -> dict:
@@ -61,7 +61,7 @@ def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
 
 
 def _time(den: Denoiser, buffers: dict, steps: int, repeats: int) -> float:
-    kw = {"skip": 27 - steps} if den.formulation.paper else {"steps": steps, "skip": 0}
+    kw = {"skip": PAPER_STEPS - steps} if den.formulation.paper else {"steps": steps, "skip": 0}
     return best_time(lambda: den.denoise(buffers, spp=4, **kw), repeats)
 
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.config import Config
+from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, write_image
-from pipeline.metrics import psnr
+from pipeline.metrics import PSNR_CEILING, psnr
 from pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
@@ -24,7 +24,7 @@ from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder,
 from .pack import PackPairs, ensure_pack, pack_path
 from .pretrain import RestorationPairs, gather_pictures
 from .sampler import sample
-from .train import PSNR_CEILING, Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
+from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
 
 
 def _frames(store: Store, split: str) -> list[FrameKey]:
@@ -71,7 +71,7 @@ def _validator(store: Store, keys: list[FrameKey], spps: list[int], cfg: Config,
             outs.append(out[0].float().cpu())
         model.train()
         return {"psnr": score(outs), **base, "skip": f.val_skip if form.paper else f.skip,
-                "steps": 27 if form.paper else f.steps}
+                "steps": PAPER_STEPS if form.paper else f.steps}
     return validate
 
 

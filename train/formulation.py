@@ -40,6 +40,7 @@ from pipeline.config import ConfigError
 from . import diffusion as if_ddpm
 
 TRAIN_STEPS = if_ddpm.TRAIN_STEPS
+PAPER_STEPS = if_ddpm.PAPER_STEPS
 PREDICTIONS = {"epsilon": "epsilon", "v": "v_prediction", "sample": "sample"}
 SCHEDULES = ("if", "zero_snr")
 SAMPLERS = ("ddim", "ddpm")
@@ -208,9 +209,9 @@ def check(f: Formulation) -> None:
     if f.snr_gamma <= 0 or f.snr_floor < 0:
         raise FormulationError("diffusion.snr_gamma must be > 0 and diffusion.snr_floor >= 0")
     if f.paper:
-        if not 0 <= f.skip < 27:
-            raise FormulationError(f"diffusion.skip: the paper formulation skips 0..26 of IF's 27 super27 steps, "
-                                   f"got {f.skip}")
+        if not 0 <= f.skip < PAPER_STEPS:
+            raise FormulationError(f"diffusion.skip: the paper formulation skips 0..{PAPER_STEPS - 1} of IF's "
+                                   f"{PAPER_STEPS} super27 steps, got {f.skip}")
     elif not 1 <= f.steps <= TRAIN_STEPS or not 0 <= f.skip < f.steps:
         raise FormulationError(f"diffusion.steps / diffusion.skip: need 1 <= steps <= {TRAIN_STEPS} and "
                                f"0 <= skip < steps, got {f.steps} / {f.skip}")

@@ -31,7 +31,7 @@ from torch.utils.data import Dataset
 from pipeline.checkpoint import save_safetensors
 from pipeline.exr import StoreError
 from pipeline.progress import progress
-from pipeline.store import FrameKey, Store, combine_stacks, stack_name
+from pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
 
 from .data import aux_names, augment, frame_rotation, model_inputs, random_crop, to_planar
 from .estimate import Estimator
@@ -53,7 +53,7 @@ def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[
     """``variants`` limited to what a store with ``stacks`` stacks of ``stack_spp`` can pool disjointly."""
     out = {}
     for spp, count in variants.items():
-        if spp % stack_spp == 0:
+        if poolable(spp, stack_spp, stacks):
             n = min(int(count), stacks // (spp // stack_spp))
             if n > 0:
                 out[int(spp)] = n

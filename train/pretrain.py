@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
+from pipeline.color import srgb_to_linear
 from pipeline.exr import StoreError
 from pipeline.store import Store
 
@@ -36,11 +37,6 @@ from .data import augment, random_crop, to_model, to_planar
 from .estimate import Estimator
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr"}
-
-
-def srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function's inverse (IEC 61966-2-1), for 8-bit pictures as radiance."""
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def load_picture(path: Path) -> np.ndarray:
@@ -63,7 +59,7 @@ def load_picture(path: Path) -> np.ndarray:
             rgb = np.asarray(im.convert("RGB"), np.float32) / 255.0
     except Exception as exc:
         raise StoreError(f"{path}: cannot read image ({exc})") from None
-    return srgb_to_linear(rgb)
+    return srgb_to_linear(rgb).astype(np.float32)   # 8-bit sRGB pictures as radiance
 
 
 def degrade(x: torch.Tensor, scale: int, sigma: float, gen: torch.Generator, fireflies: float = 0.0) -> torch.Tensor:

@@ -34,10 +34,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .diffusion import make_scheduler, super27
+from .diffusion import PAPER_STEPS, make_scheduler, super27
 from .formulation import Formulation
 
-PAPER = Formulation(prediction="epsilon", schedule="if", estimate="none", residual=False, steps=27, start="render")
+PAPER = Formulation(prediction="epsilon", schedule="if", estimate="none", residual=False, steps=PAPER_STEPS,
+                    start="render")
 
 
 def _pad(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -80,8 +81,8 @@ def _model(model, z, image, aux, t, autocast_dtype):
 
 
 def _paper(model, noisy, aux, skip, gen, threshold_ratio, autocast_dtype, variance) -> torch.Tensor:
-    if not 0 <= skip < 27:
-        raise ValueError(f"skip must be in [0, 26], got {skip}")
+    if not 0 <= skip < PAPER_STEPS:
+        raise ValueError(f"skip must be in [0, {PAPER_STEPS - 1}], got {skip}")
     sched = make_scheduler(threshold_ratio, variance=variance)
     channels = noisy.shape[1] if variance == "small" else None   # fixed variance: the scheduler wants ε only
     sched.set_timesteps(timesteps=super27())

@@ -42,8 +42,6 @@ from pipeline.progress import progress
 
 from . import diffusion
 
-PSNR_CEILING = 999.0
-
 
 @dataclass
 class Job:
