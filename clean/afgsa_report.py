@@ -27,11 +27,12 @@ from pipeline import figures
 from pipeline.color import reinhard
 from pipeline.config import Config
 from pipeline.metrics import all_metrics
+from pipeline.runs import pick_device
 from pipeline.store import FrameKey, Store
 
 from .data import frame_inputs
 from .model import load_model
-from .train import TrainError, pick_device, run_dir, wall_seconds
+from .train import TrainError, run_dir, wall_seconds
 
 DIFF_GAIN = 20.0          # the two outputs differ by ~1e-3 on the x/(1+x) scale: invisible unscaled
 

@@ -28,11 +28,11 @@ import torch
 from pipeline.config import Config
 from pipeline.progress import progress
 from pipeline.exr import StoreError, atomic_write_json, read_json
+from pipeline.runs import pick_device, run_dir
 from pipeline.store import Store, sha256
 
 from .data import RADIANCE, frame_inputs
 from .model import AffinityDenoiser, load_model
-from .train import pick_device, run_dir
 
 MANIFEST = "cleaner.json"
 # Context around a tile: the three dilated 7×7 kernels alone reach 3·(1+2+4) = 21 pixels (24 with

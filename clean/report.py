@@ -22,11 +22,12 @@ from pipeline.color import reinhard
 from pipeline.config import Config
 from pipeline.exr import StoreError
 from pipeline.metrics import all_metrics, mse
+from pipeline.runs import pick_device
 from pipeline.store import Store
 
 from .data import frame_inputs
 from .model import load_model
-from .train import baseline_checkpoint, pick_device, run_dir, wall_seconds
+from .train import baseline_checkpoint, run_dir, wall_seconds
 
 
 def _mean_rows(rows: list[dict]) -> dict:

@@ -50,6 +50,8 @@ from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, sav
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
 from pipeline.metrics import PSNR_CEILING, all_metrics
+from pipeline import runs
+from pipeline.runs import pick_device
 from pipeline.store import Store
 
 from .data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
@@ -60,14 +62,10 @@ FORMAT = "mcdenoise-affinity"
 
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
-    if mode == "cleaner":
-        return Path(cfg.runs) / "cleaner"
-    if mode == "baseline":
-        return Path(cfg.runs) / f"isik_spp{'any' if str(spp) == 'any' else int(spp)}"
-    if mode == "afgsa":
-        target = "" if cfg.afgsa.target == "gt_clean" else f"_{cfg.afgsa.target}"
-        return Path(cfg.runs) / f"afgsa{target}_spp{'any' if str(spp) == 'any' else int(spp)}"
-    raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
+    """``pipeline.runs.run_dir`` by this module's mode names (``baseline``: the Isik baseline)."""
+    if mode not in ("cleaner", "baseline", "afgsa"):
+        raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
+    return runs.run_dir(cfg, "isik" if mode == "baseline" else mode, spp)
 
 
 def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
@@ -86,12 +84,6 @@ def trained_spps(folder: Path) -> list[int]:
     """Sample counts a baseline run trained on (its model.json; older runs name one spp)."""
     record = json.loads((folder / "model.json").read_text())
     return [int(s) for s in record.get("spp_choices") or [record["spp"]]]
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def build_model(cfg: Config) -> AffinityDenoiser:

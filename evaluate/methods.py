@@ -264,7 +264,7 @@ class Loader:
     _models: dict = field(default_factory=dict)
 
     def device(self) -> str:
-        from clean.train import pick_device
+        from pipeline.runs import pick_device
         return str(pick_device(self.cfg.eval.device))
 
     def load(self, name: str, spp: int) -> Method:

@@ -24,12 +24,12 @@ import torch
 from pipeline.bench import best_time
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, atomic_write_json
+from pipeline.runs import pick_device
 
 from . import base as base_lib
 from .formulation import Formulation
 from .infer import Denoiser
 from .model import build, estimator, find_run, load, load_run_estimator
-from .train import pick_device
 
 STEPS = (1, 3, 9, PAPER_STEPS)
 

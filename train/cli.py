@@ -15,6 +15,7 @@ import torch
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, write_image
 from pipeline.metrics import PSNR_CEILING, psnr
+from pipeline.runs import pick_device
 from pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
@@ -24,7 +25,7 @@ from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder,
 from .pack import PackPairs, ensure_pack, pack_path
 from .pretrain import RestorationPairs, gather_pictures
 from .sampler import sample
-from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit, pick_device
+from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit
 
 
 def _frames(store: Store, split: str) -> list[FrameKey]:

@@ -30,11 +30,12 @@ import torch
 from pipeline.bench import best_time
 from pipeline.checkpoint import save_safetensors
 from pipeline.config import PAPER_STEPS
+from pipeline.runs import pick_device
 
 from .model import SHIPPED_MODEL, formulation, load
 from .pack import PackPairs
 from .sampler import sample_tiled
-from .train import Job, autocast_dtype, fit, pick_device
+from .train import Job, autocast_dtype, fit
 
 STEPS = (1, 4, 9, PAPER_STEPS)
 SIZES = {"256x256": (256, 256), "1920x1080": (1080, 1920)}

@@ -31,12 +31,13 @@ import numpy as np
 import torch
 
 from pipeline.numerics import repair_nonfinite
+from pipeline.runs import pick_device
 
 from .data import CLAMP, from_model, model_inputs, to_planar
 from .estimate import Estimator, has_renderer_buffers
 from .model import formulation, load, load_run_estimator, run_dir
 from .sampler import sample_tiled
-from .train import autocast_dtype, pick_device
+from .train import autocast_dtype
 
 __all__ = ["Denoiser", "load_denoiser", "run_dir"]
 

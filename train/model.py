@@ -19,6 +19,7 @@ from pipeline.checkpoint import save_safetensors
 from pipeline.config import Config
 from pipeline.errors import CheckpointError, StoreError
 from pipeline.exr import atomic_write_json, read_json
+from pipeline import runs
 from pipeline.store import sha256
 
 from . import base as base_lib
@@ -58,17 +59,10 @@ def new_base(cfg: Config, run: Path) -> None:
     base_lib.write_new(folder, cfg.pretrain.channels, cfg.pretrain.layers_per_block, cfg.seed)
 
 
-def run_name(spp: int | str, variant: str = "") -> str:
-    """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_paper`` (variant ``paper``)."""
-    name = "diffusion_sppany" if str(spp) == "any" else f"diffusion_spp{int(spp)}"
-    return name + (f"_{variant}" if variant else "")
-
-
 def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
-    name = run_name(spp, cfg.diffusion.name if variant is None else variant)
-    if not cfg.diffusion.control:
-        name += "_base_only"
-    return Path(cfg.runs) / name
+    """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_paper`` (variant ``paper``) under
+    ``cfg.runs``, ``_base_only`` appended without the Control Module (``pipeline.runs.run_dir``)."""
+    return runs.run_dir(cfg, "diffusion", spp, variant)
 
 
 def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
