@@ -117,7 +117,7 @@ def _pooled(store: Store, key: FrameKey, wanted: float) -> EqualTime:
 def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int], quiet: bool) -> dict[FrameKey, str]:
     """Render ``mc<N>`` for every frame that lacks it, in worker processes; returns errors by frame."""
     from render.frame import FrameTask
-    from pipeline.dataset import _render_frame_entry
+    from render.dataset import render_frame_entry
     from pipeline.executors import run_tasks
 
     tasks = []
@@ -143,7 +143,7 @@ def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int], quiet:
     if not tasks:
         return errors
     bar = progress(total=len(tasks), desc="equal-time MC", unit="render", disable=quiet, leave=False)
-    for task, _result, error in run_tasks(tasks, _render_frame_entry, cfg.executor):
+    for task, _result, error in run_tasks(tasks, render_frame_entry, cfg.executor):
         if error is not None:
             text = str(error).strip()
             errors[FrameKey(task.scene, task.frame)] = text.splitlines()[-1] if text else repr(error)

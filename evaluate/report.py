@@ -155,7 +155,7 @@ def fmt_equivalent(value) -> str:
     return text if how == "interpolated" else f"≈{text} ({how})"
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
     """A Markdown table; a '|' inside a cell (an error message, |n|) is escaped."""
     def line(cells):
         return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
@@ -207,7 +207,7 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
         secs = float(np.mean([p["model_seconds"] for p in et["per_frame"]]))
         lines.append([f"MC at equal time to `{n}` (≈{et['spp']:.0f} spp)"] + cells(f"mc_equal_{n}") +
                      [f"{fmt_seconds(secs)} (render)", "renderer", "; ".join(notes)])
-    return _table(header, lines)
+    return markdown_table(header, lines)
 
 
 def diff_table(entry: dict, metric_names: list[str], ref: str) -> list[str]:
@@ -216,20 +216,20 @@ def diff_table(entry: dict, metric_names: list[str], ref: str) -> list[str]:
             for n, r in scored_rows(entry).items() if ref in r.get("vs", {})]
     if not rows:
         return []
-    return _table(["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names], rows)
+    return markdown_table(["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names], rows)
 
 
 def time_table(points: list[dict]) -> list[str]:
     rows = [[f"`{p['method']}`", fmt_seconds(p["seconds"]), fmt("l1", p["l1"]), fmt("psnr", p["psnr"]),
              fmt_equivalent(p["spp_equivalent_l1"]) if "spp_equivalent_l1" in p else "–",
              fmt_equivalent(p["spp_equivalent_psnr"]) if "spp_equivalent_psnr" in p else "–"] for p in points]
-    return _table(["method", "render + denoise s", "L1 ↓", "PSNR dB ↑", "MC spp with the same L1",
+    return markdown_table(["method", "render + denoise s", "L1 ↓", "PSNR dB ↑", "MC spp with the same L1",
                    "MC spp with the same PSNR"], rows)
 
 
 def mc_table(mean: list[dict]) -> list[str]:
     rows = [[str(p["spp"]), fmt_seconds(p["seconds"]), fmt("l1", p["l1"]), fmt("psnr", p["psnr"])] for p in mean]
-    return _table(["spp", "render s (model)", "L1 ↓", "PSNR dB ↑"], rows)
+    return markdown_table(["spp", "render s (model)", "L1 ↓", "PSNR dB ↑"], rows)
 
 
 def reference_warning(mean: list[dict], min_db_per_doubling: float = 1.0) -> list[str]:
@@ -267,7 +267,7 @@ def uncertainty_lines(entry: dict) -> list[str]:
         return []
     lines = ["Uncertainty (the standard deviation of the samples against the actual error per pixel; "
              "evaluate/uncertainty.py):", ""]
-    lines += _table(["method", "Spearman ρ (mean over frames)", "frames"],
+    lines += markdown_table(["method", "Spearman ρ (mean over frames)", "frames"],
                     [[f"`{n}`", fmt("ssim", u["spearman_mean"]), str(u["frames"])] for n, u in rows])
     if entry.get("uncertainty_plot"):
         lines += ["", f"Calibration plot: {entry['uncertainty_plot']}"]

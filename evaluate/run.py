@@ -277,14 +277,14 @@ def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | Non
         raise ConfigError(f"eval.spp: expected positive sample counts, got {spps!r}")
     store = open_store(cfg) if not scenes else None
     if scenes:
-        from pipeline.external import render_scene
+        from render.external import render_scene
         for xml in scenes:
             render_scene(xml, cfg.store, cfg)
         store = open_store(cfg)
     groups = frame_groups(cfg, store)
     if scenes:
-        from pipeline.external import _scene_id
-        named = {_scene_id(x, None) for x in scenes}
+        from render.external import scene_id
+        named = {scene_id(x, None) for x in scenes}
         groups[EXTERNAL] = [k for k in groups.get(EXTERNAL, []) if k.scene in named]
     metric_names, missing = usable_metrics(e.metrics)
     out_dir = report_dir(cfg, out)

@@ -28,7 +28,7 @@ from pipeline.progress import progress
 
 from .harness import run_method
 from .methods import Loader, MethodUnavailable, check_names
-from .report import _table, fmt_seconds, write_json
+from .report import fmt_seconds, markdown_table, write_json
 
 BASE = (64, 64)          # (H, W) of the cases that are not about size
 _SPLIT = {"diffuse_direct": 0.4, "specular_direct": 0.1, "diffuse_indirect": 0.4, "specular_indirect": 0.1}
@@ -220,7 +220,7 @@ def format_markdown(data: dict, methods: list[str]) -> str:
              f"{data['date']}, checkpoints of {data['spp']} spp. A run passes (ok) when the method returns a finite "
              "(H, W, 3) image; times are denoise wall seconds, 'mean' the output's mean radiance (compare the "
              "input mean). 'NaN/Inf repaired' counts the input values set to 0 before any method saw them.", ""]
-    lines += _table(["case", "input mean", "NaN/Inf repaired", *[f"`{m}`" for m in methods]], rows)
+    lines += markdown_table(["case", "input mean", "NaN/Inf repaired", *[f"`{m}`" for m in methods]], rows)
     if data["unavailable"]:
         lines += ["", "Not available:"] + [f"- `{m}`: {why}" for m, why in data["unavailable"].items()]
     return "\n".join(lines) + "\n"

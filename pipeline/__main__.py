@@ -21,7 +21,7 @@ def _config(args):
 
 
 def cmd_dataset(args) -> int:
-    from .dataset import run
+    from render.dataset import run
     stats = run(_config(args), shard=args.shard, quiet=args.quiet)
     return 1 if stats["failed"] else 0
 
@@ -34,7 +34,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_render_scene(args) -> int:
-    from .external import render_scene
+    from render.external import render_scene
     cfg = _config(args)
     stats = render_scene(args.scene, args.store or cfg.store, cfg, resolution=args.resolution, name=args.name)
     return 1 if stats["failed"] else 0
@@ -152,7 +152,7 @@ def cmd_bench_denoise(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_bench
+    from render.bench import run_bench
     run_bench(_config(args), out=args.out)
     return 0
 
@@ -163,7 +163,7 @@ def cmd_verify(args) -> int:
 
 
 def cmd_plan(args) -> int:
-    from .plan import measure, run_plan
+    from render.plan import measure, run_plan
     cfg = _config(args)
     if args.measure:
         print(json.dumps(measure(cfg), indent=1))
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", default="1,2,16,64,256,1024", help="core counts for the wall-time column")
     p.add_argument("--json", action="store_true")
     p.add_argument("--measure", action="store_true", help="measure the model's constants on this machine "
-                                                           "(prints JSON for pipeline/plan.py)")
+                                                           "(prints JSON for render/plan.py)")
     p.set_defaults(fn=cmd_plan)
 
     # key=value overrides may follow options too (`gt-clean --quiet clean.epochs=3`): argparse

@@ -26,60 +26,62 @@ GAMMA = 1.0 / 2.4
 _REINHARD_MAX = 1.0 - 2.0 ** -24
 
 
-def _is_torch(x) -> bool:
+def is_torch(x) -> bool:
+    """Whether ``x`` is a torch tensor (without importing torch)."""
     return type(x).__module__.startswith("torch")
 
 
 def _lib(x):
-    if _is_torch(x):
+    if is_torch(x):
         import torch
         return torch
     return np
 
 
 def _asarray(x):
-    return x if _is_torch(x) or isinstance(x, np.ndarray) else np.asarray(x, dtype=np.float64)
+    return x if is_torch(x) or isinstance(x, np.ndarray) else np.asarray(x, dtype=np.float64)
 
 
-def _clamp(x, lo=None, hi=None):
-    if _is_torch(x):
+def clamp(x, lo=None, hi=None):
+    """``x`` limited to [lo, hi] (either bound may be None), a numpy array or a torch tensor alike."""
+    if is_torch(x):
         return x.clamp(min=lo, max=hi)
     return np.clip(x, lo, hi)
 
 
 def reinhard(x):
     """``max(x, 0) / (1 + max(x, 0))`` (paper eq. 7)."""
-    x = _clamp(_asarray(x), 0.0)
+    x = clamp(_asarray(x), 0.0)
     return x / (1.0 + x)
 
 
 def inverse_reinhard(y):
     """``y / (1 - y)`` for y clamped to [0, 1): the HDR radiance whose Reinhard value is y."""
-    y = _clamp(_asarray(y), 0.0, _REINHARD_MAX)
+    y = clamp(_asarray(y), 0.0, _REINHARD_MAX)
     return y / (1.0 - y)
 
 
 def log_compress(x, a: float = LOG_A):
     """``a·log(1 + max(x, 0))`` (paper eq. 5, a = 0.51)."""
-    x = _clamp(_asarray(x), 0.0)
+    x = clamp(_asarray(x), 0.0)
     return a * _lib(x).log1p(x)
 
 
 def inverse_log_compress(y, a: float = LOG_A):
     """``exp(y / a) - 1`` for y >= 0 (expm1 keeps small values exact)."""
-    y = _clamp(_asarray(y), 0.0)
+    y = clamp(_asarray(y), 0.0)
     return _lib(y).expm1(y / a)
 
 
 def gamma_compress(x, a: float = GAMMA_A, gamma: float = GAMMA):
     """``a·max(x, 0)^gamma`` (paper eq. 4, a = 0.47, gamma = 1/2.4)."""
-    x = _clamp(_asarray(x), 0.0)
+    x = clamp(_asarray(x), 0.0)
     return a * x ** gamma
 
 
 def inverse_gamma_compress(y, a: float = GAMMA_A, gamma: float = GAMMA):
     """``(max(y, 0) / a)^(1/gamma)``."""
-    y = _clamp(_asarray(y), 0.0)
+    y = clamp(_asarray(y), 0.0)
     return (y / a) ** (1.0 / gamma)
 
 
@@ -87,5 +89,5 @@ def srgb_to_linear(c):
     """The sRGB transfer function's inverse (IEC 61966-2-1): display values in [0, 1] to linear RGB.
 
     Lists and tuples become numpy arrays (float64); arrays and tensors keep their dtype."""
-    c = c if _is_torch(c) else np.asarray(c)
+    c = c if is_torch(c) else np.asarray(c)
     return _lib(c).where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)

@@ -26,20 +26,21 @@ import math
 
 import numpy as np
 
-from .color import _clamp, _is_torch, reinhard
+from . import color
+from .color import is_torch, reinhard
 
 SMAPE_EPS = 1e-2
 
 
 def _mean(x):
     m = x.mean()
-    return m if _is_torch(x) else float(m)
+    return m if is_torch(x) else float(m)
 
 
 def l1(pred, ref, clamp: tuple[float, float] | None = None):
     """Mean absolute error in HDR; ``clamp=(0, 6)`` clamps both images first (paper's L1)."""
     if clamp is not None:
-        pred, ref = _clamp(pred, *clamp), _clamp(ref, *clamp)
+        pred, ref = color.clamp(pred, *clamp), color.clamp(ref, *clamp)
     return _mean(abs(pred - ref))
 
 
@@ -179,7 +180,7 @@ def fvvdp(pred, ref, display: str = "standard_4k") -> float:
 
 def all_metrics(pred, ref, eps: float = SMAPE_EPS) -> dict[str, float]:
     """``{"psnr", "l1", "smape"}`` as floats (numpy or torch inputs)."""
-    if _is_torch(pred):
+    if is_torch(pred):
         pred, ref = pred.detach().double().cpu().numpy(), ref.detach().double().cpu().numpy()
     pred, ref = np.asarray(pred, dtype=np.float64), np.asarray(ref, dtype=np.float64)
     return {"psnr": psnr(pred, ref), "l1": l1(pred, ref, clamp=(0.0, 6.0)), "smape": smape(pred, ref, eps)}

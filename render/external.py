@@ -3,14 +3,26 @@
 The scene's own integrator and film are ignored: every image goes through our split-buffer
 integrator with a box-filtered film (``render.buffers.make_sensor``), at our sample counts, so a
 production scene lands in the store exactly like a test frame of the random dataset.
+
+``render_scene`` (``python -m pipeline render-scene SCENE.xml --store STORE``) puts a user's scene
+into the split ``external`` of the store (created if needed) as one frame with the same images as
+a dataset frame (GT1, GT2, stacks), rendered by the same worker code.
 """
 from __future__ import annotations
 
+import dataclasses
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.config import Config, ConfigError
 from pipeline.errors import PipelineError
+from pipeline.executors import run_tasks
+from pipeline.exr import StoreError, atomic_write_bytes
+from pipeline.store import STORE_FORMAT, STORE_VERSION, Store, image_names, image_seed
+from pipeline.versions import package_versions
 
 
 class ExternalSceneError(PipelineError, RuntimeError):
@@ -46,3 +58,87 @@ def external_sensor(mi, scene, width: int | None, height: int | None):
     matrix = np.asarray(params["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
     to_world = mi.ScalarTransform4f(matrix)
     return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
+
+
+EXTERNAL_SPLIT = "external"
+# External scenes take seeds from a range no random scene reaches (scene index >= 2^20).
+_EXTERNAL_INDEX_BASE = 1 << 20
+
+
+def scene_id(xml: str, name: str | None) -> str:
+    sid = name or "ext_" + re.sub(r"[^A-Za-z0-9_-]+", "_", Path(xml).stem)
+    if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", sid):
+        raise ConfigError(f"--name {sid!r}: use 1-64 letters, digits, '_' or '-'")
+    return sid
+
+
+def _register(store: Store, cfg: Config, sid: str) -> int:
+    """Add ``sid`` to the store's external split; returns its index for seeding."""
+    if store.manifest_path.exists():
+        m = store.manifest()
+    else:
+        m = {"format": STORE_FORMAT, "version": STORE_VERSION, "config": dataclasses.asdict(cfg),
+             "scenes": [], "splits": {"train": [], "val": [], "test": []}, "packages": package_versions()}
+    ext = m["splits"].setdefault(EXTERNAL_SPLIT, [])
+    if sid not in ext:
+        ext.append(sid)
+    if sid not in m["scenes"]:
+        m["scenes"].append(sid)
+    store.write_manifest({k: v for k, v in m.items() if k not in ("format", "version")})
+    return _EXTERNAL_INDEX_BASE + ext.index(sid)
+
+
+def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
+                 name: str | None = None) -> dict:
+    if not Path(xml).is_file():
+        raise StoreError(f"{xml}: scene file not found")
+    size = None
+    if resolution:
+        m = re.fullmatch(r"(\d+)x(\d+)", resolution)
+        if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+            raise ConfigError(f"--resolution {resolution!r}: expected WxH, e.g. 256x256")
+        size = (int(m.group(1)), int(m.group(2)))
+    store = Store(store_path)
+    sid = scene_id(xml, name)
+    # A scene that fails (bad XML, a render error) leaves the store as it found it: the manifest
+    # gets its old bytes back, a new scene folder goes, a store this call created is removed.
+    root_existed = store.root.exists()
+    manifest = store.manifest_path.read_bytes() if store.manifest_path.exists() else None
+    folder_existed = store.scene_dir(sid).exists()
+    try:
+        return _render(store, store_path, cfg, xml, sid, size)
+    except BaseException:
+        if not root_existed:
+            shutil.rmtree(store.root, ignore_errors=True)
+        else:
+            if manifest is None:
+                store.manifest_path.unlink(missing_ok=True)
+            else:
+                atomic_write_bytes(store.manifest_path, lambda tmp: Path(tmp).write_bytes(manifest))
+            if not folder_existed:
+                shutil.rmtree(store.scene_dir(sid), ignore_errors=True)
+        raise
+
+
+def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size) -> dict:
+    from .dataset import render_frame_entry, scene_record
+    from .frame import FrameTask
+
+    index = _register(store, cfg, sid)
+    d = cfg.dataset
+    names = image_names(d.stacks)
+    seeds = {n: image_seed(cfg.seed, index, 0, k, 1, len(names)) for k, n in enumerate(names)}
+    desc = {"xml": str(Path(xml).resolve())}
+    record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
+    store.write_scene_manifest(sid, {**record, "packages": package_versions()})
+    task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,
+                     gt_spp=d.gt_spp, stack_spp=d.stack_spp, stacks=d.stacks, seeds=seeds,
+                     render=dataclasses.asdict(cfg.render))
+    stats = {"failed": 0}
+    for _, result, error in run_tasks([task], render_frame_entry, cfg.executor):
+        if error is not None:
+            raise StoreError(str(error).strip().splitlines()[-1] if str(error).strip() else repr(error))
+        print(f"render-scene: {sid} -> {store.frame_dir(sid, 0)}: {result['width']}x{result['height']}, "
+              f"{len(result['images'])} images, {result['timing']['total']:.1f} s, "
+              f"{result['nonfinite']} non-finite values repaired")
+    return stats

@@ -35,7 +35,7 @@ def direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return np.array([np.cos(e) * np.cos(a), np.sin(e), np.cos(e) * np.sin(a)])
 
 
-def _perp_up(n: np.ndarray) -> list:
+def perp_up(n: np.ndarray) -> list:
     """An 'up' vector not parallel to n (look_at needs one)."""
     n = np.asarray(n, dtype=np.float64) / max(float(np.linalg.norm(n)), 1e-12)
     return [0.0, 0.0, 1.0] if abs(n[1]) > 0.95 else [0.0, 1.0, 0.0]
@@ -63,7 +63,7 @@ def area_light(rng: np.random.Generator, center: np.ndarray, radius: float, max_
         area = w * h
         n = (center - pos) / np.linalg.norm(center - pos)
         return {"type": "rectangle", "small": bool(small), "center": _vec(pos), "normal": _vec(n),
-                "up": _perp_up(n), "size": [_r(w, 6), _r(h, 6)], "irradiance": _r(irradiance),
+                "up": perp_up(n), "size": [_r(w, 6), _r(h, 6)], "irradiance": _r(irradiance),
                 "radiance": _vec(color * irradiance * dist**2 / area)}
     r = size / 2
     return {"type": "sphere", "small": bool(small), "center": _vec(pos), "radius": _r(r, 6),
@@ -163,7 +163,7 @@ def emitter_dicts(mi, light: dict) -> dict:
                 "intensity": {"type": "rgb", "value": light["intensity"]}}
     if kind == "spot":
         return {"type": "spot", "to_world": T().look_at(origin=light["position"], target=light["target"],
-                                                        up=_perp_up(np.subtract(light["target"], light["position"]))),
+                                                        up=perp_up(np.subtract(light["target"], light["position"]))),
                 "cutoff_angle": light["cutoff_angle"], "beam_width": light["beam_width"],
                 "intensity": {"type": "rgb", "value": light["intensity"]}}
     raise ValueError(f"unknown light type {kind!r}")

@@ -44,7 +44,7 @@ def _rect_light(center, target, size, radiance, up=None) -> dict:
     c, t = np.asarray(center, float), np.asarray(target, float)
     n = (t - c) / np.linalg.norm(t - c)
     return {"type": "rectangle", "small": False, "center": list(map(float, center)), "normal": [round(float(x), 6) for x in n],
-            "up": up or lt._perp_up(n), "size": list(size), "irradiance": None, "radiance": list(radiance)}
+            "up": up or lt.perp_up(n), "size": list(size), "irradiance": None, "radiance": list(radiance)}
 
 
 def _base(name: str, seed: int, frames: int) -> dict:

@@ -1,7 +1,7 @@
 """`make bench` runs end to end (its numbers are claims for the README, not asserted here)."""
 import json
 
-from pipeline.bench import run_bench
+from render.bench import run_bench
 from pipeline.config import load_config
 from tests.helpers import TINY
 

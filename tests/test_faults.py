@@ -310,7 +310,7 @@ def slow_reference(tmp_path_factory):
 
 
 WORKER_MARKS = {"local": lambda cmd: "spawn_main" in cmd,
-                "ray": lambda cmd: cmd.startswith("ray::_render_frame_entry")}
+                "ray": lambda cmd: cmd.startswith("ray::render_frame_entry")}
 
 
 @pytest.mark.parametrize("kind", ["local", "ray"])

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.bench import best_time
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, atomic_write_json
 from pipeline.runs import pick_device
+from pipeline.timing import best_time
 
 from . import base as base_lib
 from .formulation import Formulation

@@ -46,16 +46,16 @@ FEATURE_BUFFERS = tuple(b.name for b in schema.BUFFERS if not b.radiance)
 
 def to_model(x, tonemap: str = "log"):
     """HDR radiance → [−1, 1] (clamped to [0, 6] first)."""
-    x = color._clamp(x, 0.0, CLAMP)
+    x = color.clamp(x, 0.0, CLAMP)
     y = color.log_compress(x) if tonemap == "log" else color.gamma_compress(x)
     return 2.0 * y - 1.0
 
 
 def from_model(y, tonemap: str = "log"):
     """[−1, 1] → HDR radiance in [0, 6]; the exact inverse of ``to_model`` on [0, 6]."""
-    y = (color._clamp(y, -1.0, 1.0) + 1.0) / 2.0
+    y = (color.clamp(y, -1.0, 1.0) + 1.0) / 2.0
     x = color.inverse_log_compress(y) if tonemap == "log" else color.inverse_gamma_compress(y)
-    return color._clamp(x, 0.0, CLAMP)
+    return color.clamp(x, 0.0, CLAMP)
 
 
 # ---- the condition ---------------------------------------------------------------------------

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import torch
 
-from pipeline.bench import best_time
 from pipeline.checkpoint import save_safetensors
 from pipeline.config import PAPER_STEPS
 from pipeline.runs import pick_device
+from pipeline.timing import best_time
 
 from .model import SHIPPED_MODEL, formulation, load
 from .pack import PackPairs

@@ -20,27 +20,18 @@ import tempfile
 import time
 from pathlib import Path
 
-from .config import Config
-from .store import Store
-from .versions import package_versions
-
-
-def best_time(fn, repeats: int) -> float:
-    """Best wall time of ``repeats`` calls of ``fn`` (seconds)."""
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+from pipeline.config import Config
+from pipeline.store import Store
+from pipeline.timing import best_time
+from pipeline.versions import package_versions
 
 
 def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeats: int = 3) -> list[dict]:
     import drjit as dr
 
-    from render.buffers import make_sensor, needed_features, render_image
-    from render.scene import build_scene, random_scene
-    from .mitsuba_env import import_mitsuba
+    from .buffers import make_sensor, needed_features, render_image
+    from .scene import build_scene, random_scene
+    from pipeline.mitsuba_env import import_mitsuba
 
     mi = import_mitsuba(cfg.render.variant, cfg.render.threads)
     rows = []
@@ -52,7 +43,7 @@ def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeat
             sensor = make_sensor(mi, mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
                                  39.3, resolution, resolution)
         else:
-            from render.scene import build_sensor
+            from .scene import build_sensor
             sensor = build_sensor(mi, desc, 0, resolution, resolution)
         path = mi.load_dict({"type": "path", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth})
 
@@ -106,11 +97,11 @@ def omission_savings(cfg: Config, timing_spp: int = 128) -> dict:
     Re-renders frame 0 of every scene at ``timing_spp`` with the needed features and with all
     of them, to measure the render-time saving of computing only what the scene needs.
     """
-    from render.buffers import needed_features, render_image
-    from render.scene import build_scene, build_sensor
+    from .buffers import needed_features, render_image
+    from .scene import build_scene, build_sensor
     from pipeline import schema
-    from .exr import read_image, write_image
-    from .mitsuba_env import import_mitsuba
+    from pipeline.exr import read_image, write_image
+    from pipeline.mitsuba_env import import_mitsuba
     store = Store(cfg.store)
     omitted = full = images = 0
     t_auto = t_all = 0.0

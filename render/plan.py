@@ -39,9 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import schema
-from .config import Config
-from .exr import StoreError
+from pipeline import schema
+from pipeline.config import Config
+from pipeline.exr import StoreError
 
 # Measured by `python -m pipeline plan --measure` (see measure()). Re-measure on the target
 # machine and paste the printed JSON here, or calibrate with --store.
@@ -119,7 +119,7 @@ def seconds_per_sample(constants: dict, resolution: int, max_depth: int) -> tupl
 
 def estimate(cfg: Config, constants: dict | None = None) -> dict:
     """Per-frame and total cost of the config's dataset stage (see the module docstring)."""
-    from render.stress import STRESS_PRESETS
+    from .stress import STRESS_PRESETS
 
     c = constants or MEASURED
     d = cfg.dataset
@@ -223,11 +223,11 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
     """Measure the constants of the model on this machine (about two minutes on 2 cores)."""
     import drjit as dr
 
-    from render.buffers import needed_features, render_image
-    from render.scene import build_scene, build_sensor, random_scene
-    from .exr import write_image
-    from .mitsuba_env import import_mitsuba
-    from .store import sha256
+    from .buffers import needed_features, render_image
+    from .scene import build_scene, build_sensor, random_scene
+    from pipeline.exr import write_image
+    from pipeline.mitsuba_env import import_mitsuba
+    from pipeline.store import sha256
 
     mi = import_mitsuba(cfg.render.variant, threads)
     used_threads = dr.thread_count()
@@ -301,7 +301,7 @@ def _cpu_name() -> str:
 
 def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
     """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
-    from .store import Store
+    from pipeline.store import Store
 
     c = json.loads(json.dumps(constants or MEASURED))
     store = Store(root)

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config as config_mod
-from .config import Config
-from .exr import StoreError
-from .executors import run_tasks, task_label
-from .progress import progress
-from .store import Store, image_names, image_seed
-from .versions import package_versions
+from pipeline import config as config_mod
+from pipeline.config import Config
+from pipeline.exr import StoreError
+from pipeline.executors import run_tasks, task_label
+from pipeline.progress import progress
+from pipeline.store import Store, image_names, image_seed
+from pipeline.versions import package_versions
 
 # Keys that change what gets rendered: a store made with other values cannot be extended.
 _FIXED_KEYS = ("seed", "dataset", "scene", "render.max_depth", "render.rr_depth", "render.features",
@@ -53,7 +53,7 @@ class Plan:
     splits: dict[str, list[str]]
 
     def frame_tasks(self, cfg: Config) -> list:
-        from render.frame import FrameTask
+        from .frame import FrameTask
 
         tasks = []
         for sm in self.scenes:
@@ -79,7 +79,7 @@ def stress_entries(presets: list[str], copies: int, first_index: int) -> list[tu
 
 
 def make_plan(cfg: Config) -> Plan:
-    from render.scene import random_scene, stress_scene, STRESS_PRESETS
+    from .scene import random_scene, stress_scene, STRESS_PRESETS
 
     d = cfg.dataset
     names = image_names(d.stacks)
@@ -216,7 +216,7 @@ def run(cfg: Config, shard: str | None = None, quiet: bool = False) -> dict:
              "samples": 0, "nonfinite": 0, "bytes": 0, "timing": {"build": 0.0, "render": 0.0, "write": 0.0, "total": 0.0},
              "errors": []}
     bar = progress(total=len(tasks), initial=stats["skipped"], desc="dataset", unit="frame", disable=quiet)
-    for task, result, error in run_tasks(todo, _render_frame_entry, cfg.executor):
+    for task, result, error in run_tasks(todo, render_frame_entry, cfg.executor):
         if error is not None:
             stats["failed"] += 1
             stats["errors"].append(f"{task_label(task)}: {error}")
@@ -240,9 +240,9 @@ def run(cfg: Config, shard: str | None = None, quiet: bool = False) -> dict:
     return stats
 
 
-def _render_frame_entry(task):
+def render_frame_entry(task):
     # Module-level so that spawn workers and Ray can import it by name.
-    from render.frame import render_frame
+    from .frame import render_frame
     return render_frame(task)
 
 

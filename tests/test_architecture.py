@@ -1,0 +1,108 @@
+"""The package layout, checked on the syntax tree of every module (imports inside functions too).
+
+- ``pipeline`` is the core (config, schema, store, executors, metrics, ...): none of its modules
+  imports a stage (``render``, ``clean``, ``train``, ``evaluate``), except the command line
+  ``pipeline/__main__.py``, which only dispatches to them.
+- No module uses another module's private (``_underscore``) name, by ``from m import _name`` or as
+  ``m._name``: what a module shares is public.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE = "pipeline"
+STAGES = ("render", "clean", "train", "evaluate")
+DISPATCH = {"pipeline.__main__"}
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for pkg in (CORE, *STAGES):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _absolute(module: str, path: Path, node: ast.ImportFrom) -> str:
+    if not node.level:
+        return node.module or ""
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    base = package[: len(package) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports(module: str, path: Path) -> list[tuple[str, str | None, int]]:
+    """(imported module, imported name or None, line) for every import statement of the module."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(a.name, None, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            src = _absolute(module, path, node)
+            out += [(src, a.name, node.lineno) for a in node.names]
+    return sorted(out, key=lambda x: x[2])
+
+
+def private_uses(module: str, path: Path, known: set[str]) -> list[str]:
+    """``from m import _x`` and ``alias._x`` where ``alias`` names another project module."""
+    tree = ast.parse(path.read_text(), str(path))
+    aliases: dict[str, str] = {}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.asname and a.name in known:
+                    aliases[a.asname] = a.name
+        elif isinstance(node, ast.ImportFrom):
+            src = _absolute(module, path, node)
+            for a in node.names:
+                full = f"{src}.{a.name}"
+                if full in known:                       # from package import module [as alias]
+                    aliases[a.asname or a.name] = full
+                elif src in known and a.name.startswith("_") and not a.name.startswith("__") and src != module:
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}: from {src} import {a.name}")
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases
+                and node.attr.startswith("_") and not node.attr.startswith("__")):
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {aliases[node.value.id]}.{node.attr}")
+    return found
+
+
+MODULES = modules()
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if m.split(".")[0] == CORE and m not in DISPATCH))
+def test_core_imports_no_stage(module):
+    bad = [f"line {line}: {src}" for src, _, line in imports(module, MODULES[module]) if src.split(".")[0] in STAGES]
+    assert not bad, f"{module} (core) imports a stage: " + "; ".join(bad)
+
+
+def test_every_stage_is_dispatched_by_the_command_line_only():
+    """The command line is the one core module that may import stages (to dispatch)."""
+    stages = {src.split(".")[0] for src, _, _ in imports("pipeline.__main__", MODULES["pipeline.__main__"])}
+    assert stages & set(STAGES)
+
+
+def test_no_module_uses_another_modules_private_names():
+    known = set(MODULES)
+    found = [hit for m, p in MODULES.items() for hit in private_uses(m, p, known)]
+    assert not found, "private names used outside their module:\n" + "\n".join(found)
+
+
+def test_the_checker_sees_what_it_forbids(tmp_path):
+    """The checks above must be able to fail: a core module importing a stage inside a function,
+    and a private name used through a module alias, are found."""
+    core = tmp_path / "core.py"
+    core.write_text("def f():\n    from render.frame import FrameTask\n    from . import color as c\n    return c._clamp\n")
+    assert [src for src, _, _ in imports("pipeline.core", core)] == ["render.frame", "pipeline"]
+    global ROOT
+    old, ROOT = ROOT, tmp_path
+    try:
+        assert private_uses("pipeline.core", core, {"pipeline.color", "render.frame"}) == ["core.py:4: pipeline.color._clamp"]
+    finally:
+        ROOT = old
