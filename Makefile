@@ -3,7 +3,8 @@
 #   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik
 #                             baseline (SPP=any) and the diffusion denoiser at SPP=4, evaluation at
 #                             4, 16 and 64 spp (sets itself up)
-#   make test                 the test suite (sets itself up)
+#   make test                 lint (ruff: pycodestyle errors, pyflakes, import order) and the
+#                             test suite (sets itself up)
 #   make dataset [CONFIG=...] [key=value ...]
 #
 # Any `key=value` on the command line that is not one of the Make variables below is passed to
@@ -26,7 +27,7 @@ RUN        := $(PY) -m pipeline
 .PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect verify plan bench test clean distclean
 
 help:
-	@sed -n '1,10p' Makefile
+	@sed -n '1,11p' Makefile
 
 # ---- set-up -------------------------------------------------------------------------------
 setup: $(STAMP) llvm
@@ -116,11 +117,12 @@ bench: setup
 
 # ---- tests --------------------------------------------------------------------------------
 test: setup
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q tests
 
 # ---- housekeeping (make clean deletes outputs; it is not the GT cleaner) -------------------
 clean:
-	rm -rf data runs reports .pytest_cache
+	rm -rf data runs reports .pytest_cache .ruff_cache
 
 distclean: clean
 	rm -rf $(VENV) *.egg-info

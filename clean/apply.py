@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from pipeline.config import Config
-from pipeline.progress import progress
 from pipeline.exr import StoreError, atomic_write_json, read_json
+from pipeline.progress import progress
 from pipeline.runs import pick_device, run_dir
 from pipeline.store import Store, sha256
 

@@ -44,17 +44,25 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.config import Config
-from pipeline.progress import progress
+from pipeline import runs
 from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, save_safetensors
+from pipeline.config import Config
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
 from pipeline.metrics import PSNR_CEILING, all_metrics
-from pipeline import runs
+from pipeline.progress import progress
 from pipeline.runs import pick_device
 from pipeline.store import Store
 
-from .data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, BaselinePairs, CleanerPairs, baseline_images, channel_names, usable_frames
+from .data import (
+    COLOR_VARIANCE_CHANNEL,
+    IN_CHANNELS,
+    BaselinePairs,
+    CleanerPairs,
+    baseline_images,
+    channel_names,
+    usable_frames,
+)
 from .losses import critic_loss, generator_loss, log_radiance, smape
 from .model import AffinityDenoiser
 

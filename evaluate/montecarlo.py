@@ -116,9 +116,9 @@ def _pooled(store: Store, key: FrameKey, wanted: float) -> EqualTime:
 
 def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int], quiet: bool) -> dict[FrameKey, str]:
     """Render ``mc<N>`` for every frame that lacks it, in worker processes; returns errors by frame."""
-    from render.frame import FrameTask
-    from render.dataset import render_frame_entry
     from pipeline.executors import run_tasks
+    from render.dataset import render_frame_entry
+    from render.frame import FrameTask
 
     tasks = []
     for key, spp in plan.items():

@@ -27,7 +27,7 @@ def cmd_dataset(args) -> int:
 
 
 def cmd_inspect(args) -> int:
-    from .inspect import inspect_store, format_report
+    from .inspect import format_report, inspect_store
     report = inspect_store(args.store, frame=args.frame)
     print(json.dumps(report, indent=1, sort_keys=True) if args.json else format_report(report))
     return 0

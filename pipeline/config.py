@@ -205,7 +205,8 @@ class DiffusionConfig:
                         "(make train MODEL=isik SPP=any).", "")
     residual: bool = doc("Diffuse the residual (x - estimate)/residual_scale instead of the image.", True)
     residual_scale: float = doc("Scale s of the diffused residual in model space (about its standard deviation "
-                                "over the training pairs, so the residual is of unit order like an image; the OIDN residual of the default data: 0.026 at 4 spp, 0.014 at 64).", 0.05)
+                                "over the training pairs, so the residual is of unit order like an image; the OIDN "
+                                "residual of the default data: 0.026 at 4 spp, 0.014 at 64).", 0.05)
     snr_gamma: float = doc("gamma of the min-SNR loss weighting (Hang et al. 2023).", 5.0)
     snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
                            "step whose output is the one-step estimate).", 1.0)

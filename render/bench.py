@@ -29,9 +29,10 @@ from pipeline.versions import package_versions
 def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeats: int = 3) -> list[dict]:
     import drjit as dr
 
+    from pipeline.mitsuba_env import import_mitsuba
+
     from .buffers import make_sensor, needed_features, render_image
     from .scene import build_scene, random_scene
-    from pipeline.mitsuba_env import import_mitsuba
 
     mi = import_mitsuba(cfg.render.variant, cfg.render.threads)
     rows = []
@@ -97,11 +98,12 @@ def omission_savings(cfg: Config, timing_spp: int = 128) -> dict:
     Re-renders frame 0 of every scene at ``timing_spp`` with the needed features and with all
     of them, to measure the render-time saving of computing only what the scene needs.
     """
-    from .buffers import needed_features, render_image
-    from .scene import build_scene, build_sensor
     from pipeline import schema
     from pipeline.exr import read_image, write_image
     from pipeline.mitsuba_env import import_mitsuba
+
+    from .buffers import needed_features, render_image
+    from .scene import build_scene, build_sensor
     store = Store(cfg.store)
     omitted = full = images = 0
     t_auto = t_all = 0.0

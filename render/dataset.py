@@ -14,8 +14,8 @@ import numpy as np
 
 from pipeline import config as config_mod
 from pipeline.config import Config
-from pipeline.exr import StoreError
 from pipeline.executors import run_tasks, task_label
+from pipeline.exr import StoreError
 from pipeline.progress import progress
 from pipeline.store import Store, image_names, image_seed
 from pipeline.versions import package_versions
@@ -79,7 +79,7 @@ def stress_entries(presets: list[str], copies: int, first_index: int) -> list[tu
 
 
 def make_plan(cfg: Config) -> Plan:
-    from .scene import random_scene, stress_scene, STRESS_PRESETS
+    from .scene import STRESS_PRESETS, random_scene, stress_scene
 
     d = cfg.dataset
     names = image_names(d.stacks)

@@ -27,7 +27,6 @@ Ray 1→2 workers on this machine in docs/scaling.md).
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -223,11 +222,12 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
     """Measure the constants of the model on this machine (about two minutes on 2 cores)."""
     import drjit as dr
 
-    from .buffers import needed_features, render_image
-    from .scene import build_scene, build_sensor, random_scene
     from pipeline.exr import write_image
     from pipeline.mitsuba_env import import_mitsuba
     from pipeline.store import sha256
+
+    from .buffers import needed_features, render_image
+    from .scene import build_scene, build_sensor, random_scene
 
     mi = import_mitsuba(cfg.render.variant, threads)
     used_threads = dr.thread_count()
@@ -247,7 +247,8 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
                     kw = dict(features=features, max_depth=depth, rr_depth=cfg.render.rr_depth)
                     render_image(mi, scene, sensor, spp=spps[0], seed=99, **kw)   # compile
                     for spp in spps:
-                        best = min(_cpu_seconds(lambda: render_image(mi, scene, sensor, spp=spp, seed=r, **kw))
+                        # F821 is a false positive: ruff sees the `del scene` below; the lambda runs here, before it
+                        best = min(_cpu_seconds(lambda: render_image(mi, scene, sensor, spp=spp, seed=r, **kw))  # noqa: F821
                                    for r in range(repeats))
                         timings.setdefault(str(res), {}).setdefault(str(depth), []).append((res * res * spp, best))
                 # bytes and write time of a stack and a ground truth at the largest depth

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from render import camera as cam
-from render import lights as lt
+from render import camera as cam, lights as lt
 from render.geometry import list_mesh_files, mesh_arrays
 from render.layout import ground, place_objects, room_walls, surface_material
 from render.materials import TextureCache, bsdf_dict
@@ -69,7 +68,7 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     if rng.uniform() < cfg.walls_probability:
         sides = [s for s in ("+x", "-x", "+z", "-z") if rng.uniform() < 0.6] or ["+x"]
         tops = [p["origin"][1] for p in camera["frames"]]
-        tops += [l.get("center", l.get("position", [0, 0, 0]))[1] for l in lights]
+        tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
         height = max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
         ceiling = bool(rng.uniform() < 0.25)
         wall_mat = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0))

@@ -12,8 +12,7 @@ import zlib
 import numpy as np
 
 from pipeline.config import SceneConfig
-from render import camera as cam
-from render import lights as lt
+from render import camera as cam, lights as lt
 from render.layout import ground, place_objects, rect, room_walls
 
 STRESS_PRESETS: tuple[str, ...] = ("tiny_bright_light", "caustics", "dark_room_gap", "mirrors",

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from clean.afgsa_report import fine_energy
 from clean.afgsa import AFGSANet, GuidedAttention, PatchCritic, branch_channels, window_attention
+from clean.afgsa_report import fine_energy
 from clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
 from clean.losses import critic_loss, generator_loss, log_radiance
 from clean.model import load_model

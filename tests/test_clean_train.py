@@ -256,8 +256,8 @@ def test_clean_report_scores_and_draws(cfg_dir):
     """clean-report: its GT1 and GT_clean rows are the metrics of the stored images against GT2,
     the MSE ratio shows the gain, the crop grid is a picture; the tiny store has no test split,
     which the baseline section says instead of failing."""
-    from pipeline.metrics import all_metrics, mse
     from clean.report import run_report
+    from pipeline.metrics import all_metrics, mse
 
     cfg = tiny_cfg(cfg_dir, epochs=2)
     assert cmd_gt_clean(cfg, quiet=True) == 0 and cmd_train_isik(cfg, 4, quiet=True) == 0

@@ -46,7 +46,8 @@ def test_psnr():
     # Reinhard(1) = 0.5 against 0 on every pixel: MSE 0.25 → 10·log10(4) dB.
     assert metrics.psnr(np.ones((4, 4, 3)), a) == pytest.approx(10 * math.log10(4.0))
     # One of 4 pixels off by reinhard 0.5: MSE 0.0625 → 12.04 dB; torch gives the same.
-    b = np.zeros((2, 2, 1)); b[0, 0, 0] = 1.0
+    b = np.zeros((2, 2, 1))
+    b[0, 0, 0] = 1.0
     assert metrics.psnr(b, np.zeros((2, 2, 1))) == pytest.approx(10 * math.log10(16.0))
     assert metrics.psnr(torch.tensor(b), torch.zeros(2, 2, 1, dtype=torch.float64)) == pytest.approx(
         10 * math.log10(16.0))

@@ -121,10 +121,10 @@ def test_eval_runs_the_trained_model(setup, tmp_path):
     """The evaluator loads the real trained run (not a stand-in) and reports it next to the noisy input."""
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
-    proc = run("eval", *keys, "eval.methods=[noisy,ours,ours_s3_k2,base_only_s1]",
-               "eval.metrics=[l1,psnr]",
-               "eval.equal_time=none", "eval.split=train", "eval.frames=1", f"eval.out={tmp_path / 'rep'}",
-               "--spp", "4")
+    run("eval", *keys, "eval.methods=[noisy,ours,ours_s3_k2,base_only_s1]",
+        "eval.metrics=[l1,psnr]",
+        "eval.equal_time=none", "eval.split=train", "eval.frames=1", f"eval.out={tmp_path / 'rep'}",
+        "--spp", "4")
     md = (tmp_path / "rep" / "eval.md").read_text()
     assert "not available" not in md, md
     for name in ("ours", "ours_s3_k2", "base_only_s1"):

@@ -6,10 +6,9 @@ import pytest
 import torch
 
 from pipeline.errors import CheckpointError
-from train import base as base_lib
-from train import diffusion
+from train import base as base_lib, diffusion
 from train.control import ControlledDenoiser, ControlModule
-from train.data import AUX_CHANNELS, aux_names, augment, condition, from_model, to_model
+from train.data import AUX_CHANNELS, augment, aux_names, condition, from_model, to_model
 from train.sampler import sample, sample_tiled
 from train.train import Job, TrainError, fit, lr_factor
 

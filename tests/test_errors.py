@@ -4,8 +4,17 @@ import pytest
 
 import pipeline.__main__ as cli_main
 from evaluate.methods import MethodUnavailable
-from pipeline.errors import (CheckpointError, ConfigError, MitsubaSetupError, OIDNUnavailable, PipelineError,
-                             StoreError, StoreWriteError, TaskFailed, TrainError)
+from pipeline.errors import (
+    CheckpointError,
+    ConfigError,
+    MitsubaSetupError,
+    OIDNUnavailable,
+    PipelineError,
+    StoreError,
+    StoreWriteError,
+    TaskFailed,
+    TrainError,
+)
 from render.external import ExternalSceneError
 from train.formulation import FormulationError
 

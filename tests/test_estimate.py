@@ -3,9 +3,9 @@ condition and a trained run's record."""
 import numpy as np
 import pytest
 
+from clean.apply import denoise
 from clean.data import IN_CHANNELS, frame_inputs
 from clean.model import AffinityDenoiser
-from clean.apply import denoise
 from pipeline import oidn
 from pipeline.exr import StoreError
 from tests.test_evaluate import save_untrained_isik

@@ -8,7 +8,6 @@ from evaluate.compare import annotate
 from evaluate.headline import headline
 from evaluate.stats import MIN_FRAMES, lead, mean_ci, paired_bootstrap, significant
 
-
 # ---- paired bootstrap ------------------------------------------------------------------------
 
 

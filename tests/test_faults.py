@@ -331,7 +331,8 @@ def test_worker_killed_mid_frame_is_retried(kind, slow_reference, tmp_path, caps
         time.sleep(0.01)
     out, _ = proc.communicate(timeout=300)
     with capsys.disabled():
-        print(f"\n{kind} worker: killed pid {killed and killed[1]} while rendering {killed and killed[0].name}; exit {proc.returncode}", end="")
+        print(f"\n{kind} worker: killed pid {killed and killed[1]} while rendering {killed and killed[0].name}; "
+              f"exit {proc.returncode}", end="")
     assert killed is not None, f"no worker caught mid-frame:\n{out}"
     assert proc.returncode == 0, out
     frame = json.loads((killed[0] / "frame.json").read_text())
@@ -364,8 +365,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     import numpy as np
 
     import pipeline.exr as exr
-    from pipeline import checkpoint
-    from pipeline import schema
+    from pipeline import checkpoint, schema
     from pipeline.store import Store
 
     store = Store(tmp_path / "store")

@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline import schema
 from pipeline.exr import VOLATILE_KEYS, StoreError, read_image, write_image

@@ -10,8 +10,8 @@ import pytest
 
 from pipeline import schema
 from pipeline.config import load_config
-from render.plan import MEASURED, calibrate_from_store, estimate, measure, raw_bytes_per_pixel
 from pipeline.store import Store
+from render.plan import MEASURED, calibrate_from_store, estimate, measure, raw_bytes_per_pixel
 from tests.helpers import TINY, cli
 
 PAPER = "configs/paper.yaml"

@@ -56,7 +56,7 @@ def test_json_round_trip_and_counts():
         assert json.loads(json.dumps(desc)) == desc
         assert desc["preset"] is None and desc["ground"] is not None
         assert cfg.objects[0] <= len(desc["objects"]) <= cfg.objects[1]
-        assert cfg.area_lights[0] <= sum(l["type"] in ("rectangle", "sphere") for l in desc["lights"])
+        assert cfg.area_lights[0] <= sum(light["type"] in ("rectangle", "sphere") for light in desc["lights"])
         for obj in desc["objects"]:
             assert obj["transform"]["position"][1] >= 0  # lowest point on or above the ground
     for name in STRESS_PRESETS:

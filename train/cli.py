@@ -19,7 +19,7 @@ from pipeline.runs import pick_device
 from pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
-from .data import DenoisePairs, from_model, frame_rotation
+from .data import DenoisePairs, frame_rotation, from_model
 from .formulation import Formulation
 from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder, new_base, run_dir, save
 from .pack import PackPairs, ensure_pack, pack_path
@@ -184,7 +184,8 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     job = Job(name="pretrain", folder=folder, model=model, trainable=unet, params=list(unet.parameters()),
               # Not epoch 0: a zero last layer is the identity, and a frozen identity base would give the Control
               # Module no gradient (its residuals only reach the output through the base's last layer).
-              train_ds=ds, validate=validate, validate_initial=False, save_best=save_best, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
+              train_ds=ds, validate=validate, validate_initial=False, save_best=save_best, epochs=p.epochs,
+              batch_size=p.batch_size, lr=p.lr,
               weight_decay=p.weight_decay, warmup_steps=cfg.diffusion.warmup_steps, grad_clip=cfg.diffusion.grad_clip,
               nan_limit=cfg.diffusion.nan_limit, time_budget_s=p.time_budget_s, seed=cfg.seed, fingerprint=fp,
               device=device, autocast=autocast_dtype(cfg.diffusion.precision, device), fmt="mcdenoise-base",

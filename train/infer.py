@@ -71,7 +71,6 @@ class Denoiser:
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
         tonemap = self.meta.get("tonemap", "log")
-        f = self.formulation
         est, parts = self.estimator(buffers)
         noisy, aux = model_inputs(buffers, spp, rotation, tonemap, parts)
         self.last_black = not np.any(buffers["color"])

@@ -15,18 +15,17 @@ from pathlib import Path
 
 import torch
 
+from pipeline import runs
 from pipeline.checkpoint import save_safetensors
 from pipeline.config import Config
 from pipeline.errors import CheckpointError, StoreError
 from pipeline.exr import atomic_write_json, read_json
-from pipeline import runs
 from pipeline.store import sha256
 
 from . import base as base_lib
 from .control import ControlledDenoiser, ControlModule
 from .data import aux_names
-from .estimate import KINDS, Estimator
-from .estimate import load as load_estimator
+from .estimate import KINDS, Estimator, load as load_estimator
 from .formulation import Formulation
 from .sampler import PAPER
 

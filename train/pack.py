@@ -33,7 +33,7 @@ from pipeline.exr import StoreError
 from pipeline.progress import progress
 from pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
 
-from .data import aux_names, augment, frame_rotation, model_inputs, random_crop, to_planar
+from .data import augment, aux_names, frame_rotation, model_inputs, random_crop, to_planar
 from .estimate import Estimator
 
 FORMAT = "mcdenoise-pack"
