@@ -86,6 +86,21 @@ def relative_variance_feature(variance: np.ndarray, mean_square: np.ndarray) -> 
     return (1.0 + np.log10(rel + RELATIVE_VARIANCE_MIN) / 6.0).astype(np.float32)
 
 
+def variance_feature(buffers: dict[str, np.ndarray], name: str, shape: tuple[int, int]) -> np.ndarray:
+    """(1, H, W) ``relative_variance_feature`` of buffer ``name`` from its channel means; zeros where
+    the buffer or its variance is missing. The cleaner's and the diffusion model's inputs share it."""
+    v, m = buffers.get(schema.variance_name(name)), buffers.get(name)
+    if v is None or m is None:
+        return np.zeros((1, *shape), np.float32)
+    return relative_variance_feature(v.astype(np.float32).mean(axis=2), (m.astype(np.float32) ** 2).mean(axis=2))[None]
+
+
+def depth_feature(depth: np.ndarray) -> np.ndarray:
+    """Depth divided by the frame's largest depth (background 0 stays 0; all zeros if nothing is in front)."""
+    top = float(depth.max()) if depth.size else 0.0
+    return depth / top if top > 0 else np.zeros_like(depth)
+
+
 def decode_variance(feature: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
     """Inverse of ``relative_variance_feature``: the channel-mean variance (B, 1, H, W) of
     ``radiance`` (B, 3, H, W) from its feature (B, 1, H, W).
@@ -110,21 +125,14 @@ def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     parts = []
     for key, n, transform in CHANNELS:
         if transform == "relative_variance":
-            name = key.removesuffix(".variance")
-            if key in buffers and name in buffers:
-                v = buffers[key].astype(np.float32).mean(axis=2)
-                m2 = (buffers[name].astype(np.float32) ** 2).mean(axis=2)
-                parts.append(relative_variance_feature(v, m2)[None])
-            else:
-                parts.append(np.zeros((1, H, W), np.float32))
+            parts.append(variance_feature(buffers, key.removesuffix(".variance"), (H, W)))
             continue
         x = buffers.get(key)
         x = np.zeros((H, W, n), np.float32) if x is None else x.astype(np.float32)
         if transform == "log1p":
             x = np.log1p(np.maximum(x, 0.0))
         elif transform == "depth":
-            top = float(x.max()) if x.size else 0.0
-            x = x / top if top > 0 else np.zeros_like(x)
+            x = depth_feature(x)
         parts.append(np.moveaxis(x, 2, 0))
     inputs = np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
     radiance = np.ascontiguousarray(np.moveaxis(ref.astype(np.float32), 2, 0))

@@ -14,9 +14,9 @@ inverses on [0, 6]): clamp to [0, 6], range-compress with ``pipeline.color.log_c
   (``augment``) and makes the condition independent of where the scene sits in the world. The
   camera comes from ``frame.json``'s ``camera_to_world`` (or the scene's camera description);
   without either, world-space normals are used as they are;
-- ``depth``: divided by the frame's largest depth (background 0);
-- one channel per buffer for its variance, log-compressed (``clean.data.relative_variance_feature``:
-  the same noise-level feature the cleaner uses);
+- ``depth``: divided by the frame's largest depth (background 0; ``clean.data.depth_feature``);
+- one channel per buffer for its variance, log-compressed (``clean.data.variance_feature``: the
+  same noise-level feature the cleaner uses);
 - the sample count: a constant map log2(spp)/6 (1 at 64 spp), so one model can serve any spp.
 
 A buffer the store left out (a feature a scene does not need) is its documented background
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from clean.data import relative_variance_feature
+from clean.data import depth_feature, variance_feature
 from pipeline import color, schema
 from pipeline.store import FrameKey, Store
 
@@ -110,17 +110,9 @@ def condition(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | N
                 x = x @ rotation.T
             x = (np.clip(x, -1.0, 1.0) + 1.0) / 2.0
         elif b.name == "depth":
-            top = float(x.max()) if x.size else 0.0
-            x = x / top if top > 0 else np.zeros_like(x)
+            x = depth_feature(x)
         parts.append(np.moveaxis(x, 2, 0))
-    for b in schema.BUFFERS:
-        v = buffers.get(schema.variance_name(b.name))
-        m = buffers.get(b.name)
-        if v is None or m is None:
-            parts.append(np.zeros((1, H, W), np.float32))
-        else:
-            parts.append(relative_variance_feature(v.astype(np.float32).mean(axis=2),
-                                                   (m.astype(np.float32) ** 2).mean(axis=2))[None])
+    parts += [variance_feature(buffers, b.name, (H, W)) for b in schema.BUFFERS]
     parts.append(np.full((1, H, W), math.log2(max(int(spp), 1)) / 6.0, np.float32))
     return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
 
