@@ -1,5 +1,6 @@
-"""Helpers shared by several test modules: the tiny config, the command line in a subprocess, and
-store comparisons. Fixtures live in ``tests/conftest.py``."""
+"""Helpers shared by several test modules: the tiny config, the command line in a subprocess, store
+comparisons, a synthetic cleaner store, and tiny models. Fixtures live in ``tests/conftest.py``.
+torch and the stages load only when a helper that needs them is called."""
 import json
 import subprocess
 import sys
@@ -7,6 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+
+from pipeline import schema
+from pipeline.config import load_config
+from pipeline.store import Store, image_names
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -44,3 +49,93 @@ def assert_same_store(a: Path, b: Path):
         assert pa["channels"].keys() == pb["channels"].keys(), rel
         for ch in pa["channels"]:
             np.testing.assert_array_equal(pa["channels"][ch], pb["channels"][ch], err_msg=f"{rel}:{ch}")
+
+
+# ---- a synthetic store for the cleaner and the baselines (no rendering) ---------------------------
+# It mimics what the dataset stage writes (dataset.json, scene.json, frame.json, gt1, gt2 and
+# low-spp stacks): a smooth "true" image per frame, GT1/GT2 = truth + independent noise, the
+# stacks = truth + stronger noise, every schema buffer present.
+
+SIZE = 16
+SCENES = {"s00000": "train", "s00001": "train", "s00002": "val"}
+FRAMES = 2
+STACKS = 2
+
+
+def _image(truth: np.ndarray, noise: float, rng: np.random.Generator, spp: int) -> dict[str, np.ndarray]:
+    arrays = {}
+    for b in schema.BUFFERS:
+        if b.name == "color":
+            value = np.maximum(truth + noise * rng.standard_normal(truth.shape) * truth, 0)
+        elif b.radiance:
+            value = 0.2 * truth
+        elif b.name == "normal":
+            value = np.broadcast_to(np.array([0.0, 0.0, 1.0]), truth.shape)
+        elif b.name == "depth":
+            value = 1.0 + truth[..., :1]
+        else:
+            value = np.full(truth.shape[:2] + (b.size,), 0.5)
+        arrays[b.name] = value.astype(np.float32)
+        var = (noise * truth.mean(axis=2, keepdims=True)) ** 2 if b.name == "color" else np.zeros((1, 1, 1))
+        arrays[schema.variance_name(b.name)] = np.broadcast_to(var, value.shape).astype(np.float32)
+    return arrays
+
+
+def make_clean_store(root: Path, seed: int = 0) -> Path:
+    """2 train scenes + 1 val scene × 2 frames × 16² px; returns the store root."""
+    store = Store(root)
+    rng = np.random.default_rng(seed)
+    names = image_names(STACKS)
+    splits = {"train": [s for s, k in SCENES.items() if k == "train"], "val": ["s00002"], "test": []}
+    store.write_manifest({"config": {}, "scenes": list(SCENES), "splits": splits, "images": names, "packages": {}})
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
+    for i, (scene, split) in enumerate(SCENES.items()):
+        store.write_scene_manifest(scene, {"scene": scene, "index": i, "split": split, "frames": FRAMES,
+                                           "resolution": [SIZE, SIZE], "gt_spp": 64, "stack_spp": 4,
+                                           "stacks": STACKS, "images": names})
+        for f in range(FRAMES):
+            truth = np.stack([0.5 + 0.4 * np.sin(3 * xx + i + f), 0.5 + 0.4 * np.cos(2 * yy + i), 0.3 + 0 * xx], -1)
+            records = {}
+            for k, name in enumerate(names):
+                noise = 0.1 if name.startswith("gt") else 0.5
+                records[name] = store.write_image(scene, f, name, _image(truth, noise, rng, 64),
+                                                  meta={"image": name, "scene": scene, "frame": f})
+            store.write_frame_record(scene, f, {"images": records})
+    return root
+
+
+def tiny_cfg(tmp_path: Path, **clean) -> object:
+    overrides = [f"store={tmp_path / 'store'}", f"runs={tmp_path / 'runs'}", "clean.epochs=2",
+                 "clean.batch_size=2", "clean.crop=8", "clean.crops_per_frame=2", "clean.channels=[8, 8]",
+                 "clean.embed_channels=8", "clean.affinity_channels=4", "clean.kernel_size=3",
+                 "clean.dilations=[1, 2]", "clean.device=cpu", "clean.lr=0.01"]
+    overrides += [f"clean.{k}={v}" for k, v in clean.items()]
+    return load_config(None, overrides)
+
+
+def save_untrained_isik(folder: Path) -> None:
+    """A small untrained Isik network saved as a run folder's best checkpoint."""
+    from clean.data import IN_CHANNELS
+    from clean.model import AffinityDenoiser
+    from clean.train import save_best
+
+    model = AffinityDenoiser(IN_CHANNELS, embed_channels=8, channels=[8, 8], affinity_channels=4, kernel_size=3,
+                             dilations=[1, 2])
+    save_best(folder, model, {"hparams": model.hparams, "epoch": 0})
+
+
+# ---- a tiny diffusion model -------------------------------------------------------------------------
+
+def tiny_unet_config() -> dict:
+    from train import base as base_lib
+    return base_lib.default_config([16, 32], layers_per_block=1, text_dim=16, attention_head_dim=8)
+
+
+def tiny_model(aux=None, control=True, seed=0):
+    """A controlled denoiser on a two-level base (``aux`` condition channels; default: ``AUX_CHANNELS``)."""
+    from train import base as base_lib
+    from train.control import ControlledDenoiser, ControlModule
+    from train.data import AUX_CHANNELS
+
+    unet, prompt = base_lib.build(tiny_unet_config(), seed=seed)
+    return ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS if aux is None else aux) if control else None)

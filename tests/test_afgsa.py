@@ -17,8 +17,7 @@ from evaluate.methods import Loader, MethodUnavailable, label
 from evaluate.stability import run_stability
 from pipeline.config import load_config
 from pipeline.store import Store
-from tests.test_clean_train import make_store
-from tests.test_stability import TINY
+from tests.helpers import TINY, make_clean_store
 
 # A network that runs in a fraction of a second on the tiny store.
 TINY_NET = ["afgsa.channels=8", "afgsa.extractor_channels=4", "afgsa.blocks=1", "afgsa.heads=2",
@@ -184,7 +183,7 @@ def test_critic_loss_prefers_the_target_after_training():
 
 @pytest.fixture(scope="module")
 def store_root(tmp_path_factory):
-    return make_store(tmp_path_factory.mktemp("afgsa") / "store")
+    return make_clean_store(tmp_path_factory.mktemp("afgsa") / "store")
 
 
 def afgsa_cfg(root, **keys):

@@ -5,6 +5,8 @@
   ``pipeline/__main__.py``, which only dispatches to them.
 - No module uses another module's private (``_underscore``) name, by ``from m import _name`` or as
   ``m._name``: what a module shares is public.
+- Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
+  never by importing another test module (its module-scoped fixtures would run once more there).
 """
 from __future__ import annotations
 
@@ -92,6 +94,15 @@ def test_no_module_uses_another_modules_private_names():
     known = set(MODULES)
     found = [hit for m, p in MODULES.items() for hit in private_uses(m, p, known)]
     assert not found, "private names used outside their module:\n" + "\n".join(found)
+
+
+def test_test_modules_do_not_import_each_other():
+    found = []
+    for path in sorted((ROOT / "tests").glob("test_*.py")):
+        module = f"tests.{path.stem}"
+        found += [f"{path.name}:{line}: {src}" for src, _, line in imports(module, path)
+                  if src.startswith("tests.test_") and src != module]
+    assert not found, "test modules importing other test modules:\n" + "\n".join(found)
 
 
 def test_the_checker_sees_what_it_forbids(tmp_path):

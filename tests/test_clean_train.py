@@ -1,12 +1,11 @@
 """Cleaner training, resume, apply and the Isik baseline on a tiny synthetic store (no rendering).
 
-The store mimics what the dataset stage writes (dataset.json, scene.json, frame.json, gt1, gt2
-and low-spp stacks): a smooth "true" image per frame, GT1/GT2 = truth + independent noise, the
-stacks = truth + stronger noise, every schema buffer present.
+The store (``tests.helpers.make_clean_store``) mimics what the dataset stage writes (dataset.json,
+scene.json, frame.json, gt1, gt2 and low-spp stacks): a smooth "true" image per frame, GT1/GT2 =
+truth + independent noise, the stacks = truth + stronger noise, every schema buffer present.
 """
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,70 +16,13 @@ from clean.cli import cmd_gt_clean, cmd_train_isik
 from clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
 from clean.model import load_model
 from clean.train import baseline_checkpoint, run_dir, save_best, train
-from pipeline import schema
-from pipeline.config import load_config
-from pipeline.store import Store, image_names
-
-SIZE = 16
-SCENES = {"s00000": "train", "s00001": "train", "s00002": "val"}
-FRAMES = 2
-STACKS = 2
-
-
-def _image(truth: np.ndarray, noise: float, rng: np.random.Generator, spp: int) -> dict[str, np.ndarray]:
-    arrays = {}
-    for b in schema.BUFFERS:
-        if b.name == "color":
-            value = np.maximum(truth + noise * rng.standard_normal(truth.shape) * truth, 0)
-        elif b.radiance:
-            value = 0.2 * truth
-        elif b.name == "normal":
-            value = np.broadcast_to(np.array([0.0, 0.0, 1.0]), truth.shape)
-        elif b.name == "depth":
-            value = 1.0 + truth[..., :1]
-        else:
-            value = np.full(truth.shape[:2] + (b.size,), 0.5)
-        arrays[b.name] = value.astype(np.float32)
-        var = (noise * truth.mean(axis=2, keepdims=True)) ** 2 if b.name == "color" else np.zeros((1, 1, 1))
-        arrays[schema.variance_name(b.name)] = np.broadcast_to(var, value.shape).astype(np.float32)
-    return arrays
-
-
-def make_store(root: Path, seed: int = 0) -> Path:
-    """2 train scenes + 1 val scene × 2 frames × 16² px; returns the store root."""
-    store = Store(root)
-    rng = np.random.default_rng(seed)
-    names = image_names(STACKS)
-    splits = {"train": [s for s, k in SCENES.items() if k == "train"], "val": ["s00002"], "test": []}
-    store.write_manifest({"config": {}, "scenes": list(SCENES), "splits": splits, "images": names, "packages": {}})
-    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
-    for i, (scene, split) in enumerate(SCENES.items()):
-        store.write_scene_manifest(scene, {"scene": scene, "index": i, "split": split, "frames": FRAMES,
-                                           "resolution": [SIZE, SIZE], "gt_spp": 64, "stack_spp": 4,
-                                           "stacks": STACKS, "images": names})
-        for f in range(FRAMES):
-            truth = np.stack([0.5 + 0.4 * np.sin(3 * xx + i + f), 0.5 + 0.4 * np.cos(2 * yy + i), 0.3 + 0 * xx], -1)
-            records = {}
-            for k, name in enumerate(names):
-                noise = 0.1 if name.startswith("gt") else 0.5
-                records[name] = store.write_image(scene, f, name, _image(truth, noise, rng, 64),
-                                                  meta={"image": name, "scene": scene, "frame": f})
-            store.write_frame_record(scene, f, {"images": records})
-    return root
-
-
-def tiny_cfg(tmp_path: Path, **clean) -> object:
-    overrides = [f"store={tmp_path / 'store'}", f"runs={tmp_path / 'runs'}", "clean.epochs=2",
-                 "clean.batch_size=2", "clean.crop=8", "clean.crops_per_frame=2", "clean.channels=[8, 8]",
-                 "clean.embed_channels=8", "clean.affinity_channels=4", "clean.kernel_size=3",
-                 "clean.dilations=[1, 2]", "clean.device=cpu", "clean.lr=0.01"]
-    overrides += [f"clean.{k}={v}" for k, v in clean.items()]
-    return load_config(None, overrides)
+from pipeline.store import Store
+from tests.helpers import FRAMES, SCENES, SIZE, make_clean_store, tiny_cfg
 
 
 @pytest.fixture(scope="module")
 def store_root(tmp_path_factory):
-    return make_store(tmp_path_factory.mktemp("clean") / "store")
+    return make_clean_store(tmp_path_factory.mktemp("clean") / "store")
 
 
 @pytest.fixture

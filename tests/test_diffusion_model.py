@@ -6,19 +6,14 @@ import pytest
 import torch
 
 from pipeline.errors import CheckpointError
+from tests.helpers import tiny_model, tiny_unet_config
 from train import base as base_lib, diffusion
 from train.control import ControlledDenoiser, ControlModule
 from train.data import AUX_CHANNELS, augment, aux_names, condition, from_model, to_model
 from train.sampler import sample, sample_tiled
 from train.train import Job, TrainError, fit, lr_factor
 
-TINY = base_lib.default_config([16, 32], layers_per_block=1, text_dim=16, attention_head_dim=8)
-
-
-def tiny_model(aux=AUX_CHANNELS, control=True, seed=0):
-    unet, prompt = base_lib.build(TINY, seed=seed)
-    return ControlledDenoiser(unet, prompt, ControlModule(unet, aux) if control else None)
-
+TINY_UNET = tiny_unet_config()
 
 # ---- transforms ---------------------------------------------------------------------------------
 
@@ -219,7 +214,7 @@ def test_resume_refuses_other_settings(tmp_path):
 # ---- save / load --------------------------------------------------------------------------------
 
 def test_base_folder_round_trip_and_diffusers_layout(tmp_path):
-    unet, prompt = base_lib.build(TINY, seed=3)
+    unet, prompt = base_lib.build(TINY_UNET, seed=3)
     base_lib.save(tmp_path / "ours", unet, prompt)
     # A folder as DeepFloyd ships it: diffusers' own save_pretrained, plus the empty-prompt embedding.
     unet.save_pretrained(tmp_path / "if_layout", safe_serialization=True)
@@ -237,7 +232,7 @@ def test_base_folder_round_trip_and_diffusers_layout(tmp_path):
     (tmp_path / "if_layout" / base_lib.PROMPT).unlink()
     with pytest.raises(CheckpointError, match="prompt_embeds.safetensors: missing"):
         base_lib.load(tmp_path / "if_layout")
-    bad = dict(TINY, in_channels=4, out_channels=4)
+    bad = dict(TINY_UNET, in_channels=4, out_channels=4)
     u3, p3 = base_lib.build(bad)
     base_lib.save(tmp_path / "bad", u3, p3)
     with pytest.raises(CheckpointError, match="expected 6/6"):
@@ -275,7 +270,7 @@ def test_tiled_sampling_covers_the_frame():
 
 
 def test_train_base_option_trains_the_base_too(tmp_path):
-    unet, prompt = base_lib.build(TINY, seed=0)
+    unet, prompt = base_lib.build(TINY_UNET, seed=0)
     m = ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS), train_base=True)
     before = {k: v.clone() for k, v in m.base.state_dict().items()}
     j = job(tmp_path, m, 1)

@@ -8,7 +8,7 @@ from clean.data import IN_CHANNELS, frame_inputs
 from clean.model import AffinityDenoiser
 from pipeline import oidn
 from pipeline.exr import StoreError
-from tests.test_evaluate import save_untrained_isik
+from tests.helpers import save_untrained_isik
 from train.data import AUX_CHANNELS, aux_names, model_inputs, to_planar
 from train.estimate import Estimator, extra_names, load
 

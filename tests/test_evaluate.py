@@ -19,14 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clean.data import IN_CHANNELS
-from clean.model import AffinityDenoiser
-from clean.train import save_best
 from evaluate.run import frame_groups, run_eval
 from evaluate.stability import synthetic_buffers
 from pipeline import schema
 from pipeline.config import load_config
 from pipeline.store import Store, image_names
+from tests.helpers import save_untrained_isik
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -68,12 +66,6 @@ def _write_frame(store: Store, scene: str, f: int, phase: float, seed: int, name
     store.write_image(scene, f, "gt_clean", {"color": clean, schema.variance_name("color"): np.zeros_like(clean)},
                       meta={"image": "gt_clean", "scene": scene, "frame": f, "source": "gt1"})
     store.write_frame_record(scene, f, {"scene": scene, "frame": f, "width": W, "height": H, "images": records})
-
-
-def save_untrained_isik(folder: Path) -> None:
-    model = AffinityDenoiser(IN_CHANNELS, embed_channels=8, channels=[8, 8], affinity_channels=4, kernel_size=3,
-                             dilations=[1, 2])
-    save_best(folder, model, {"hparams": model.hparams, "epoch": 0})
 
 
 class FakeDiffusion:

@@ -453,9 +453,9 @@ def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_pa
     """Regression: train.json and loss.png were written after last.safetensors, so a kill between
     them on the last epoch left a history one epoch short that no rerun repaired."""
     from clean.train import run_dir, train
-    from tests.test_clean_train import make_store, tiny_cfg
+    from tests.helpers import make_clean_store, tiny_cfg
 
-    make_store(tmp_path / "store")
+    make_clean_store(tmp_path / "store")
     cfg = tiny_cfg(tmp_path, epochs=2)
     train(cfg, "cleaner", quiet=True)
     folder = run_dir(cfg, "cleaner")
@@ -473,9 +473,9 @@ def test_stale_temporary_files_of_a_killed_clean_run_are_removed(tmp_path):
     from clean.cli import cmd_gt_clean
     from clean.train import run_dir
     from pipeline.store import Store
-    from tests.test_clean_train import make_store, tiny_cfg
+    from tests.helpers import make_clean_store, tiny_cfg
 
-    make_store(tmp_path / "store")
+    make_clean_store(tmp_path / "store")
     cfg = tiny_cfg(tmp_path, epochs=1)
     store = Store(cfg.store)
     key = store.frames()[0]

@@ -175,7 +175,7 @@ def test_samples_mean_and_std():
 # ---- the denoiser around the model (train/infer.py) ------------------------------------------------
 
 def tiny_denoiser(estimate="oidn"):
-    from tests.test_diffusion_model import tiny_model
+    from tests.helpers import tiny_model
     from train.infer import Denoiser
 
     f = form(prediction="sample", estimate=estimate, residual=estimate != "none")

@@ -113,7 +113,7 @@ def _evil_checkpoint(path: Path, marker: Path) -> None:
 def test_pickle_model_checkpoint_is_refused(tmp_path):
     from clean.model import load_model
     from clean.train import build_model, save_best
-    from tests.test_clean_train import tiny_cfg
+    from tests.helpers import tiny_cfg
 
     folder = tmp_path / "run"
     cfg = tiny_cfg(tmp_path)

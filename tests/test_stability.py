@@ -12,7 +12,7 @@ from evaluate.harness import repaired_inputs, run_method
 from evaluate.stability import CASES, LARGE, run_stability, synthetic_buffers
 from pipeline import schema
 from pipeline.config import load_config
-from tests.test_evaluate import save_untrained_isik
+from tests.helpers import save_untrained_isik
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
