@@ -80,7 +80,7 @@ def cmd_export(args) -> int:
     from pathlib import Path
 
     from train.export import export
-    export(_config(args), args.spp, Path(args.out), quiet=args.quiet)
+    export(_config(args), args.spp, Path(args.out), quiet=args.quiet, config=args.config)
     return 0
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline import schema
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, atomic_write_json
 from pipeline.runs import pick_device
@@ -35,10 +36,16 @@ STEPS = (1, 3, 9, PAPER_STEPS)
 
 
 def _frame(side: int, seed: int = 0) -> dict:
+    """A synthetic frame with every renderer buffer and its variance, so the network itself runs (an
+    RGB-only frame would time the first estimate alone: ``Denoiser`` returns it for such inputs)."""
     rng = np.random.default_rng(seed)
-    return {"color": rng.gamma(1.0, 0.3, (side, side, 3)).astype(np.float32),
-            "albedo": rng.random((side, side, 3), np.float32),
-            "normal": np.repeat(np.array([[[0, 0, 1]]], np.float32), side, 0).repeat(side, 1)}
+    out = {}
+    for b in schema.BUFFERS:
+        shape = (side, side, len(b.channels))
+        out[b.name] = (rng.gamma(1.0, 0.3, shape) if b.radiance else rng.random(shape)).astype(np.float32)
+        out[schema.variance_name(b.name)] = rng.gamma(1.0, 0.05, shape).astype(np.float32)
+    out["normal"] = np.repeat(np.array([[[0, 0, 1]]], np.float32), side, 0).repeat(side, 1)
+    return out
 
 
 def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
@@ -84,7 +91,8 @@ def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str =
               "cpus": os.cpu_count(), "platform": platform.platform(), "threads": torch.get_num_threads(),
               "model": name, "formulation": den.formulation.record(),
               "parameters_millions": round(sum(p.numel() for p in den.model.parameters()) / 1e6, 2),
-              "precision": str(ac) if ac else "fp32", "rows": rows}
+              "precision": str(ac) if ac else "fp32", "rows": rows,
+              "estimate_only": den.last_estimate_only}   # True would mean the network never ran
     lines = [f"Diffusion inference ({result['model']}, {result['parameters_millions']} M parameters, "
              f"{result['device']}{' ' + result['cuda'] if result['cuda'] else ''}, {result['precision']}, "
              f"{result['threads']} threads; first estimate {den.formulation.estimate})", "",

@@ -32,7 +32,7 @@ from .estimate import KINDS
 from .model import FORMAT, formulation, run_dir
 
 
-def export(cfg: Config, spp, out: Path, quiet: bool = False) -> Path:
+def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None) -> Path:
     from safetensors.torch import load_file
 
     folder = run_dir(cfg, spp)
@@ -53,7 +53,7 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False) -> Path:
     save_safetensors(tmp / "control.safetensors", control, {"format": FORMAT})
     record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
     atomic_write_json(tmp / "model.json", record)
-    (tmp / "README.md").write_text(model_card(cfg, record, folder))
+    (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out))
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
     if not quiet:
@@ -78,17 +78,17 @@ def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
     save_file({k: _half(v) for k, v in weights.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
 
 
-def model_card(cfg: Config, record: dict, run: Path) -> str:
-    """The shipped model's README: what it is, what it saw, how it was trained, how well it did."""
+def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", out: Path | None = None) -> str:
+    """The shipped model's README: what it is, what it saw, how it was trained, on what, how well it did."""
     train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
+    m = train.get("machine") or {}
     hist = train.get("history", [])
     best = train.get("best") or {}
     f = record.get("formulation", {})
     d = cfg.dataset
     lines = [
         "# The shipped denoiser", "",
-        f"Exported from `{run}` on {record['exported']['date']} by `python -m pipeline export --config <config> "
-        f"--spp {record.get('spp')}`; loaded by `make denoise`, `python -m pipeline denoise --exr IN.exr --out "
+        f"Exported from `{run}` on {record['exported']['date']}; loaded by `python -m pipeline denoise --exr IN.exr --out "
         "OUT.exr` and `make eval`'s `ours` rows wherever a config has no trained run of its own "
         "(`diffusion.shipped`).", "",
         "## What it is", "",
@@ -107,12 +107,23 @@ def model_card(cfg: Config, record: dict, run: Path) -> str:
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
         f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
-        f"train_base {cfg.diffusion.train_base}. Best epoch {best.get('epoch')} by validation PSNR.", "",
+        f"train_base {cfg.diffusion.train_base}, time budget {cfg.diffusion.time_budget_s:g} s. Best epoch "
+        f"{best.get('epoch')} by validation PSNR (epoch 0 is the untrained model, i.e. the first estimate).", "",
+        f"Machine: {m.get('gpu') or m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, {m.get('threads', '?')} "
+        f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
         "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]
     for h in hist:
         v = h.get("val") or {}
         lines.append(f"| {h['epoch']} | {v.get('psnr', float('nan')):.2f} | {v.get('estimate_psnr', float('nan')):.2f} "
                      f"| {v.get('noisy_psnr', float('nan')):.2f} | {h.get('seconds')} |")
+    spp = record.get("spp")
+    lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
+              *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
+              *([f"python -m pipeline train --model isik --spp {spp} --config {config}"]
+                if "isik" in KINDS[f.get("estimate", "none")] else []),
+              f"python -m pipeline pack --config {config}",
+              f"python -m pipeline train --model diffusion --spp {spp} --config {config}",
+              f"python -m pipeline export --config {config} --spp {spp} --out {out or 'train/shipped'}", "```"]
     lines += ["", "Evaluation against OIDN, Isik and the noisy input on the default test set: "
               "docs/example_report/eval.md.", ""]
     return "\n".join(lines)

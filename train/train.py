@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,6 +113,13 @@ def checksum(module: torch.nn.Module) -> float:
     return float(sum(p.detach().double().sum() for p in module.parameters()))
 
 
+def machine(device: torch.device, world: int = 1) -> dict:
+    """What a run trained on, for its model card."""
+    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else None
+    return {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+            "device": str(device), "gpu": gpu, "ranks": world, "threads": torch.get_num_threads()}
+
+
 def fit(job: Job, quiet: bool = False) -> dict:
     """Train ``job`` to ``job.epochs`` (resuming from ``last.safetensors``); return a summary."""
     t_start = time.perf_counter()
@@ -192,7 +200,8 @@ def fit(job: Job, quiet: bool = False) -> dict:
             # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
             # reruns the epoch (same result) and rewrites the files above.
             _plot(job, history)
-            atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best})
+            atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best,
+                                                      "machine": machine(device, world)})
             state = {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": job.fingerprint}
             extras = None
             if ema is not None:
