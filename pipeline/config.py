@@ -171,6 +171,9 @@ class DiffusionConfig:
     batch_size: int = doc("Crops per optimisation step (per process under torchrun).", 8)
     crop: int = doc("Side of the random training crops (a multiple of 2^(levels-1) of the base).", 64)
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    epoch_steps: int = doc("At most this many steps per epoch, on a random subset of the epoch's crops (new each epoch), "
+                           "so validation, checkpoints and the time budget come that often on a large training set; "
+                           "0: every crop.", 0)
     lr: float = doc("AdamW learning rate (the authors' code: 2e-5).", 2e-5)
     weight_decay: float = doc("AdamW weight decay (the authors' code: 0.01).", 0.01)
     warmup_steps: int = doc("Linear learning-rate warm-up steps, then a cosine decay to 0 over the run.", 100)
@@ -466,6 +469,8 @@ def validate(cfg: Config, source: str) -> None:
             bad(f"{sec}.{key}", "must be >= 1")
     if cfg.pretrain.epochs < 0:
         bad("pretrain.epochs", "must be >= 0 (0: write the initialised base)")
+    if f.epoch_steps < 0:
+        bad("diffusion.epoch_steps", f"must be >= 0 (0: every crop), got {f.epoch_steps}")
     if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
         bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
     _validate_afgsa(cfg.afgsa, bad)

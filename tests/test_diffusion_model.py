@@ -180,6 +180,25 @@ def test_training_moves_only_the_control_module(tmp_path):
     assert len(hist) == 2 and all(np.isfinite(h["train_loss"]) for h in hist)
 
 
+class Counting(Synthetic):
+    def __init__(self):
+        super().__init__()
+        self.read = []
+
+    def __getitem__(self, i):
+        self.read.append(i)
+        return super().__getitem__(i)
+
+
+def test_epoch_steps_trains_a_new_subset_each_epoch(tmp_path):
+    ds = Counting()
+    fit(job(tmp_path, tiny_model(), 2, ds=ds, epoch_steps=1), quiet=True)   # 1 step of batch 4 per epoch
+    first, second = ds.read[:4], ds.read[4:]
+    assert len(ds.read) == 8 and len(set(first)) == 4 and set(first) != set(second)
+    hist = json.loads((tmp_path / "train.json").read_text())["history"]
+    assert [h["epoch"] for h in hist] == [1, 2]
+
+
 def test_resume_continues_exactly(tmp_path):
     straight = tiny_model()
     fit(job(tmp_path / "a", straight, 3), quiet=True)

@@ -72,6 +72,7 @@ class Job:
     objective: Callable | None = None   # (net, batch, gen, device, autocast) -> (loss, terms); None: IF's hybrid loss
     validate_initial: bool = False      # score the model before the first step (a candidate for "best")
     ema: float = 0.0                    # EMA decay of the trainable weights (validated and saved); 0: none
+    epoch_steps: int = 0                # at most this many steps per epoch (a random subset); 0: all
 
 
 def lr_factor(step: int, total: int, warmup: int) -> float:
@@ -154,6 +155,9 @@ def fit(job: Job, quiet: bool = False) -> dict:
         best = _initial(job, history)   # the EMA equals the weights here
     per_rank = len(job.train_ds) // world
     steps_per_epoch = max(1, per_rank // job.batch_size)
+    if job.epoch_steps > 0:   # a subset per epoch: validation, checkpoint and budget come more often
+        steps_per_epoch = min(steps_per_epoch, job.epoch_steps)
+        per_rank = min(per_rank, steps_per_epoch * job.batch_size)
     total_steps = job.epochs * steps_per_epoch
     guard, trained = NanGuard(job.name, job.nan_limit, TrainError), 0
     for epoch in range(start, job.epochs):
