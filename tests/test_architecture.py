@@ -117,3 +117,23 @@ def test_the_checker_sees_what_it_forbids(tmp_path):
         assert private_uses("pipeline.core", core, {"pipeline.color", "render.frame"}) == ["core.py:4: pipeline.color._clamp"]
     finally:
         ROOT = old
+
+
+def package_graph() -> dict[str, dict[str, int]]:
+    """package -> {imported package: number of module-to-module import edges} (imports in functions too)."""
+    graph: dict[str, dict[str, int]] = {}
+    for module, path in MODULES.items():
+        targets = {src for src, _, _ in imports(module, path)}
+        for pkg in {t.split(".")[0] for t in targets} & {CORE, *STAGES} - {module.split(".")[0]}:
+            n = len({t for t in targets if t.split(".")[0] == pkg})
+            row = graph.setdefault(module.split(".")[0], {})
+            row[pkg] = row.get(pkg, 0) + n
+    return graph
+
+
+if __name__ == "__main__":   # python tests/test_architecture.py: the import graph, for people
+    for pkg, row in sorted(package_graph().items()):
+        print(f"{pkg:9s} -> " + ", ".join(f"{k} ({v})" for k, v in sorted(row.items())))
+    core = sorted(m for m, p in MODULES.items() if m.split(".")[0] == CORE and m not in DISPATCH
+                  and any(src.split(".")[0] in STAGES for src, _, _ in imports(m, p)))
+    print("core modules importing a stage:", ", ".join(core) or "none")
