@@ -119,16 +119,14 @@ def _mean_metrics(rows: list[dict], names: list[str]) -> dict:
 
 def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], spps: list[int],
                    loader: Loader, metric_names: list[str], out_dir: Path, quiet: bool) -> dict:
+    """Every method of ``eval.methods`` on the frames ``keys`` of ``group``, per spp of ``spps``.
+
+    Returns the group's result: frames, references, render cost model and MC curves, and per spp
+    (or the reason it is skipped) the method rows, equal-time MC, time vs error, comparisons and
+    the names of the figures written to ``out_dir``."""
     e = cfg.eval
     opts = {"display": e.fvvdp_display}
-    refs, costs, curves = {}, {}, {}
-    for key in keys:
-        ref = _reference(store, key, allow_gt1=group == EXTERNAL)
-        if ref is None:
-            raise StoreError(f"{store.frame_dir(key.scene, key.frame)}: no reference image (gt_clean or gt1)")
-        refs[key] = ref
-        costs[key] = render_cost(store.frame_record(key.scene, key.frame))
-        curves[str(key)] = mc_curve(store, key, ref[1], costs[key], ref[0])
+    refs, costs, curves = _references(store, group, keys)
     result = {"frames": [str(k) for k in keys], "reference": {str(k): refs[k][0] for k in keys},
               "render_cost": {str(k): {"a": c.a, "b": c.b, "how": c.how} for k, c in costs.items()},
               "mc_curve": curves, "mc_mean": mean_curve(curves), "spp": {}}
@@ -139,64 +137,105 @@ def evaluate_group(cfg: Config, store: Store, group: str, keys: list[FrameKey], 
         if problem:
             result["spp"][str(spp)] = {"skipped": problem}
             continue
-        methods, rows = {}, {}
-        for name in e.methods:
-            try:
-                methods[name] = loader.load(name, spp)
-                rows[name] = {"label": label(name), "available": True, "device": methods[name].device,
-                              "checkpoint": methods[name].checkpoint or None, "per_frame": []}
-            except MethodUnavailable as exc:
-                rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
+        methods, rows = _load_methods(loader, e.methods, spp)
         _warm_up(methods, store, keys[0], spp)
-        crops, pooled = [], {}
-        for i, key in enumerate(keys):
-            buffers = store.read(key.scene, key.frame, spp)
-            ref = refs[key][1]
-            outputs = {}
-            for name, method in methods.items():
-                method.set_frame(store, key)
-                oc = run_method(method, buffers)
-                rec = {"frame": str(key), "seconds": oc.seconds, "status": oc.status(),
-                       "input_repaired": int(sum(oc.input_repaired.values())), "output_nonfinite": oc.output_nonfinite}
-                if oc.output is not None:
-                    outputs[name] = finite_output(oc)
-                    rec["metrics"] = score(outputs[name], ref, metric_names, opts)
-                    std = method.uncertainty()
-                    if std is not None:
-                        s, err = uncertainty.pixel_pairs(std, outputs[name], ref)
-                        rec["uncertainty"] = {"spearman": uncertainty.rank_correlation(s, err)}
-                        pooled.setdefault(name, []).append((s, err))
-                rows[name]["per_frame"].append(rec)
-            if i < e.crops:
-                crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
-            bar.update(1)
-        for name, row in rows.items():
-            if row["available"]:
-                pf = row["per_frame"]
-                row["metrics"] = _mean_metrics(pf, metric_names)
-                row["seconds"] = _summary([r["seconds"] for r in pf])
-                row["failed_frames"] = sum(r["status"] != "ok" for r in pf)
-                row["input_repaired"] = sum(r["input_repaired"] for r in pf)
-                if name in pooled:
-                    row["uncertainty"] = uncertainty.summarize(
-                        [r["uncertainty"] for r in pf if "uncertainty" in r],
-                        tuple(np.concatenate(x) for x in zip(*pooled[name])))
+        crops, pooled = _run_frames(e, store, keys, spp, methods, rows, refs, metric_names, opts, bar)
+        _summarize_rows(rows, pooled, metric_names)
         entry = {"methods": rows, "equal_time": _equal_time(cfg, store, keys, spp, rows, refs, costs, metric_names,
                                                             opts, quiet)}
         entry["time_vs_error"] = _time_vs_error(spp, keys, rows, entry["equal_time"], costs, result["mc_mean"])
         annotate(entry, metric_names, e.bootstrap_resamples, e.bootstrap_seed)
-        titles = [CROP_TITLES[m] for m in CROP_METHODS if m in e.methods] + [CROP_TITLES[refs[keys[0]][0]]]
-        if crops:
-            path = out_dir / f"crops_{group}_spp{spp}.png"
-            report.crop_figure(crops, titles, path, e.crop_size)
-            entry["crops"] = path.name
-        entry["uncertainty_plot"] = uncertainty.plot(rows, out_dir / f"uncertainty_{group}_spp{spp}.png",
-                                                     f"{group}, {spp} spp: predicted vs actual error")
-        entry["per_scene"] = report.per_scene_figure(entry, metric_names, out_dir / f"per_scene_{group}_spp{spp}.png",
-                                                     f"{group}, {spp} spp")
+        _figures(entry, e, group, spp, rows, crops, CROP_TITLES[refs[keys[0]][0]], metric_names, out_dir)
         result["spp"][str(spp)] = entry
     bar.close()
     return result
+
+
+def _references(store: Store, group: str, keys: list[FrameKey]) -> tuple[dict, dict, dict]:
+    """Per frame: (reference name, reference image), the render cost model, and (by frame name) the MC
+    convergence curve against that reference."""
+    refs, costs, curves = {}, {}, {}
+    for key in keys:
+        ref = _reference(store, key, allow_gt1=group == EXTERNAL)
+        if ref is None:
+            raise StoreError(f"{store.frame_dir(key.scene, key.frame)}: no reference image (gt_clean or gt1)")
+        refs[key] = ref
+        costs[key] = render_cost(store.frame_record(key.scene, key.frame))
+        curves[str(key)] = mc_curve(store, key, ref[1], costs[key], ref[0])
+    return refs, costs, curves
+
+
+def _load_methods(loader: Loader, names, spp: int) -> tuple[dict, dict]:
+    """(the methods that load at ``spp``, a report row for every name: available, or why not)."""
+    methods, rows = {}, {}
+    for name in names:
+        try:
+            methods[name] = loader.load(name, spp)
+            rows[name] = {"label": label(name), "available": True, "device": methods[name].device,
+                          "checkpoint": methods[name].checkpoint or None, "per_frame": []}
+        except MethodUnavailable as exc:
+            rows[name] = {"label": label(name), "available": False, "reason": str(exc)}
+    return methods, rows
+
+
+def _run_frames(e, store: Store, keys: list[FrameKey], spp: int, methods: dict, rows: dict, refs: dict,
+                metric_names: list[str], opts: dict, bar) -> tuple[list, dict]:
+    """Every method on every frame, each frame's record appended to its row's ``per_frame``.
+
+    Returns the crop grid's rows (the first ``eval.crops`` frames) and, per method that predicts its
+    uncertainty, the (predicted std, actual error) pixel pairs of all frames."""
+    crops, pooled = [], {}
+    for i, key in enumerate(keys):
+        buffers = store.read(key.scene, key.frame, spp)
+        ref = refs[key][1]
+        outputs = {}
+        for name, method in methods.items():
+            method.set_frame(store, key)
+            oc = run_method(method, buffers)
+            rec = {"frame": str(key), "seconds": oc.seconds, "status": oc.status(),
+                   "input_repaired": int(sum(oc.input_repaired.values())), "output_nonfinite": oc.output_nonfinite}
+            if oc.output is not None:
+                outputs[name] = finite_output(oc)
+                rec["metrics"] = score(outputs[name], ref, metric_names, opts)
+                std = method.uncertainty()
+                if std is not None:
+                    s, err = uncertainty.pixel_pairs(std, outputs[name], ref)
+                    rec["uncertainty"] = {"spearman": uncertainty.rank_correlation(s, err)}
+                    pooled.setdefault(name, []).append((s, err))
+            rows[name]["per_frame"].append(rec)
+        if i < e.crops:
+            crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
+        bar.update(1)
+    return crops, pooled
+
+
+def _summarize_rows(rows: dict, pooled: dict, metric_names: list[str]) -> None:
+    """Add to each available method's row its means over frames: metrics, seconds, failures, repairs, uncertainty."""
+    for name, row in rows.items():
+        if row["available"]:
+            pf = row["per_frame"]
+            row["metrics"] = _mean_metrics(pf, metric_names)
+            row["seconds"] = _summary([r["seconds"] for r in pf])
+            row["failed_frames"] = sum(r["status"] != "ok" for r in pf)
+            row["input_repaired"] = sum(r["input_repaired"] for r in pf)
+            if name in pooled:
+                row["uncertainty"] = uncertainty.summarize(
+                    [r["uncertainty"] for r in pf if "uncertainty" in r],
+                    tuple(np.concatenate(x) for x in zip(*pooled[name])))
+
+
+def _figures(entry: dict, e, group: str, spp: int, rows: dict, crops: list, ref_title: str,
+             metric_names: list[str], out_dir: Path) -> None:
+    """Write the spp's crop grid (if any crops), uncertainty plot and per-scene figure; their names go into ``entry``."""
+    titles = [CROP_TITLES[m] for m in CROP_METHODS if m in e.methods] + [ref_title]
+    if crops:
+        path = out_dir / f"crops_{group}_spp{spp}.png"
+        report.crop_figure(crops, titles, path, e.crop_size)
+        entry["crops"] = path.name
+    entry["uncertainty_plot"] = uncertainty.plot(rows, out_dir / f"uncertainty_{group}_spp{spp}.png",
+                                                 f"{group}, {spp} spp: predicted vs actual error")
+    entry["per_scene"] = report.per_scene_figure(entry, metric_names, out_dir / f"per_scene_{group}_spp{spp}.png",
+                                                 f"{group}, {spp} spp")
 
 
 def _warm_up(methods: dict, store: Store, key: FrameKey, spp: int, side: int = 32) -> None:

@@ -176,26 +176,29 @@ def cmd_plan(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def _with_config(p):
+    """Add the arguments of every stage that reads the config: --config FILE and key=value overrides."""
+    p.add_argument("--config", default=None, help="YAML config (default: built-in defaults)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="override config keys")
+    return p
 
-    def with_config(p):
-        p.add_argument("--config", default=None, help="YAML config (default: built-in defaults)")
-        p.add_argument("overrides", nargs="*", metavar="key=value", help="override config keys")
-        return p
 
-    p = with_config(sub.add_parser("dataset", help="render the dataset into the store"))
+def _dataset_parsers(sub) -> None:
+    """Subcommands for the dataset and GT-cleaner stages."""
+    p = _with_config(sub.add_parser("dataset", help="render the dataset into the store"))
     p.add_argument("--shard", default=None, help="i/N: render only the i-th of N contiguous blocks of frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(fn=cmd_dataset)
 
-    p = with_config(sub.add_parser("gt-clean", help="train the GT cleaner (resumable), then write gt_clean for every frame"))
+    p = _with_config(sub.add_parser("gt-clean", help="train the GT cleaner (resumable), then write gt_clean for every frame"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_gt_clean)
 
-    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), isik or afgsa "
-                                                 "(baselines); diffusion runs under torchrun for DDP"))
+
+def _train_parsers(sub) -> None:
+    """Subcommands for the denoisers: training, its preparation (pretrain, GPU recipe, packs), export, inference."""
+    p = _with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), isik or afgsa "
+                                                  "(baselines); diffusion runs under torchrun for DDP"))
     p.add_argument("--model", default="diffusion", choices=["diffusion", "isik", "afgsa"], help="which denoiser")
     p.add_argument("--spp", type=_spp, required=True,
                    help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion or AFGSA model "
@@ -203,20 +206,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_train)
 
-    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
+    p = _with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_pretrain)
 
-    p = with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
-                                                  "(the shipped model: train/shipped)"))
+    p = _with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
+                                                   "(the shipped model: train/shipped)"))
     p.add_argument("--spp", type=_spp, required=True, help="the run (diffusion_spp<N> or any)")
     p.add_argument("--out", default="train/shipped", help="the model folder to write")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_export)
 
-    p = with_config(sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe (train/gpu_recipe.py): crop "
-                                                       "packs from the training packs and the wheels a bare GPU "
-                                                       "machine lacks"))
+    p = _with_config(sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe (train/gpu_recipe.py): crop "
+                                                        "packs from the training packs and the wheels a bare GPU "
+                                                        "machine lacks"))
     p.add_argument("--out", default=".gpu")
     p.add_argument("--train-crops", type=int, default=48)
     p.add_argument("--val-crops", type=int, default=12)
@@ -224,12 +227,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-wheels", action="store_true", help="crop packs only")
     p.set_defaults(fn=cmd_gpu_prepare)
 
-    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
+    p = _with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_pack)
 
-    p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
+    p = _with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
     p.add_argument("--spp", type=_spp, default=None,
                    help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
                         "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
@@ -245,22 +248,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_denoise)
 
-    p = with_config(sub.add_parser("clean-report", help="GT1 vs GT_clean against GT2 on val/test, crop grid; "
-                                                        "--spp N adds the Isik baseline on the test split"))
+
+def _report_parsers(sub) -> None:
+    """Subcommands for the reports: cleaner, AFGSA, evaluation, stability."""
+    p = _with_config(sub.add_parser("clean-report", help="GT1 vs GT_clean against GT2 on val/test, crop grid; "
+                                                         "--spp N adds the Isik baseline on the test split"))
     p.add_argument("--out", default="reports/cleaner")
     p.add_argument("--spp", type=int, default=None)
     p.set_defaults(fn=cmd_clean_report)
 
-    p = with_config(sub.add_parser("afgsa-report", help="AFGSA trained against GT_clean vs against GT1, both "
-                                                        "scored against GT_clean: table and crop grid"))
+    p = _with_config(sub.add_parser("afgsa-report", help="AFGSA trained against GT_clean vs against GT1, both "
+                                                         "scored against GT_clean: table and crop grid"))
     p.add_argument("--spp", type=int, default=4)
     p.add_argument("--out", default="reports/afgsa")
     p.add_argument("--run", action="append", default=None, metavar="LABEL=FOLDER", dest="runs",
                    help="another AFGSA run folder to compare (e.g. the adv_weight=0 ablation); repeatable")
     p.set_defaults(fn=cmd_afgsa_report)
 
-    p = with_config(sub.add_parser("eval", help="every method on the test frames per spp: tables, error vs time, "
-                                                "crops (reports/<run>/)"))
+    p = _with_config(sub.add_parser("eval", help="every method on the test frames per spp: tables, error vs time, "
+                                                 "crops (reports/<run>/)"))
     p.add_argument("--spp", default=None, help="sample counts, comma-separated, e.g. 4 or 4,16 (default: eval.spp)")
     p.add_argument("--scene", action="append", default=None, metavar="XML", dest="scenes",
                    help="a Mitsuba 3 scene to render into the store (split 'external') and report separately; "
@@ -269,33 +275,36 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_eval)
 
-    p = with_config(sub.add_parser("stability", help="every method on synthetic edge cases (fireflies, NaN, sizes, ...)"))
+    p = _with_config(sub.add_parser("stability", help="every method on synthetic edge cases (fireflies, NaN, sizes, ...)"))
     p.add_argument("--out", default=None, help="report folder (default: as eval)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_stability)
 
+
+def _tool_parsers(sub) -> None:
+    """Subcommands for store and scene tools, the config, benchmarks and the plan."""
     p = sub.add_parser("inspect", help="describe a store (frames, channels, constants, timings, NaN/Inf)")
     p.add_argument("store")
     p.add_argument("--frame", default=None, help="SCENE/FRAME, e.g. s00000/000: details of one frame")
     p.add_argument("--json", action="store_true")
     p.set_defaults(fn=cmd_inspect)
 
-    p = with_config(sub.add_parser("render-scene", help="render a Mitsuba 3 XML scene with its own camera into a store"))
+    p = _with_config(sub.add_parser("render-scene", help="render a Mitsuba 3 XML scene with its own camera into a store"))
     p.add_argument("scene", help="Mitsuba 3 scene XML")
     p.add_argument("--store", default=None, help="store path (default: the config's store)")
     p.add_argument("--resolution", default=None, help="WxH (default: the scene film's size)")
     p.add_argument("--name", default=None, help="scene id in the store (default: ext_<file stem>)")
     p.set_defaults(fn=cmd_render_scene)
 
-    p = with_config(sub.add_parser("config", help="print the resolved config, or --doc the key reference"))
+    p = _with_config(sub.add_parser("config", help="print the resolved config, or --doc the key reference"))
     p.add_argument("--doc", action="store_true")
     p.set_defaults(fn=cmd_config)
 
-    p = with_config(sub.add_parser("bench", help="integrator vs path, dataset time shares, savings of omitted channels"))
+    p = _with_config(sub.add_parser("bench", help="integrator vs path, dataset time shares, savings of omitted channels"))
     p.add_argument("--out", default="reports/bench", help="folder for bench results (JSON, Markdown)")
     p.set_defaults(fn=cmd_bench)
 
-    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP"))
+    p = _with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP"))
     p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
     p.add_argument("--side", type=int, default=128, help="frame side of the per-frame timing")
     p.add_argument("--out", default="reports/bench")
@@ -309,13 +318,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="only the summary line")
     p.set_defaults(fn=cmd_verify)
 
-    p = with_config(sub.add_parser("plan", help="estimate CPU core-hours, disk and wall time of the dataset stage"))
+    p = _with_config(sub.add_parser("plan", help="estimate CPU core-hours, disk and wall time of the dataset stage"))
     p.add_argument("--store", default=None, help="calibrate rate and bytes on an existing store's frames")
     p.add_argument("--workers", default="1,2,16,64,256,1024", help="core counts for the wall-time column")
     p.add_argument("--json", action="store_true")
     p.add_argument("--measure", action="store_true", help="measure the model's constants on this machine "
                                                            "(prints JSON for render/plan.py)")
     p.set_defaults(fn=cmd_plan)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    # The order of these calls is the order of the subcommands in --help.
+    _dataset_parsers(sub)
+    _train_parsers(sub)
+    _report_parsers(sub)
+    _tool_parsers(sub)
 
     # key=value overrides may follow options too (`gt-clean --quiet clean.epochs=3`): argparse
     # stops the positional list at the first option, so collect the rest here.

@@ -135,19 +135,34 @@ def _round_to_storage(value: float, dtype: type) -> float:
     return float(np.asarray(value, dtype=dtype))
 
 
-def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
-                meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None
-                ) -> dict:
-    """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
+def _schema_order(buffers: set[str]) -> list[str]:
+    """Buffer names in the schema's order; names the schema lacks last (they are refused later)."""
+    return sorted(buffers, key=lambda n: [b.name for b in schema.BUFFERS].index(n) if n in schema.BY_NAME else 1 << 30)
 
-    ``constants`` maps keys that were not computed at all (pruned features) to their value.
-    ``layers``: extra HxWx3 float32 layers of ``schema.OUTPUT_LAYERS`` (a denoiser's ``std``), written
-    as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
-    Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
-    """
-    constants = dict(constants or {})
-    buffers = sorted({k.removesuffix(".variance") for k in list(arrays) + list(constants)},
-                     key=lambda n: [b.name for b in schema.BUFFERS].index(n) if n in schema.BY_NAME else 1 << 30)
+
+def _checked_buffer(path: Path, key: str, arrays: dict[str, np.ndarray], size: int, shape) -> np.ndarray:
+    """``arrays[key]`` as an HxWx``size`` array; StoreError if missing, misshapen (``shape``: the other
+    buffers' HxW, None before the first) or not finite."""
+    if key not in arrays:
+        raise StoreError(f"{path}: buffer {key!r} has neither data nor a constant")
+    arr = np.asarray(arrays[key])
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[2] != size:
+        raise StoreError(f"{path}: buffer {key!r} has shape {arr.shape}, expected HxWx{size}")
+    if shape is not None and arr.shape[:2] != shape:
+        raise StoreError(f"{path}: buffer {key!r} is {arr.shape[:2]}, other buffers are {shape}")
+    if not np.all(np.isfinite(arr)):
+        raise StoreError(f"{path}: buffer {key!r} has non-finite values; repair (and count) them first")
+    return arr
+
+
+def _buffer_channels(path: Path, buffers: list[str], arrays: dict[str, np.ndarray], constants: dict[str, float],
+                     omit_constant: bool) -> tuple[tuple[int, int], dict[str, np.ndarray], dict[str, float]]:
+    """(HxW, stored channels, omitted channel constants) of every buffer and its variance.
+
+    A key in ``constants`` is omitted with that value rounded to the channel's storage type; with
+    ``omit_constant`` so is a channel whose stored data is constant over the frame."""
     shape = None
     channels: dict[str, np.ndarray] = {}
     omitted: dict[str, float] = {}
@@ -161,19 +176,8 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
                 for ch in names:
                     omitted[ch] = _round_to_storage(constants[key], dtype)
                 continue
-            if key not in arrays:
-                raise StoreError(f"{path}: buffer {key!r} has neither data nor a constant")
-            arr = np.asarray(arrays[key])
-            if arr.ndim == 2:
-                arr = arr[..., None]
-            if arr.ndim != 3 or arr.shape[2] != buf.size:
-                raise StoreError(f"{path}: buffer {key!r} has shape {arr.shape}, expected HxWx{buf.size}")
-            if shape is None:
-                shape = arr.shape[:2]
-            elif arr.shape[:2] != shape:
-                raise StoreError(f"{path}: buffer {key!r} is {arr.shape[:2]}, other buffers are {shape}")
-            if not np.all(np.isfinite(arr)):
-                raise StoreError(f"{path}: buffer {key!r} has non-finite values; repair (and count) them first")
+            arr = _checked_buffer(path, key, arrays, buf.size, shape)
+            shape = arr.shape[:2]
             for c, ch in enumerate(names):
                 data = np.ascontiguousarray(arr[..., c], dtype=dtype)
                 value = constant_value(data) if omit_constant else None
@@ -183,13 +187,34 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
                     channels[ch] = data
     if shape is None:
         raise StoreError(f"{path}: no buffer has pixel data, cannot tell the image size")
-    for name, arr in (layers or {}).items():
+    return shape, channels, omitted
+
+
+def _add_layers(path: Path, channels: dict[str, np.ndarray], layers: dict[str, np.ndarray], shape) -> None:
+    """Add each extra layer (``schema.OUTPUT_LAYERS``, HxWx3) to ``channels`` as ``<name>.R/G/B``."""
+    for name, arr in layers.items():
         arr = np.asarray(arr, dtype=np.float32)
         if name not in schema.OUTPUT_LAYERS or arr.shape != (*shape, 3) or not np.all(np.isfinite(arr)):
             raise StoreError(f"{path}: layer {name!r} must be one of {schema.OUTPUT_LAYERS}, a finite HxWx3 array of "
                              f"the image's size; got shape {arr.shape}")
         for c, ch in enumerate("RGB"):
             channels[f"{name}.{ch}"] = np.ascontiguousarray(arr[..., c])
+
+
+def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
+                meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None
+                ) -> dict:
+    """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
+
+    ``constants`` maps keys that were not computed at all (pruned features) to their value.
+    ``layers``: extra HxWx3 float32 layers of ``schema.OUTPUT_LAYERS`` (a denoiser's ``std``), written
+    as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
+    Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
+    """
+    constants = dict(constants or {})
+    buffers = _schema_order({k.removesuffix(".variance") for k in list(arrays) + list(constants)})
+    shape, channels, omitted = _buffer_channels(path, buffers, arrays, constants, omit_constant)
+    _add_layers(path, channels, layers or {}, shape)
     if not channels:
         # OpenEXR needs at least one channel; keep the beauty's red even if constant.
         first = schema.BY_NAME[buffers[0]]

@@ -112,6 +112,47 @@ def aov_layout(features, moments: bool) -> list[tuple[str, bool, int]]:
     return layout
 
 
+def aov_channel_names(layout: list[tuple[str, bool, int]]) -> list[str]:
+    """Film AOV channel names of ``aov_layout``'s blocks: ``<buffer>.<c>``, ``<buffer>.m2.<c>`` for second moments."""
+    from pipeline.schema import BY_NAME
+    names = []
+    for name, m2, _ in layout:
+        b = BY_NAME[name]
+        chans = b.channels
+        names += [f"{name}.m2.{c}" if m2 else f"{name}.{c}" for c in chans]
+    return names
+
+
+# First-hit features (see the module docstring); ``hit``: the lanes whose camera ray hit, the
+# ``has_*`` masks: the BSDF's lobe flags. Absent attributes evaluate to 0.
+
+def _roughness(bsdf, si, hit, has_glossy, has_delta, has_diffuse):
+    """principled 'roughness' or sqrt(alpha) of glossy lobes; 0 for delta-only, 1 for purely diffuse."""
+    alpha = bsdf.eval_attribute_1("alpha", si, hit & has_glossy)
+    alpha += dr.sqrt(bsdf.eval_attribute_1("alpha_u", si, hit & has_glossy)
+                     * bsdf.eval_attribute_1("alpha_v", si, hit & has_glossy))
+    r_p = bsdf.eval_attribute_1("roughness", si, hit & has_glossy)
+    rough = dr.select(has_glossy, dr.maximum(r_p, dr.sqrt(alpha)),
+                      dr.select(has_delta, 0, dr.select(has_diffuse, 1, 0)))
+    return dr.select(hit, dr.clip(rough, 0, 1), 0)
+
+
+def _metallic(bsdf, si, hit, flags, has_diffuse):
+    """principled 'metallic'; 1 for reflection-only BSDFs without a diffuse lobe."""
+    conductor = (mi.has_flag(flags, mi.BSDFFlags.Reflection) & ~has_diffuse
+                 & ~mi.has_flag(flags, mi.BSDFFlags.Transmission))
+    metal = dr.maximum(bsdf.eval_attribute_1("metallic", si, hit & has_diffuse),
+                       dr.select(conductor, 1, 0))
+    return dr.select(hit, metal, 0)
+
+
+def _transmission(bsdf, si, hit, has_trans, has_diffuse):
+    """principled 'spec_trans'; 1 for BSDFs with glossy/delta transmission and no diffuse lobe."""
+    st = bsdf.eval_attribute_1("spec_trans", si, hit & has_diffuse)
+    trans = dr.select(has_trans & ~has_diffuse, 1, st)
+    return dr.select(hit, trans, 0)
+
+
 def integrator_class(mitsuba):
     """Build (once per variant) the ``SplitIntegrator`` class; needs a variant set."""
     global mi, dr
@@ -122,7 +163,6 @@ def integrator_class(mitsuba):
         return _CLASS[variant]
     import drjit
     mi, dr = mitsuba, drjit
-    from pipeline.schema import BY_NAME
 
     class SplitIntegrator(mi.SamplingIntegrator):
         __doc__ = __doc__
@@ -167,12 +207,7 @@ def integrator_class(mitsuba):
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
 
         def aov_names(self):
-            names = []
-            for name, m2, _ in self.layout:
-                b = BY_NAME[name]
-                chans = b.channels
-                names += [f"{name}.m2.{c}" if m2 else f"{name}.{c}" for c in chans]
-            return names
+            return aov_channel_names(self.layout)
 
         def to_string(self):
             return (f"SplitIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
@@ -204,23 +239,11 @@ def integrator_class(mitsuba):
             # every lane: principled exposes roughness/metallic/spec_trans, the microfacet
             # BSDFs alpha (or alpha_u/alpha_v), and the flags classify the rest.
             if "roughness" in self.features:
-                alpha = bsdf.eval_attribute_1("alpha", si, hit & has_glossy)
-                alpha += dr.sqrt(bsdf.eval_attribute_1("alpha_u", si, hit & has_glossy)
-                                 * bsdf.eval_attribute_1("alpha_v", si, hit & has_glossy))
-                r_p = bsdf.eval_attribute_1("roughness", si, hit & has_glossy)
-                rough = dr.select(has_glossy, dr.maximum(r_p, dr.sqrt(alpha)),
-                                  dr.select(has_delta, 0, dr.select(has_diffuse, 1, 0)))
-                out["roughness"] = dr.select(hit, dr.clip(rough, 0, 1), 0)
+                out["roughness"] = _roughness(bsdf, si, hit, has_glossy, has_delta, has_diffuse)
             if "metallic" in self.features:
-                conductor = (mi.has_flag(flags, mi.BSDFFlags.Reflection) & ~has_diffuse
-                             & ~mi.has_flag(flags, mi.BSDFFlags.Transmission))
-                metal = dr.maximum(bsdf.eval_attribute_1("metallic", si, hit & has_diffuse),
-                                   dr.select(conductor, 1, 0))
-                out["metallic"] = dr.select(hit, metal, 0)
+                out["metallic"] = _metallic(bsdf, si, hit, flags, has_diffuse)
             if "transmission" in self.features:
-                st = bsdf.eval_attribute_1("spec_trans", si, hit & has_diffuse)
-                trans = dr.select(has_trans & ~has_diffuse, 1, st)
-                out["transmission"] = dr.select(hit, trans, 0)
+                out["transmission"] = _transmission(bsdf, si, hit, has_trans, has_diffuse)
             return out
 
         # ---------------------------------------------------------------- sample
