@@ -100,7 +100,7 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         "network of the first estimate: `isik/` (when used).",
         f"- Sample counts: {record.get('spp')} (the spp map is an input).", "",
         "## Data", "",
-        f"Config `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
+        f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
         f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
         f"GT {d.gt_spp} spp x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
         "configs/default.yaml's scenes (another seed).", "",
@@ -109,6 +109,10 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
         f"train_base {cfg.diffusion.train_base}, time budget {cfg.diffusion.time_budget_s:g} s. Best epoch "
         f"{best.get('epoch')} by validation PSNR (epoch 0 is the untrained model, i.e. the first estimate).", "",
+        *(["**Training did not improve on the first estimate on the validation frames, so this model returns "
+           "its first estimate exactly** (the network's last layer is still zero, and several samples agree). "
+           "The later epochs stay in the run folder; rerunning the training command with a larger "
+           "`diffusion.time_budget_s` continues them, and the GPU recipe trains this model further.", ""] if best.get("epoch") == 0 else []),
         f"Machine: {m.get('gpu') or m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, {m.get('threads', '?')} "
         f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
         "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]

@@ -1,0 +1,66 @@
+"""The denoiser shipped in train/shipped: in the repository, small, documented, and it denoises."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from evaluate.stability import synthetic_buffers
+from pipeline.exr import read_image
+from train.infer import load_denoiser
+from train.model import SHIPPED_MODEL
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _mse(a, b):
+    return float(np.mean((np.asarray(a, np.float64) - b) ** 2))
+
+
+def test_shipped_model_is_in_the_repository_small_and_documented():
+    files = [p for p in SHIPPED_MODEL.rglob("*") if p.is_file()]
+    assert sum(p.stat().st_size for p in files) <= 30 * 2**20
+    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
+    assert meta["spp"] == "any" and meta["base"] == "base"
+    card = (SHIPPED_MODEL / "README.md").read_text()
+    assert "configs/ship.yaml" in card and "python -m pipeline" in card
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return load_denoiser(SHIPPED_MODEL, device="cpu")
+
+
+@pytest.mark.parametrize("spp", [4, 16, 64])
+def test_shipped_model_denoises_a_tiny_frame(shipped, spp):
+    """Finite output, closer to the noise-free image than the noisy input, at every spp it serves."""
+    truth = synthetic_buffers(40, 48, seed=spp, noise=0.0)["color"]
+    noisy = synthetic_buffers(40, 48, seed=spp, noise=0.7)
+    out = shipped.denoise(noisy, spp=spp, seed=1)
+    assert out.shape == truth.shape and out.dtype == np.float32 and np.isfinite(out).all()
+    assert _mse(out, truth) < 0.5 * _mse(noisy["color"], truth)
+
+
+def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
+    noisy = synthetic_buffers(32, 32, seed=5, noise=0.7)
+    one, std1 = shipped.denoise(noisy, spp=4, seed=2, samples=1, with_std=True)
+    mean, std = shipped.denoise(noisy, spp=4, seed=2, samples=3, steps=3, with_std=True)
+    assert np.all(std1 == 0) and np.all(std >= 0) and np.isfinite(mean).all()
+
+
+def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
+    """`python -m pipeline denoise --exr IN --out OUT` with nothing trained: an R,G,B EXR comes out denoised."""
+    truth = synthetic_buffers(32, 40, seed=7, noise=0.0)["color"]
+    noisy = synthetic_buffers(32, 40, seed=7, noise=0.7)["color"]
+    src, dst = tmp_path / "in.exr", tmp_path / "out.exr"
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                      {c: np.ascontiguousarray(noisy[..., i]) for i, c in enumerate("RGB")}) as f:
+        f.write(str(src))
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "denoise", "--exr", str(src), "--out", str(dst),
+                           f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    out = read_image(dst)[0]["color"]
+    assert np.isfinite(out).all() and _mse(out, truth) < 0.5 * _mse(noisy, truth)
