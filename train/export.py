@@ -112,7 +112,8 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         *(["**Training did not improve on the first estimate on the validation frames, so this model returns "
            "its first estimate exactly** (the network's last layer is still zero, and several samples agree). "
            "The later epochs stay in the run folder; rerunning the training command with a larger "
-           "`diffusion.time_budget_s` continues them, and the GPU recipe trains this model further.", ""] if best.get("epoch") == 0 else []),
+           "`diffusion.time_budget_s` continues them, and the GPU recipe trains this model further.", ""]
+          if best.get("epoch") == 0 else []),
         f"Machine: {m.get('gpu') or m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, {m.get('threads', '?')} "
         f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
         "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]
