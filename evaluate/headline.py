@@ -5,7 +5,9 @@ the best mean on each metric and whether its lead over the runner-up is signific
 bootstrap 95 % interval of their per-frame difference excludes 0); where plain MC at equal time
 beats every denoiser on PSNR; which methods are not available at which spp. For the hard-case
 groups (stress presets, external scenes) the same leaders in a compact form (``*`` marks a
-significant lead). The noisy input and equal-time MC rows are never "the best denoiser".
+significant lead). The noisy input and equal-time MC rows are never "the best denoiser"; methods
+with the leader's scores on every frame (a model that returns another method's output) are named
+with it, not as its runner-up.
 """
 from __future__ import annotations
 
@@ -38,9 +40,18 @@ def leader_phrases(leads: dict, metric_names: list[str]) -> list[str]:
     for m in metric_names:
         lead = leads.get(m)
         if lead:
-            by_best.setdefault(lead["best"], {}).setdefault(_margin(lead), []).append(_prose(m))
-    return [f"`{best}` on " + ", on ".join(f"{_join(cols)} ({margin})" for margin, cols in margins.items())
+            by_best.setdefault(_leader(lead), {}).setdefault(_margin(lead), []).append(_prose(m))
+    return [f"{best} on " + ", on ".join(f"{_join(cols)} ({margin})" for margin, cols in margins.items())
             for best, margins in by_best.items()]
+
+
+def _leader(lead: dict, compact: bool = False) -> str:
+    """"`ours`", or with the methods whose scores are the same on every frame, in name order:
+    "`oidn` (identical scores: `ours`)", compact "`oidn`=`ours`"."""
+    if not lead.get("tied"):
+        return f"`{lead['best']}`"
+    first, *same = [f"`{n}`" for n in sorted([lead["best"], *lead["tied"]])]   # one name per group
+    return "=".join([first, *same]) if compact else f"{first} (identical scores: {_join(same)})"
 
 
 def mc_clause(entry: dict) -> str | None:
@@ -74,8 +85,8 @@ def compact_leaders(leads: dict, metric_names: list[str]) -> str:
     for m in metric_names:
         lead = leads.get(m)
         if lead:
-            by_best.setdefault(lead["best"], []).append(_prose(m) + ("*" if lead.get("significant") else ""))
-    return "; ".join(f"`{best}` on {', '.join(ms)}" for best, ms in by_best.items())
+            by_best.setdefault(_leader(lead, compact=True), []).append(_prose(m) + ("*" if lead.get("significant") else ""))
+    return "; ".join(f"{best} on {', '.join(ms)}" for best, ms in by_best.items())
 
 
 def hard_clause(group: str, g: dict, metric_names: list[str]) -> str:

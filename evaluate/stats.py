@@ -77,15 +77,32 @@ def paired_values(per_frame_a: dict, per_frame_b: dict) -> tuple[list[float], li
     return [per_frame_a[f] for f in common], [per_frame_b[f] for f in common]
 
 
+# Scores this close on every frame are the same output: float32 round trips of one image (a model
+# that returns its first estimate) differ by ~1e-6 relative, real methods by orders of magnitude more.
+TIE_RTOL = 1e-5
+
+
+def identical_scores(a: dict, b: dict) -> bool:
+    """Both methods scored the same frames and agree on each within ``TIE_RTOL``."""
+    if set(a) != set(b) or not a:
+        return False
+    x, y = paired_values(a, b)
+    return len(x) == len(a) and bool(np.allclose(x, y, rtol=TIE_RTOL, atol=0.0))
+
+
 def lead(per_frame: dict[str, dict], higher_is_better: bool, resamples: int = 5000, seed: int = 0) -> dict | None:
     """Best and runner-up by mean among methods (method → {frame: value}), with the paired
-    bootstrap interval of best − runner-up and whether it is significant; None without values."""
+    bootstrap interval of best − runner-up and whether it is significant; None without values.
+    Methods with the best's scores on every frame (``identical_scores``) are listed as ``tied``
+    with it, and the runner-up is the best of the others: a copy is not a competitor."""
     means = {m: float(np.mean(list(v.values()))) for m, v in per_frame.items() if v}
     means = {m: v for m, v in means.items() if not math.isnan(v)}
     if not means:
         return None
     order = sorted(means, key=lambda m: means[m], reverse=higher_is_better)
-    out = {"best": order[0], "mean": means[order[0]], "runner_up": None}
+    tied = [m for m in order[1:] if identical_scores(per_frame[order[0]], per_frame[m])]
+    order = [order[0]] + [m for m in order[1:] if m not in tied]
+    out = {"best": order[0], "mean": means[order[0]], "tied": tied, "runner_up": None}
     if len(order) < 2:
         return out
     a, b = paired_values(per_frame[order[0]], per_frame[order[1]])

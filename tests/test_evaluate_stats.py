@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from evaluate.compare import annotate
-from evaluate.headline import headline
+from evaluate.headline import headline, leader_phrases
 from evaluate.stats import MIN_FRAMES, lead, mean_ci, paired_bootstrap, significant
 
 # ---- paired bootstrap ------------------------------------------------------------------------
@@ -90,6 +90,20 @@ def test_lead_follows_the_metric_direction():
     assert got["best"] == "b" and got["runner_up"] == "a" and got["significant"]
     assert got["diff"] == pytest.approx(-0.005)
     assert lead({"a": high, "b": low}, higher_is_better=True, resamples=1000)["best"] == "a"
+
+
+def test_a_copy_of_the_leader_is_named_with_it_not_as_its_runner_up():
+    """A model that returns another method's output scores the same up to float32 round-off: the
+    headline must not call it 'best, not significantly ahead of' the method it copies."""
+    frames = {f"s/{i:03d}": 30.0 + i for i in range(8)}
+    copy = {f: v * (1 + 3e-7 * (-1) ** i) for i, (f, v) in enumerate(frames.items())}
+    worse = {f: v - 0.5 for f, v in frames.items()}
+    got = lead({"oidn": frames, "ours": copy, "isik": worse}, higher_is_better=True, resamples=500)
+    assert {got["best"], *got["tied"]} == {"oidn", "ours"} and got["runner_up"] == "isik" and got["significant"]
+    close = {f: v + 0.01 for f, v in frames.items()}   # a real (if small) difference is not a tie
+    assert lead({"a": frames, "b": close}, higher_is_better=True, resamples=500)["tied"] == []
+    text = leader_phrases({"psnr": got}, ["psnr"])[0]
+    assert "(identical scores: `" in text and "significantly ahead of `isik`" in text
 
 
 def _rows(values: dict[str, list[float]], metric: str) -> dict:
