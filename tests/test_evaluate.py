@@ -126,7 +126,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_small_skip18"]
     cfg = load_config(TINY, [f"store={store_root}", f"runs={runs}", f"eval.methods={json.dumps(methods)}",
                              "eval.equal_time=pool", "eval.equal_time_methods=[ours, oidn, isik]", "eval.device=cpu",
-                             "eval.seed=5"])
+                             "eval.seed=5", "diffusion.shipped=false"])   # no fallback to train/shipped
     out = tmp_path / "report"
     result = run_eval(cfg, spps=[4, 16, 64], out=str(out), quiet=True)
 

@@ -32,7 +32,8 @@ def test_synthetic_buffers_have_every_schema_channel():
 def test_every_case_every_method(tmp_path):
     runs = tmp_path / "runs"
     save_untrained_isik(runs / "isik_spp4")
-    cfg = load_config(TINY, [f"runs={runs}", "eval.methods=[noisy, oidn, oidn_color, isik, ours]", "eval.device=cpu"])
+    cfg = load_config(TINY, [f"runs={runs}", "eval.methods=[noisy, oidn, oidn_color, isik, ours]", "eval.device=cpu",
+                             "diffusion.shipped=false"])   # ours has no run and no shipped fallback here
     data = run_stability(cfg, large=False, out=tmp_path / "r", quiet=True)
     assert list(data["cases"]) == [c for c in CASES if c not in LARGE]
     for case, row in data["results"].items():
@@ -60,6 +61,20 @@ def test_every_case_every_method(tmp_path):
     cells = {line.replace("\\|", "").count("|") for line in table}
     assert len(table) == 2 + len(data["cases"]) and cells == {3 + 5 + 1}       # '|n|' is escaped
     assert json.loads((tmp_path / "r" / "stability.json").read_text())["spp"] == 4
+
+
+def test_the_shipped_model_is_finite_on_every_case(tmp_path):
+    """`ours` with no run of the config's own falls back to train/shipped: finite on every stiff and
+    extreme case, black in gives black out, 1e5 in keeps about 1e5 (the model's range is clamped and
+    says so)."""
+    cfg = load_config(TINY, [f"runs={tmp_path / 'none'}", "eval.methods=[ours]", "eval.device=cpu"])
+    data = run_stability(cfg, large=False, out=tmp_path / "r", quiet=True)
+    for case, row in data["results"].items():
+        cell = row["ours"]
+        assert cell["status"] == "ok", (case, cell)
+        assert np.isfinite([cell["out_min"], cell["out_max"], cell["out_mean"]]).all() and cell["out_min"] >= 0
+    assert data["results"]["all_black"]["ours"]["out_max"] == 0.0
+    assert data["results"]["radiance_1e5"]["ours"]["out_mean"] == pytest.approx(1e5, rel=0.05)
 
 
 class _Raises(em.Method):
