@@ -118,6 +118,15 @@ def test_errors_are_one_line_and_exit_2(setup, tmp_path):
     assert proc.returncode == 2 and "diffusion.skip" in proc.stderr and not (tmp_path / "x.exr").exists()
 
 
+def test_a_run_resumes_only_with_its_epoch_steps(setup, tmp_path):
+    tmp, keys = setup
+    keys = [k for k in keys if not str(k).startswith("runs=")] + [f"runs={tmp_path / 'runs'}"]
+    run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=1", "diffusion.epoch_steps=1")
+    proc = run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=1", "diffusion.epoch_steps=2",
+               check=False)
+    assert proc.returncode == 2 and "epoch_steps" in proc.stderr
+
+
 def test_eval_runs_the_trained_model(setup, tmp_path):
     """The evaluator loads the real trained run (not a stand-in) and reports it next to the noisy input."""
     tmp, keys = setup

@@ -109,7 +109,9 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg, folder), "crop": crop,
           "formulation": form.record(), "train_steps": list(f.train_steps), "ema": f.ema,
           **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr", "weight_decay",
-                                         "warmup_steps", "grad_clip", "train_base", "control", "epochs")}}
+                                         "warmup_steps", "grad_clip", "train_base", "control", "epochs")},
+          # only when set, so runs from before the key resume as they were
+          **({"epoch_steps": f.epoch_steps} if f.epoch_steps else {})}
 
     def save_best(record):
         save(folder, model, cfg, str(spp), record)
