@@ -18,8 +18,6 @@ import csv
 import datetime
 import json
 import math
-import os
-import platform
 import subprocess
 from pathlib import Path
 
@@ -27,7 +25,7 @@ import numpy as np
 
 from pipeline import figures
 from pipeline.config import Config, to_dict
-from pipeline.versions import package_versions
+from pipeline.versions import machine, package_versions
 
 from .compare import REFERENCES, frame_values, scored_rows
 from .headline import headline
@@ -50,18 +48,6 @@ def git_commit() -> dict:
     except (OSError, subprocess.SubprocessError):
         return {"commit": "unknown", "dirty": None}
     return {"commit": sha or "unknown", "dirty": bool(dirty) if sha else None}
-
-
-def machine() -> dict:
-    info = {"host": platform.node(), "platform": platform.platform(), "processor": platform.processor() or
-            platform.machine(), "cpus": os.cpu_count()}
-    try:
-        import torch
-        info["torch_threads"] = torch.get_num_threads()
-        info["cuda"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    except ImportError:
-        pass
-    return info
 
 
 def run_meta(cfg: Config, spps: list[int]) -> dict:

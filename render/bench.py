@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import platform
 import shutil
 import tempfile
 import time
@@ -23,7 +22,7 @@ from pathlib import Path
 from pipeline.config import Config
 from pipeline.store import Store
 from pipeline.timing import best_time
-from pipeline.versions import package_versions
+from pipeline.versions import machine, package_versions
 
 
 def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeats: int = 3) -> list[dict]:
@@ -144,8 +143,7 @@ def omission_savings(cfg: Config, timing_spp: int = 128) -> dict:
 
 def run_bench(cfg: Config, out: str = "reports/bench", scenes: int = 4, resolution: int = 256, spp: int = 64,
               repeats: int = 3) -> dict:
-    result = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
-                          "cpus": __import__("os").cpu_count()},
+    result = {"machine": machine(),
               "packages": package_versions(),
               "integrator": integrator_vs_path(cfg, resolution, spp, repeats),
               "dataset": dataset_shares(cfg, scenes)}

@@ -13,19 +13,17 @@ included), so it includes the tiling overhead.
 from __future__ import annotations
 
 import dataclasses
-import os
-import platform
 import tempfile
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from pipeline import schema
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, atomic_write_json
 from pipeline.runs import pick_device
 from pipeline.timing import best_time
+from pipeline.versions import machine
 
 from . import base as base_lib
 from .formulation import Formulation
@@ -87,15 +85,14 @@ def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str =
                      "seconds_per_megapixel": round(tb / (px / 1e6), 3),
                      "tiled_frame": f"{big['color'].shape[1]}x{big['color'].shape[0]}"})
     ac = den.autocast
-    result = {"device": str(device), "cuda": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
-              "cpus": os.cpu_count(), "platform": platform.platform(), "threads": torch.get_num_threads(),
-              "model": name, "formulation": den.formulation.record(),
+    mach = machine()
+    result = {"device": str(device), "machine": mach, "model": name, "formulation": den.formulation.record(),
               "parameters_millions": round(sum(p.numel() for p in den.model.parameters()) / 1e6, 2),
               "precision": str(ac) if ac else "fp32", "rows": rows,
               "estimate_only": den.last_estimate_only}   # True would mean the network never ran
     lines = [f"Diffusion inference ({result['model']}, {result['parameters_millions']} M parameters, "
-             f"{result['device']}{' ' + result['cuda'] if result['cuda'] else ''}, {result['precision']}, "
-             f"{result['threads']} threads; first estimate {den.formulation.estimate})", "",
+             f"{result['device']}{' ' + mach['cuda'] if mach.get('cuda') else ''}, {result['precision']}, "
+             f"{mach.get('torch_threads')} threads; first estimate {den.formulation.estimate})", "",
              f"| steps | {side}² frame (s) | per megapixel (s) |", "| --- | --- | --- |"]
     lines += [f"| {r['steps']} | {r['seconds_frame']:.3f} | {r['seconds_per_megapixel']:.2f} |" for r in rows]
     md = "\n".join(lines) + "\n"

@@ -114,7 +114,8 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
            "The later epochs stay in the run folder; rerunning the training command with a larger "
            "`diffusion.time_budget_s` continues them, and the GPU recipe trains this model further.", ""]
           if best.get("epoch") == 0 else []),
-        f"Machine: {m.get('gpu') or m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, {m.get('threads', '?')} "
+        f"Machine: {m.get('cuda') or m.get('processor', '?')}, {m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, "
+        f"{m.get('torch_threads', '?')} "
         f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
         "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]
     for h in hist:

@@ -26,7 +26,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
 from pipeline.progress import progress
+from pipeline.versions import machine
 
 from . import diffusion
 
@@ -114,11 +114,9 @@ def checksum(module: torch.nn.Module) -> float:
     return float(sum(p.detach().double().sum() for p in module.parameters()))
 
 
-def machine(device: torch.device, world: int = 1) -> dict:
-    """What a run trained on, for its model card."""
-    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else None
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-            "device": str(device), "gpu": gpu, "ranks": world, "threads": torch.get_num_threads()}
+def run_machine(device: torch.device, world: int = 1) -> dict:
+    """What a run trained on, for its model card: the machine, torch, the device and the ranks."""
+    return {**machine(), "torch": torch.__version__, "device": str(device), "ranks": world}
 
 
 def fit(job: Job, quiet: bool = False) -> dict:
@@ -205,7 +203,7 @@ def fit(job: Job, quiet: bool = False) -> dict:
             # reruns the epoch (same result) and rewrites the files above.
             _plot(job, history)
             atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best,
-                                                      "machine": machine(device, world)})
+                                                      "machine": run_machine(device, world)})
             state = {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": job.fingerprint}
             extras = None
             if ema is not None:
