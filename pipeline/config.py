@@ -8,6 +8,7 @@ file and the dotted key.
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -335,6 +336,9 @@ class Config:
 # Loading
 
 
+_FLOAT_TEXT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
 def _check_type(value: Any, tp: Any, where: str) -> Any:
     """Validate (and gently coerce int → float) a YAML value against a field's annotation."""
     if dataclasses.is_dataclass(tp):
@@ -343,6 +347,8 @@ def _check_type(value: Any, tp: Any, where: str) -> Any:
         return _from_dict(tp, value, where)
     if tp is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if tp is float and isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()):
+        return float(value)   # YAML 1.1 reads "1e-4" (no dot) as a string; users mean the number
     if tp in (int, float) and isinstance(value, bool):
         raise ConfigError(f"{where}: expected {tp.__name__}, got a boolean")
     if tp in (int, float, str, bool, list, dict) and not isinstance(value, tp):

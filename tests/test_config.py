@@ -31,6 +31,14 @@ def test_int_is_accepted_for_float():
     assert load_config(None, ["scene.camera_move=1"]).scene.camera_move == 1.0
 
 
+def test_exponent_without_a_dot_is_a_float_not_a_string():
+    # YAML 1.1 reads "1e-4" as a string; the float fields take it as the number a user means.
+    cfg = load_config(None, ["diffusion.lr=1e-4", "clean.lr=2E-3"])
+    assert cfg.diffusion.lr == 1e-4 and cfg.clean.lr == 2e-3
+    with pytest.raises(ConfigError, match=r"diffusion\.lr"):
+        load_config(None, ["diffusion.lr=fast"])
+
+
 def test_unknown_key_names_file_and_key(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text("dataset:\n  scenez: 3\n")
