@@ -251,10 +251,6 @@ def integrator_class(mitsuba):
         @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
             ctx = mi.BSDFContext()
-            # Diffuse-only context for the NEE split at the first hit, and an empty one that
-            # only a mask-ignoring BSDF (principled) answers with a non-zero value.
-            ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.Diffuse)
-            ctx_none = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.Empty)
             active = mi.Bool(active)
             ray_d = ray
 
@@ -307,16 +303,7 @@ def integrator_class(mitsuba):
 
                 # Lobe split of the first-hit NEE term (see the docstring).
                 split = active_em & first
-                f_d = bsdf.eval(ctx_diffuse, si, wo, split)
-                ignores_mask = split & dr.any(bsdf.eval(ctx_none, si, wo, split) != 0)
-                if ignores_mask:
-                    base = bsdf.eval_attribute_3("base_color", si, ignores_mask)
-                    kd = ((1 - bsdf.eval_attribute_1("metallic", si, ignores_mask))
-                          * (1 - bsdf.eval_attribute_1("spec_trans", si, ignores_mask)))
-                    cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0)
-                    lambert = base * kd * cos_o * dr.inv_pi
-                    f_d = dr.select(mi.Frame3f.cos_theta(si.wi) > 0,
-                                    dr.clip(lambert, 0, bsdf_val), 0)
+                f_d = self.diffuse_bsdf(bsdf, si, wo, bsdf_val, split)
                 Lr_d = dr.select(split, beta * f_d * em_weight * w_nee, 0)
 
                 # Route this vertex's contributions.
@@ -359,14 +346,36 @@ def integrator_class(mitsuba):
             }
             color = (parts["emission"] + parts["diffuse_direct"] + parts["specular_direct"]
                      + parts["diffuse_indirect"] + parts["specular_indirect"])
-            values = dict(parts, color=color, **aux)
+            return color, valid, self.aov_values(dict(parts, color=color, **aux))
 
+        @dr.syntax   # the `if` on a mask becomes dr.if_stmt
+        def diffuse_bsdf(self, bsdf, si, wo, bsdf_val, active):
+            """The diffuse lobe of the BSDF value ``bsdf_val`` towards ``wo`` (the NEE split at the first hit).
+
+            A diffuse-only context answers it, except for BSDFs that ignore the context's lobe mask
+            (principled: an empty context still returns a value); for those the diffuse lobe is the
+            Lambertian base_color·(1 − metallic)·(1 − spec_trans)·cos/π, clipped to the full value."""
+            ctx_diffuse = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.Diffuse)
+            ctx_none = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.Empty)
+            f_d = bsdf.eval(ctx_diffuse, si, wo, active)
+            ignores_mask = active & dr.any(bsdf.eval(ctx_none, si, wo, active) != 0)
+            if ignores_mask:
+                base = bsdf.eval_attribute_3("base_color", si, ignores_mask)
+                kd = ((1 - bsdf.eval_attribute_1("metallic", si, ignores_mask))
+                      * (1 - bsdf.eval_attribute_1("spec_trans", si, ignores_mask)))
+                cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0)
+                lambert = base * kd * cos_o * dr.inv_pi
+                f_d = dr.select(mi.Frame3f.cos_theta(si.wi) > 0, dr.clip(lambert, 0, bsdf_val), 0)
+            return f_d
+
+        def aov_values(self, values: dict) -> list:
+            """The AOV channels in ``self.layout`` order: each buffer's channels, squared for a moment."""
             aovs = []
             for name, m2, size in self.layout:
                 v = values[name]
                 chans = [v] if size == 1 else [v[i] for i in range(size)]
                 aovs += [c * c for c in chans] if m2 else chans
-            return color, valid, aovs
+            return aovs
 
     _CLASS[variant] = SplitIntegrator
     return SplitIntegrator
