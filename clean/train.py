@@ -50,7 +50,7 @@ from pipeline.checkpoint import plot_curves, save_safetensors
 from pipeline.config import Config
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
-from pipeline.fit import Task, fit
+from pipeline.fit import Task, apply_update, fit
 from pipeline.metrics import PSNR_CEILING, all_metrics
 from pipeline.runs import pick_device
 from pipeline.store import Store
@@ -135,19 +135,6 @@ class Recipe:
     loss_label: str
     target: str = "gt_clean"
     meta: dict = field(default_factory=dict)
-
-
-def apply_update(loss: torch.Tensor, opt: torch.optim.Optimizer, params: list, grad_clip: float) -> bool:
-    """Backward, clip, step; a non-finite loss or gradient norm skips the step (returns False)."""
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    # max_norm inf measures without clipping (the gradients are multiplied by exactly 1).
-    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip > 0 else float("inf"))
-    if not (torch.isfinite(loss) and torch.isfinite(norm)):
-        opt.zero_grad(set_to_none=True)
-        return False
-    opt.step()
-    return True
 
 
 def affinity_recipe(cfg: Config, mode: str, spp: int | None, device) -> Recipe:

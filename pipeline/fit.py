@@ -14,6 +14,7 @@ models (its data, one optimisation step, validation, what is saved), the loop do
   the score improves), the history files (``task.write_history``) and ``last.safetensors``,
   written last: it is the commit point of an epoch, so a kill before it reruns the epoch
   (same result) and rewrites the files above;
+- ``apply_update``: the optimiser step the tasks share (backward, clipping, the finite check);
 - a time budget: the run stops after the epoch during which ``time_budget_s`` passed (a rerun
   resumes);
 - a summary dict and line.
@@ -126,6 +127,19 @@ class Task:
         return {}
 
     output: str = ""   # what the summary line points to (default: the folder)
+
+
+def apply_update(loss: torch.Tensor, opt: torch.optim.Optimizer, params: list, grad_clip: float) -> bool:
+    """Backward, clip, step; a non-finite loss or gradient norm skips the step (returns False)."""
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    # max_norm inf measures without clipping (the gradients are multiplied by exactly 1).
+    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip > 0 else float("inf"))
+    if not (torch.isfinite(loss) and torch.isfinite(norm)):
+        opt.zero_grad(set_to_none=True)
+        return False
+    opt.step()
+    return True
 
 
 def fit(task: Task, quiet: bool = False, started: float | None = None) -> dict:

@@ -17,8 +17,9 @@ step, so nothing to restore), gradient clipping, bf16 autocast on CUDA. A NaN gu
 whose loss or gradient norm is not finite is skipped and counted (over the whole run);
 ``nan_limit`` in a row stop the run with an error. Every random draw comes from generators
 seeded by (seed, epoch, step, rank) and the epoch's crops from ``default_rng([seed, epoch,
-item])``: a resumed run continues exactly as the uninterrupted one. Checkpoints (``last.safetensors``) hold the trainable weights, AdamW's
-moments and the torch RNG state, in safetensors.
+item])``: a resumed run continues exactly as the uninterrupted one. Checkpoints
+(``last.safetensors``) hold the trainable weights, AdamW's moments and the torch RNG state, in
+safetensors.
 
 Under ``torchrun`` (DDP; gloo on CPU, NCCL on GPU) each rank takes every world-th item of the
 epoch's permutation; rank 0 validates and writes; at the end the ranks compare a checksum of
@@ -40,7 +41,7 @@ from torch.utils.data import DataLoader
 from pipeline.checkpoint import NanGuard, plot_curves
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
-from pipeline.fit import Task, fit as run_fit
+from pipeline.fit import Task, apply_update, fit as run_fit
 from pipeline.versions import machine
 
 from . import diffusion
@@ -141,12 +142,8 @@ def optimisation_step(job: Job, net, objective: Callable, opt: torch.optim.Optim
     for g in opt.param_groups:
         g["lr"] = job.lr * lr_factor(step, total_steps, job.warmup_steps)
     loss, terms = objective(net, batch, gen, job.device, job.autocast)
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    norm = torch.nn.utils.clip_grad_norm_(job.params, job.grad_clip if job.grad_clip > 0 else float("inf"))
-    if not bool(torch.isfinite(loss) and torch.isfinite(norm)):
+    if not apply_update(loss, opt, job.params, job.grad_clip):
         return {}, False
-    opt.step()
     if ema is not None:
         ema.step(job.trainable.parameters())
     return {"loss": float(loss.detach()), "mse": float(terms["mse"]), "vb": float(terms["vb"])}, True
