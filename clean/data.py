@@ -1,23 +1,10 @@
 """Network inputs from store buffers, and the training pairs of the cleaner and the Isik baseline.
 
-Input channels (``CHANNELS``, derived from ``pipeline.schema.BUFFERS``, in schema order):
-
-- every radiance buffer (``color`` and the five components of the exact decomposition
-  ``emission``, ``diffuse_direct``, ``specular_direct``, ``diffuse_indirect``,
-  ``specular_indirect``): ``log1p(max(x, 0))``. HDR radiance spans 0 … 1e5; the log keeps the
-  inputs of a conv net in a few units (1e5 → 11.5) while staying linear near 0.
-- ``albedo``, ``roughness``, ``metallic``, ``transmission``: as stored (already in [0, 1]).
-- ``normal``: as stored, **world space** in [−1, 1]. Image flips permute pixels but do not change
-  world-space directions, so augmentation never touches the normal values.
-- ``depth``: divided by the frame's largest depth (background 0 stays 0): scenes differ in scale,
-  and the network needs relative depth edges, not metres. Crops use the whole frame's maximum.
-- one channel per buffer for its variance: ``1 + log10(rel + 1e-6) / 6`` of the *relative*
-  variance ``rel = v̄ / (m̄² + 1e-2)`` (v̄, m̄: means over the buffer's channels of variance and
-  value). Relative variance (squared coefficient of variation) says how noisy a pixel is
-  independently of its brightness; the 1e-2 makes dark pixels count absolutely, like the SMAPE ε.
-  The log scale matters: a 1024-spp ground truth has rel ~ 1e-5 … 1e-2 and a 4-spp stack
-  ~ 0.1 … 10, so ``log1p(rel)`` (tried first) was ~0 for every ground-truth pixel and left the
-  cleaner blind to the noise it must remove; the log maps 1e-6 → 0, 1e-3 → 0.5, 1 → 1.
+Input channels: ``pipeline.features``' table with its default encoding (``ENCODING``): the
+radiance buffers as ``log1p(max(x, 0))``, normals as stored (world space: image flips permute
+pixels but do not change world-space directions, so augmentation never touches the normal
+values), depth relative to the frame's largest, the other features as stored, one
+relative-variance channel per buffer; no spp channel. Crops use the whole frame's depth maximum.
 
 The radiance the kernels filter is the HDR ``color`` itself (``radiance``), not an input channel.
 
@@ -39,30 +26,21 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pipeline import schema
+from pipeline import features, schema
+from pipeline.features import (
+    RELATIVE_VARIANCE_MIN,
+    VARIANCE_FLOOR,
+    relative_variance_feature as relative_variance_feature,  # re-exported
+)
 from pipeline.store import FrameKey, Store, stack_name
 
 RADIANCE = "color"
-# Relative-variance floor (radiance² units) and the log scale's zero, see the module docstring.
-VARIANCE_FLOOR = 1e-2
-RELATIVE_VARIANCE_MIN = 1e-6
 # Preprocessed frames are kept in memory up to this many bytes (the EXR reads dominate otherwise).
 CACHE_BYTES = 1 << 30
 
-
-def _transform(buf: schema.Buffer) -> str:
-    if buf.radiance:
-        return "log1p"
-    if buf.name == "depth":
-        return "depth"
-    return "identity"
-
-
-# (key, channels, transform) of every input channel group, in order.
-CHANNELS: tuple[tuple[str, int, str], ...] = (
-    tuple((b.name, b.size, _transform(b)) for b in schema.BUFFERS)
-    + tuple((schema.variance_name(b.name), 1, "relative_variance") for b in schema.BUFFERS)
-)
+ENCODING = features.Encoding()   # log1p radiance, normals as stored, no spp channel
+# (key, channels, kind) of every input channel group, in order.
+CHANNELS: tuple[tuple[str, int, str], ...] = features.TABLE
 IN_CHANNELS: int = sum(n for _, n, _ in CHANNELS)
 # Index of the filtered radiance's relative-variance feature among the input channels: the
 # affinity network's range term decodes the pixel variance from it (``decode_variance``).
@@ -71,34 +49,7 @@ COLOR_VARIANCE_CHANNEL: int = IN_CHANNELS - len(schema.BUFFERS) + [b.name for b 
 
 def channel_names() -> list[str]:
     """One name per input channel, e.g. ``color.R``, ``normal.X``, ``depth.variance`` (for JSON sidecars)."""
-    names = []
-    for key, n, transform in CHANNELS:
-        if transform == "relative_variance":
-            names.append(key)
-        else:
-            names += [f"{key}.{c}" for c in schema.BY_NAME[key].channels]
-    return names
-
-
-def relative_variance_feature(variance: np.ndarray, mean_square: np.ndarray) -> np.ndarray:
-    """``1 + log10(v / (m² + 1e-2) + 1e-6) / 6``: 0 for a noise-free pixel, ~1 for relative variance 1."""
-    rel = np.maximum(variance, 0.0) / (mean_square + VARIANCE_FLOOR)
-    return (1.0 + np.log10(rel + RELATIVE_VARIANCE_MIN) / 6.0).astype(np.float32)
-
-
-def variance_feature(buffers: dict[str, np.ndarray], name: str, shape: tuple[int, int]) -> np.ndarray:
-    """(1, H, W) ``relative_variance_feature`` of buffer ``name`` from its channel means; zeros where
-    the buffer or its variance is missing. The cleaner's and the diffusion model's inputs share it."""
-    v, m = buffers.get(schema.variance_name(name)), buffers.get(name)
-    if v is None or m is None:
-        return np.zeros((1, *shape), np.float32)
-    return relative_variance_feature(v.astype(np.float32).mean(axis=2), (m.astype(np.float32) ** 2).mean(axis=2))[None]
-
-
-def depth_feature(depth: np.ndarray) -> np.ndarray:
-    """Depth divided by the frame's largest depth (background 0 stays 0; all zeros if nothing is in front)."""
-    top = float(depth.max()) if depth.size else 0.0
-    return depth / top if top > 0 else np.zeros_like(depth)
+    return features.names(ENCODING)
 
 
 def decode_variance(feature: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
@@ -120,23 +71,8 @@ def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
 
     A buffer missing from ``buffers`` (e.g. a feature a reader did not ask for) counts as 0.
     """
-    ref = buffers[RADIANCE]
-    H, W = ref.shape[:2]
-    parts = []
-    for key, n, transform in CHANNELS:
-        if transform == "relative_variance":
-            parts.append(variance_feature(buffers, key.removesuffix(".variance"), (H, W)))
-            continue
-        x = buffers.get(key)
-        x = np.zeros((H, W, n), np.float32) if x is None else x.astype(np.float32)
-        if transform == "log1p":
-            x = np.log1p(np.maximum(x, 0.0))
-        elif transform == "depth":
-            x = depth_feature(x)
-        parts.append(np.moveaxis(x, 2, 0))
-    inputs = np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
-    radiance = np.ascontiguousarray(np.moveaxis(ref.astype(np.float32), 2, 0))
-    return inputs, radiance
+    radiance = np.ascontiguousarray(np.moveaxis(buffers[RADIANCE].astype(np.float32), 2, 0))
+    return features.encode(buffers, ENCODING), radiance
 
 
 def crop_and_flip(arrays: list[np.ndarray], crop: int, rng: np.random.Generator) -> list[np.ndarray]:

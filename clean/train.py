@@ -13,10 +13,11 @@ step, and the config section with the loop's settings (``clean`` or ``afgsa``). 
 the Isik baseline: SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW. AFGSA: one
 critic step, then one generator step per batch (``clean.losses``; Adam, as the paper).
 
-The loop (``train``): random crops and flips from the train split; a NaN guard (a step whose loss
-or gradient norm is not finite is skipped and counted, ``nan_limit`` in a row stop the run with an
-error); after every epoch a validation pass over the whole frames of the val split (SMAPE, L1 and
-PSNR). Files of a run folder:
+``train`` runs a recipe through the loop every trainer shares (``pipeline.fit``; ``RecipeTask``
+says what is particular here): random crops and flips from the train split; a NaN guard (a step
+whose loss or gradient norm is not finite is skipped and counted, ``nan_limit`` in a row within
+an epoch stop the run with an error); after every epoch a validation pass over the whole frames
+of the val split (SMAPE, L1 and PSNR). Files of a run folder:
 
 - ``model.safetensors`` + ``model.json``: the best epoch so far (lowest validation SMAPE; the
   training loss where the val split is empty). What ``clean.apply`` and the evaluator load
@@ -45,12 +46,12 @@ import torch
 from torch.utils.data import DataLoader
 
 from pipeline import runs
-from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last, save_safetensors
+from pipeline.checkpoint import plot_curves, save_safetensors
 from pipeline.config import Config
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
+from pipeline.fit import Task, apply_update, fit
 from pipeline.metrics import PSNR_CEILING, all_metrics
-from pipeline.progress import progress
 from pipeline.runs import pick_device
 from pipeline.store import Store
 
@@ -134,19 +135,6 @@ class Recipe:
     loss_label: str
     target: str = "gt_clean"
     meta: dict = field(default_factory=dict)
-
-
-def apply_update(loss: torch.Tensor, opt: torch.optim.Optimizer, params: list, grad_clip: float) -> bool:
-    """Backward, clip, step; a non-finite loss or gradient norm skips the step (returns False)."""
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    # max_norm inf measures without clipping (the gradients are multiplied by exactly 1).
-    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip > 0 else float("inf"))
-    if not (torch.isfinite(loss) and torch.isfinite(norm)):
-        opt.zero_grad(set_to_none=True)
-        return False
-    opt.step()
-    return True
 
 
 def affinity_recipe(cfg: Config, mode: str, spp: int | None, device) -> Recipe:
@@ -293,102 +281,90 @@ def _step_generator(seed: int, epoch: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(np.random.default_rng([seed, epoch, step]).integers(2 ** 62)))
 
 
-def _run_epoch(recipe: Recipe, ds, epoch: int, seed: int, device, quiet: bool, name: str) -> tuple[list, int]:
-    """One pass over the epoch's crops; returns (terms of the finite steps, skipped steps)."""
-    s = recipe.settings
-    ds.set_epoch(epoch)
-    order = np.random.default_rng([seed, epoch]).permutation(len(ds)).tolist()
-    loader = DataLoader(ds, batch_size=s.batch_size, sampler=order, num_workers=0)
-    recipe.state.train()
-    kept, guard = [], NanGuard(name, s.nan_limit, TrainError)
-    bar = progress(loader, desc=f"{name} epoch {epoch + 1}/{s.epochs}", unit="step", disable=quiet, leave=False)
-    for i, batch in enumerate(bar):
-        terms, finite = recipe.step({k: v.to(device) for k, v in batch.items()}, _step_generator(seed, epoch, i))
-        if guard.ok(finite, epoch, i):
-            kept.append(terms)
-            bar.set_postfix(loss=f"{np.mean([t['loss'] for t in kept]):.4f}")
-    return kept, guard.skipped
+class RecipeTask(Task):
+    """A ``Recipe`` as ``pipeline.fit`` trains it: crops of the train split, whole val frames, the best
+    by validation SMAPE (the training loss where the val split is empty)."""
 
+    minimize = True
 
-def _epoch_entry(epoch: int, kept: list[dict], skipped: int, val, seconds: float) -> dict:
-    entry = {"epoch": epoch + 1, "train_loss": float(np.mean([t["loss"] for t in kept])) if kept else None}
-    extra = sorted({k for t in kept for k in t} - {"loss"})
-    if extra:
-        entry["terms"] = {k: float(np.mean([t[k] for t in kept])) for k in extra}
-    entry.update(skipped_steps=skipped, val=val, seconds=seconds)
-    return entry
+    def __init__(self, cfg: Config, recipe: Recipe):
+        s = recipe.settings
+        self.cfg, self.recipe, self.folder = cfg, recipe, run_dir(cfg, recipe.mode, recipe.spp)
+        self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, s.epochs, s.time_budget_s, s.nan_limit
+        self.fingerprint, self.fmt, self.state, self.optimizers = recipe.fingerprint, recipe.fmt, recipe.state, recipe.optimizers
+        self.device = pick_device(s.device)
+        self.output = str(self.folder / "model.safetensors")
+        self.train_ds = self.val_ds = None
+
+    def when_done(self, history: list, best: dict | None) -> None:
+        if history:
+            _write_history(self.folder, self.recipe, history, best, only_if_changed=True)
+
+    def prepare(self) -> None:
+        self.train_ds, self.val_ds = datasets(self.cfg, self.recipe)
+
+    def batches(self, epoch: int):
+        self.train_ds.set_epoch(epoch)
+        order = np.random.default_rng([self.cfg.seed, epoch]).permutation(len(self.train_ds)).tolist()
+        self.recipe.state.train()
+        return DataLoader(self.train_ds, batch_size=self.recipe.settings.batch_size, sampler=order, num_workers=0)
+
+    def step(self, batch: dict, epoch: int, index: int) -> tuple[dict, bool]:
+        return self.recipe.step(batch, _step_generator(self.cfg.seed, epoch, index))
+
+    def entry(self, epoch: int, kept: list[dict], skipped: int) -> dict:
+        entry = {"epoch": epoch + 1, "train_loss": float(np.mean([t["loss"] for t in kept])) if kept else None}
+        extra = sorted({k for t in kept for k in t} - {"loss"})
+        if extra:
+            entry["terms"] = {k: float(np.mean([t[k] for t in kept])) for k in extra}
+        entry["skipped_steps"] = skipped
+        return entry
+
+    def validate(self) -> dict | None:
+        if self.val_ds is None:
+            return None
+        return validate(self.recipe.model, self.val_ds, self.recipe.settings.tile, self.cfg.clean.smape_eps,
+                        self.device)
+
+    def score(self, entry: dict) -> float | None:
+        return entry["val"]["smape"] if entry["val"] else entry["train_loss"]
+
+    def save_best(self, entry: dict) -> None:
+        r, cfg = self.recipe, self.cfg
+        save_best(self.folder, r.model, {"format": r.fmt, "mode": r.mode, "spp": r.spp,
+                                         "spp_choices": getattr(self.train_ds, "spps", None),
+                                         "hparams": r.model.hparams, "input_channels": channel_names(),
+                                         "epoch": entry["epoch"], "metrics": entry["val"],
+                                         "train_loss": entry["train_loss"], "store": str(cfg.store), **r.meta}, r.fmt)
+
+    def write_history(self, history: list, best: dict | None) -> None:
+        _write_history(self.folder, self.recipe, history, best)
+
+    def epoch_line(self, entry: dict) -> str:
+        val, loss = entry["val"], entry["train_loss"]
+        line = f"{self.name} epoch {entry['epoch']}: train {self.recipe.loss_label} " + (
+            "n/a" if loss is None else f"{loss:.4f}")
+        line += "".join(f", {k} {v:.4g}" for k, v in entry.get("terms", {}).items())
+        if entry["skipped_steps"]:
+            line += f", {entry['skipped_steps']} non-finite steps skipped"
+        if val:
+            line += f", val SMAPE {val['smape']:.4f} L1 {val['l1']:.4f} PSNR {val['psnr']:.2f} dB"
+        return line
+
+    def best_text(self, best: dict) -> str:
+        v = best["val"]
+        return f"best epoch {best['epoch']}: " + (f"val SMAPE {v['smape']:.4f}, L1 {v['l1']:.4f}, "
+                                                  f"PSNR {v['psnr']:.2f} dB" if v else
+                                                  f"train loss {best['train_loss']:.4f}")
+
+    def summary_fields(self) -> dict:
+        return {"mode": self.recipe.mode, "spp": self.recipe.spp}
 
 
 def train(cfg: Config, mode: str = "cleaner", spp: int | str | None = None, quiet: bool = False) -> dict:
     """Train (or resume) and return a summary dict; the best weights end up in ``run_dir``."""
-    t_start = time.perf_counter()
-    recipe = make_recipe(cfg, mode, spp)
-    s = recipe.settings
-    folder = run_dir(cfg, mode, spp)
-    device = pick_device(s.device)
-    history: list[dict] = []
-    best: dict | None = None
-    start = 0
-    last = folder / "last.safetensors"
-    # Temporary files of a write a kill interrupted (one trainer per run folder: all stale).
-    for tmp in folder.glob(".*.tmp") if folder.is_dir() else ():
-        tmp.unlink(missing_ok=True)
-    if last.exists():
-        record = load_last(last, recipe.state, recipe.optimizers, device, fingerprint=recipe.fingerprint)
-        start, history, best = int(record["epoch"]), record["history"], record["best"]
-    if start >= s.epochs:
-        if history:
-            _write_history(folder, recipe, history, best, only_if_changed=True)
-        summary = _summary(folder, mode, spp, history, best, 0, time.perf_counter() - t_start)
-        if not quiet:
-            print(f"{folder.name}: already trained ({start} epochs); {summary['line']}")
-        return summary
-
-    train_ds, val_ds = datasets(cfg, recipe)
-    spps = getattr(train_ds, "spps", None)
-    trained = 0
-    for epoch in range(start, s.epochs):
-        kept, skipped = _run_epoch(recipe, train_ds, epoch, cfg.seed, device, quiet, folder.name)
-        val = validate(recipe.model, val_ds, s.tile, cfg.clean.smape_eps, device) if val_ds is not None else None
-        entry = _epoch_entry(epoch, kept, skipped, val, time.perf_counter() - t_start)
-        history.append(entry)
-        trained += 1
-        score = entry["val"]["smape"] if entry["val"] else entry["train_loss"]
-        if score is not None and (best is None or score < best["score"]):
-            best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
-            save_best(folder, recipe.model, {"format": recipe.fmt, "mode": mode, "spp": spp, "spp_choices": spps,
-                                             "hparams": recipe.model.hparams, "input_channels": channel_names(),
-                                             "epoch": epoch + 1, "metrics": entry["val"],
-                                             "train_loss": entry["train_loss"], "store": str(cfg.store),
-                                             **recipe.meta}, recipe.fmt)
-        # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
-        # reruns the epoch (same result) and rewrites the files above.
-        _write_history(folder, recipe, history, best)
-        save_last(last, recipe.state, recipe.optimizers,
-                  {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": recipe.fingerprint},
-                  recipe.fmt)
-        if not quiet:
-            print(_epoch_line(folder.name, recipe.loss_label, entry), flush=True)
-        if s.time_budget_s > 0 and time.perf_counter() - t_start >= s.time_budget_s and epoch + 1 < s.epochs:
-            if not quiet:
-                print(f"{folder.name}: time budget of {s.time_budget_s:g} s reached after epoch {epoch + 1}; "
-                      f"rerun to resume")
-            break
-    summary = _summary(folder, mode, spp, history, best, trained, time.perf_counter() - t_start)
-    if not quiet:
-        print(summary["line"], flush=True)
-    return summary
-
-
-def _epoch_line(name: str, loss_label: str, entry: dict) -> str:
-    val, loss = entry["val"], entry["train_loss"]
-    line = f"{name} epoch {entry['epoch']}: train {loss_label} " + ("n/a" if loss is None else f"{loss:.4f}")
-    line += "".join(f", {k} {v:.4g}" for k, v in entry.get("terms", {}).items())
-    if entry["skipped_steps"]:
-        line += f", {entry['skipped_steps']} non-finite steps skipped"
-    if val:
-        line += f", val SMAPE {val['smape']:.4f} L1 {val['l1']:.4f} PSNR {val['psnr']:.2f} dB"
-    return line
+    started = time.perf_counter()
+    return fit(RecipeTask(cfg, make_recipe(cfg, mode, spp)), quiet=quiet, started=started)
 
 
 def _write_history(folder: Path, recipe: Recipe, history: list, best, only_if_changed: bool = False) -> None:
@@ -411,16 +387,3 @@ def wall_seconds(history: list[dict]) -> float:
     invocation contributes its last value."""
     secs = [float(h["seconds"]) for h in history]
     return sum(t for t, nxt in zip(secs, secs[1:] + [0.0]) if nxt < t)
-
-
-def _summary(folder: Path, mode: str, spp, history: list, best: dict | None, trained: int, seconds: float) -> dict:
-    epochs = history[-1]["epoch"] if history else 0
-    line = f"{folder.name}: {epochs} epochs ({trained} this run, {seconds:.1f} s)"
-    if best:
-        v = best["val"]
-        line += (f"; best epoch {best['epoch']}: " + (f"val SMAPE {v['smape']:.4f}, L1 {v['l1']:.4f}, "
-                                                      f"PSNR {v['psnr']:.2f} dB" if v else
-                                                      f"train loss {best['train_loss']:.4f}"))
-    line += f" -> {folder / 'model.safetensors'}"
-    return {"mode": mode, "spp": spp, "folder": str(folder), "epochs": epochs, "trained_epochs": trained,
-            "best": best, "seconds": seconds, "line": line}

@@ -5,18 +5,17 @@ inverses on [0, 6]): clamp to [0, 6], range-compress with ``pipeline.color.log_c
 (A·log(1 + x), A = 0.51; paper eq. 5) or, with ``tonemap: gamma``, ``gamma_compress``
 (A·x^γ, A = 0.47, γ = 1/2.4; eq. 4), then ``2y − 1``. Both compressions map 6 to ~0.99.
 
-**Condition** F (``condition``, channels listed by ``aux_names``), every buffer of the schema:
+**Condition** F (``condition``, channels listed by ``aux_names``): ``pipeline.features``' table,
+every buffer of the schema, with this model's choices (``encoding``):
 
 - the noisy radiance buffers (``color`` and its five components): as the radiance above;
-- ``albedo``, ``roughness``, ``metallic``, ``transmission``: as stored, in [0, 1];
 - ``normal``: in **camera space** (x right, y up, z towards the camera), mapped to [0, 1] by
   (n + 1)/2. Camera space makes flips and rotations of the image act on normals consistently
   (``augment``) and makes the condition independent of where the scene sits in the world. The
   camera comes from ``frame.json``'s ``camera_to_world`` (or the scene's camera description);
   without either, world-space normals are used as they are;
-- ``depth``: divided by the frame's largest depth (background 0; ``clean.data.depth_feature``);
-- one channel per buffer for its variance, log-compressed (``clean.data.variance_feature``: the
-  same noise-level feature the cleaner uses);
+- ``depth``, the other features and the per-buffer relative variances: as the table says (the
+  same encoding the cleaner uses);
 - the sample count: a constant map log2(spp)/6 (1 at 64 spp), so one model can serve any spp.
 
 A buffer the store left out (a feature a scene does not need) is its documented background
@@ -24,14 +23,13 @@ value, 0, so the channel count never depends on the scene.
 """
 from __future__ import annotations
 
-import math
+import functools
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from clean.data import depth_feature, variance_feature
-from pipeline import color, schema
+from pipeline import color, features, schema
 from pipeline.store import FrameKey, Store
 
 from .estimate import Estimator, extra_names
@@ -61,14 +59,15 @@ def from_model(y, tonemap: str = "log"):
 # ---- the condition ---------------------------------------------------------------------------
 
 
+def encoding(tonemap: str = "log") -> features.Encoding:
+    """This model's choices of the feature table: radiance in model space, normals in [0, 1], the spp channel."""
+    return features.Encoding(radiance=functools.partial(to_model, tonemap=tonemap), normals01=True, spp=True)
+
+
 def aux_names(estimate: str = "none") -> list[str]:
     """One name per condition channel, in order; a first estimate of several components adds them
     (``train.estimate.extra_names``)."""
-    names = []
-    for b in schema.BUFFERS:
-        names += [f"{b.name}.{c}" for c in b.channels]
-    names += [f"{b.name}.variance" for b in schema.BUFFERS]
-    return names + ["spp"] + extra_names(estimate)
+    return features.names(encoding()) + extra_names(estimate)
 
 
 AUX_CHANNELS = len(aux_names())
@@ -97,24 +96,7 @@ def camera_rotation(record: dict | None, scene_manifest: dict | None, frame: int
 def condition(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,
               tonemap: str = "log") -> np.ndarray:
     """The condition F (AUX_CHANNELS, H, W) float32 from one image's buffers (H, W, C arrays)."""
-    ref = buffers["color"]
-    H, W = ref.shape[:2]
-    parts = []
-    for b in schema.BUFFERS:
-        x = buffers.get(b.name)
-        x = np.full((H, W, b.size), b.background, np.float32) if x is None else x.astype(np.float32)
-        if b.radiance:
-            x = to_model(x, tonemap)
-        elif b.name == "normal":
-            if rotation is not None:
-                x = x @ rotation.T
-            x = (np.clip(x, -1.0, 1.0) + 1.0) / 2.0
-        elif b.name == "depth":
-            x = depth_feature(x)
-        parts.append(np.moveaxis(x, 2, 0))
-    parts += [variance_feature(buffers, b.name, (H, W)) for b in schema.BUFFERS]
-    parts.append(np.full((1, H, W), math.log2(max(int(spp), 1)) / 6.0, np.float32))
-    return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
+    return features.encode(buffers, encoding(tonemap), spp, rotation)
 
 
 def model_inputs(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,

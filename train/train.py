@@ -4,18 +4,22 @@
     torchrun --nproc_per_node 2 -m pipeline train --model diffusion --spp 4
     python -m pipeline pretrain                                (make pretrain)
 
-One loop (``fit``) for both; per step:
+Both run the loop every trainer shares (``pipeline.fit``: resume, best/last checkpoint, time
+budget, summary); ``fit`` wraps a ``Job`` for it. What is diffusion-specific stands in separate
+functions: ``make_optimizer``, ``optimisation_step`` (learning rate, loss, clipping, EMA),
+``epoch_entry``, ``validation_score`` and the EMA helpers. Per step:
 
     x = GT_clean crop, x̃ = noisy crop (model space), F = condition, t ~ U{0..999}, ε ~ N(0, I)
     z_t = q_sample(x, t, ε);   loss = ‖ε − ε̂‖² + L_t(Σ_θ)      (train.diffusion.loss)
 
 AdamW on the trainable parameters only, linear warm-up then cosine decay (a pure function of the
 step, so nothing to restore), gradient clipping, bf16 autocast on CUDA. A NaN guard: a step
-whose loss or gradient norm is not finite is skipped and counted; ``nan_limit`` in a row stop the
-run with an error. Every random draw comes from generators seeded by (seed, epoch, step, rank)
-and the epoch's crops from ``default_rng([seed, epoch, item])``: a resumed run continues exactly
-as the uninterrupted one. Checkpoints (``last.safetensors``) hold the trainable weights, AdamW's
-moments and the torch RNG state, in safetensors.
+whose loss or gradient norm is not finite is skipped and counted (over the whole run);
+``nan_limit`` in a row stop the run with an error. Every random draw comes from generators
+seeded by (seed, epoch, step, rank) and the epoch's crops from ``default_rng([seed, epoch,
+item])``: a resumed run continues exactly as the uninterrupted one. Checkpoints
+(``last.safetensors``) hold the trainable weights, AdamW's moments and the torch RNG state, in
+safetensors.
 
 Under ``torchrun`` (DDP; gloo on CPU, NCCL on GPU) each rank takes every world-th item of the
 epoch's permutation; rank 0 validates and writes; at the end the ranks compare a checksum of
@@ -26,7 +30,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -35,10 +38,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.checkpoint import NanGuard, load_last, plot_curves, save_last
+from pipeline.checkpoint import NanGuard, plot_curves
 from pipeline.errors import TrainError
 from pipeline.exr import atomic_write_json
-from pipeline.progress import progress
+from pipeline.fit import Task, apply_update, fit as run_fit
 from pipeline.versions import machine
 
 from . import diffusion
@@ -120,116 +123,145 @@ def run_machine(device: torch.device, world: int = 1) -> dict:
 
 
 def fit(job: Job, quiet: bool = False) -> dict:
-    """Train ``job`` to ``job.epochs`` (resuming from ``last.safetensors``); return a summary."""
-    t_start = time.perf_counter()
-    rank, world = dist_info()
-    quiet = quiet or rank != 0
-    model, folder, device = job.model, job.folder, job.device
-    opt = torch.optim.AdamW(job.params, lr=job.lr, weight_decay=job.weight_decay)
-    last = folder / "last.safetensors"
-    history: list[dict] = []
-    best: dict | None = None
-    start = 0
-    ema = _make_ema(job)
-    if last.exists():
-        extra: dict = {}
-        record = load_last(last, job.trainable, opt, device, extra=extra, fingerprint=job.fingerprint)
-        start, history, best = int(record["epoch"]), record["history"], record["best"]
-        if ema is not None:
-            ema.shadow_params = [extra[f"ema.{i}"].to(device) for i in range(len(ema.shadow_params))]
-            ema.optimization_step = int(record["ema_step"])
-    if start >= job.epochs:
-        summary = _summary(job, history, best, 0, time.perf_counter() - t_start)
-        if not quiet:
-            print(f"{job.name}: already trained ({start} epochs); {summary['line']}")
-        return summary
+    """Train ``job`` to ``job.epochs`` (resuming from ``last.safetensors``; ``pipeline.fit``); return a summary."""
+    return run_fit(_DiffusionTask(job), quiet=quiet)
 
-    net = model
-    if world > 1:
-        from torch.nn.parallel import DistributedDataParallel as DDP
-        net = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
-    objective = job.objective or diffusion.objective(device)
-    if start == 0 and job.validate_initial and job.validate is not None and rank == 0:
-        best = _initial(job, history)   # the EMA equals the weights here
-    per_rank = len(job.train_ds) // world
-    steps_per_epoch = max(1, per_rank // job.batch_size)
-    if job.epoch_steps > 0:   # a subset per epoch: validation, checkpoint and budget come more often
-        steps_per_epoch = min(steps_per_epoch, job.epoch_steps)
-        per_rank = min(per_rank, steps_per_epoch * job.batch_size)
-    total_steps = job.epochs * steps_per_epoch
-    guard, trained = NanGuard(job.name, job.nan_limit, TrainError), 0
-    for epoch in range(start, job.epochs):
+
+# ---- what is diffusion-specific: optimizer, loss step, EMA, validation ----------------------------
+
+
+def make_optimizer(job: Job) -> torch.optim.Optimizer:
+    """AdamW on the trainable parameters (the learning rate is set per step: ``lr_factor``)."""
+    return torch.optim.AdamW(job.params, lr=job.lr, weight_decay=job.weight_decay)
+
+
+def optimisation_step(job: Job, net, objective: Callable, opt: torch.optim.Optimizer, ema, batch: dict,
+                      gen: torch.Generator, step: int, total_steps: int) -> tuple[dict, bool]:
+    """One step: the learning rate of ``step``, the objective's loss, clipped gradients, AdamW and
+    the EMA; a non-finite loss or gradient norm changes nothing. ({"loss", "mse", "vb"}, finite)."""
+    for g in opt.param_groups:
+        g["lr"] = job.lr * lr_factor(step, total_steps, job.warmup_steps)
+    loss, terms = objective(net, batch, gen, job.device, job.autocast)
+    if not apply_update(loss, opt, job.params, job.grad_clip):
+        return {}, False
+    if ema is not None:
+        ema.step(job.trainable.parameters())
+    return {"loss": float(loss.detach()), "mse": float(terms["mse"]), "vb": float(terms["vb"])}, True
+
+
+def epoch_entry(epoch: int, kept: list[dict], skipped: int, lr: float) -> dict:
+    """Mean loss and its terms over the epoch's finite steps (nan / None without any)."""
+    mean = {k: float(np.mean([t[k] for t in kept])) if kept else None for k in ("loss", "mse", "vb")}
+    return {"epoch": epoch + 1, "train_loss": float("nan") if mean["loss"] is None else mean["loss"],
+            "mse": mean["mse"], "vb": mean["vb"], "skipped_steps": skipped, "lr": lr}
+
+
+def validation_score(entry: dict) -> float:
+    """Higher is better: validation PSNR, else minus the training loss."""
+    return entry["val"]["psnr"] if entry["val"] else -entry["train_loss"]
+
+
+class _DiffusionTask(Task):
+    """A ``Job`` as ``pipeline.fit`` trains it: rank ``r`` of ``world`` takes every world-th item of the
+    epoch's permutation, at most ``epoch_steps`` batches of it; one NaN guard for the whole run."""
+
+    minimize = False
+
+    def __init__(self, job: Job):
+        self.job = job
+        self.rank, self.world = dist_info()
+        self.name, self.folder, self.epochs, self.time_budget_s = job.name, job.folder, job.epochs, job.time_budget_s
+        self.nan_limit, self.fingerprint, self.fmt, self.device = job.nan_limit, job.fingerprint, job.fmt, job.device
+        self.state, self.validate_initial = job.trainable, job.validate_initial
+        self.optimizers = self.opt = make_optimizer(job)
+        self.ema = _make_ema(job)
+        self._guard = None
+
+    def resume(self, record: dict, extra: dict) -> None:
+        if self.ema is not None:
+            self.ema.shadow_params = [extra[f"ema.{i}"].to(self.device) for i in range(len(self.ema.shadow_params))]
+            self.ema.optimization_step = int(record["ema_step"])
+
+    def prepare(self) -> None:
+        job = self.job
+        self.net = job.model
+        if self.world > 1:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+            self.net = DDP(job.model, device_ids=[job.device.index] if job.device.type == "cuda" else None)
+        self.objective = job.objective or diffusion.objective(job.device)
+        self.per_rank = len(job.train_ds) // self.world
+        self.steps_per_epoch = max(1, self.per_rank // job.batch_size)
+        if job.epoch_steps > 0:   # a subset per epoch: validation, checkpoint and budget come more often
+            self.steps_per_epoch = min(self.steps_per_epoch, job.epoch_steps)
+            self.per_rank = min(self.per_rank, self.steps_per_epoch * job.batch_size)
+        self.total_steps = job.epochs * self.steps_per_epoch
+        self._guard = NanGuard(job.name, job.nan_limit, TrainError)
+
+    def guard(self) -> NanGuard:
+        return self._guard
+
+    def batches(self, epoch: int):
+        job = self.job
         job.train_ds.set_epoch(epoch)
         order = np.random.default_rng([job.seed, epoch]).permutation(len(job.train_ds))
-        mine = order[rank::world][:per_rank].tolist()
-        loader = DataLoader(job.train_ds, batch_size=job.batch_size, sampler=mine, drop_last=True, num_workers=0)
-        model.train()
-        losses, parts = [], {"mse": [], "vb": []}
-        bar = progress(loader, desc=f"{job.name} epoch {epoch + 1}/{job.epochs}", unit="step", disable=quiet,
-                       leave=False)
-        for i, batch in enumerate(bar):
-            step = epoch * steps_per_epoch + i
-            for g in opt.param_groups:
-                g["lr"] = job.lr * lr_factor(step, total_steps, job.warmup_steps)
-            gen = torch.Generator().manual_seed(int(np.random.default_rng([job.seed, epoch, i, rank]).integers(2**62)))
-            batch = {k: v.to(device) for k, v in batch.items()}
-            loss, terms = objective(net, batch, gen, device, job.autocast)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            norm = torch.nn.utils.clip_grad_norm_(job.params, job.grad_clip if job.grad_clip > 0 else float("inf"))
-            if not guard.ok(bool(torch.isfinite(loss) and torch.isfinite(norm)), epoch, i):
-                continue
-            opt.step()
-            if ema is not None:
-                ema.step(job.trainable.parameters())
-            losses.append(float(loss.detach()))
-            for k in parts:
-                parts[k].append(float(terms[k]))
-            bar.set_postfix(loss=f"{np.mean(losses):.4f}")
-        entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan"),
-                 "mse": float(np.mean(parts["mse"])) if losses else None,
-                 "vb": float(np.mean(parts["vb"])) if losses else None,
-                 "skipped_steps": guard.skipped, "lr": opt.param_groups[0]["lr"]}
-        if rank == 0:
-            with _ema_weights(ema, job.trainable):   # validated and saved: the EMA of the weights, if any
-                entry["val"] = job.validate(model) if job.validate is not None else None
-                entry["seconds"] = round(time.perf_counter() - t_start, 2)
-                history.append(entry)
-                score = entry["val"]["psnr"] if entry["val"] else -entry["train_loss"]
-                if best is None or score > best["score"]:
-                    best = {"epoch": epoch + 1, "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
-                    job.save_best({"epoch": epoch + 1, "metrics": entry["val"], "train_loss": entry["train_loss"]})
-            # last.safetensors is the commit point of an epoch, so it is written last: a kill before it
-            # reruns the epoch (same result) and rewrites the files above.
-            _plot(job, history)
-            atomic_write_json(folder / "train.json", {"name": job.name, "history": history, "best": best,
-                                                      "machine": run_machine(device, world)})
-            state = {"epoch": epoch + 1, "history": history, "best": best, "fingerprint": job.fingerprint}
-            extras = None
-            if ema is not None:
-                state["ema_step"] = ema.optimization_step
-                extras = {f"ema.{i}": p for i, p in enumerate(ema.shadow_params)}
-            save_last(last, job.trainable, opt, state, job.fmt, extra=extras)
-            if not quiet:
-                v = entry["val"]
-                print(f"{job.name} epoch {epoch + 1}: loss {entry['train_loss']:.4f} (mse {entry['mse']:.4f}, "
-                      f"vb {entry['vb']:.4f})" + (f", val PSNR {v['psnr']:.2f} dB (noisy {v['noisy_psnr']:.2f})"
-                                                  if v else ""), flush=True)
-        trained += 1
-        if world > 1:
-            torch.distributed.barrier()
-        if job.time_budget_s > 0 and time.perf_counter() - t_start >= job.time_budget_s and epoch + 1 < job.epochs:
-            if not quiet:
-                print(f"{job.name}: time budget of {job.time_budget_s:g} s reached after epoch {epoch + 1}; "
-                      "rerun to resume")
-            break
-    if world > 1:
-        _check_in_sync(job.trainable, world)
-    summary = _summary(job, history, best, trained, time.perf_counter() - t_start)
-    summary["skipped_steps"] = guard.skipped
-    if not quiet:
-        print(summary["line"], flush=True)
-    return summary
+        mine = order[self.rank::self.world][:self.per_rank].tolist()
+        job.model.train()
+        return DataLoader(job.train_ds, batch_size=job.batch_size, sampler=mine, drop_last=True, num_workers=0)
+
+    def step(self, batch: dict, epoch: int, index: int) -> tuple[dict, bool]:
+        gen = torch.Generator().manual_seed(
+            int(np.random.default_rng([self.job.seed, epoch, index, self.rank]).integers(2**62)))
+        return optimisation_step(self.job, self.net, self.objective, self.opt, self.ema, batch, gen,
+                                 epoch * self.steps_per_epoch + index, self.total_steps)
+
+    def entry(self, epoch: int, kept: list[dict], skipped: int) -> dict:
+        return epoch_entry(epoch, kept, skipped, self.opt.param_groups[0]["lr"])
+
+    def initial_entry(self) -> dict:
+        # With a zero-initialised residual the untrained model is the first estimate itself, so
+        # training can only be kept where validation improves it.
+        return {"epoch": 0, "train_loss": None, "mse": None, "vb": None, "skipped_steps": 0, "lr": 0.0}
+
+    def validate(self) -> dict | None:
+        return self.job.validate(self.job.model) if self.job.validate is not None else None
+
+    def evaluation(self):
+        return _ema_weights(self.ema, self.job.trainable)   # validated and saved: the EMA of the weights, if any
+
+    def score(self, entry: dict) -> float:
+        return validation_score(entry)
+
+    def save_best(self, entry: dict) -> None:
+        self.job.save_best({"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"]})
+
+    def write_history(self, history: list, best: dict | None) -> None:
+        _plot(self.job, history)
+        atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,
+                                                       "machine": run_machine(self.device, self.world)})
+
+    def checkpoint(self) -> tuple[dict, dict | None]:
+        if self.ema is None:
+            return {}, None
+        return ({"ema_step": self.ema.optimization_step},
+                {f"ema.{i}": p for i, p in enumerate(self.ema.shadow_params)})
+
+    def finish(self) -> None:
+        if self.world > 1:
+            _check_in_sync(self.job.trainable, self.world)
+
+    def epoch_line(self, entry: dict) -> str:
+        v = entry["val"]
+        return (f"{self.name} epoch {entry['epoch']}: loss {entry['train_loss']:.4f} (mse {entry['mse']:.4f}, "
+                f"vb {entry['vb']:.4f})" + (f", val PSNR {v['psnr']:.2f} dB (noisy {v['noisy_psnr']:.2f})" if v else ""))
+
+    def best_text(self, best: dict) -> str:
+        if best.get("val"):
+            v = best["val"]
+            return f"best epoch {best['epoch']}: val PSNR {v['psnr']:.2f} dB vs noisy {v['noisy_psnr']:.2f} dB"
+        return super().best_text(best)
+
+    def summary_fields(self) -> dict:
+        return {"name": self.name, **({"skipped_steps": self._guard.skipped} if self._guard else {})}
 
 
 def _make_ema(job: Job):
@@ -255,16 +287,6 @@ def _ema_weights(ema, module: torch.nn.Module):
         ema.restore(module.parameters())
 
 
-def _initial(job: Job, history: list[dict]) -> dict:
-    """Epoch 0: the untrained model's validation score, saved as the best so far. With a zero-initialised
-    residual this is the first estimate itself, so training can only be kept where validation improves it."""
-    val = job.validate(job.model)
-    history.append({"epoch": 0, "train_loss": None, "mse": None, "vb": None, "skipped_steps": 0,
-                    "lr": 0.0, "val": val, "seconds": 0.0})
-    job.save_best({"epoch": 0, "metrics": val, "train_loss": None})
-    return {"epoch": 0, "score": val["psnr"], "val": val, "train_loss": None}
-
-
 def _check_in_sync(module: torch.nn.Module, world: int) -> None:
     import torch.distributed as dist
     mine = torch.tensor([checksum(module)], dtype=torch.float64)
@@ -285,16 +307,3 @@ def _plot(job: Job, history: list[dict]) -> None:
         right = {"val PSNR (dB)": [(h["epoch"], h["val"]["psnr"]) for h in history if h.get("val")],
                  "noisy input PSNR": [(h["epoch"], h["val"]["noisy_psnr"]) for h in history if h.get("val")]}
     plot_curves(job.folder / "loss.png", curves, job.title or job.name, right=right, right_label="PSNR (dB)")
-
-
-def _summary(job: Job, history: list, best: dict | None, trained: int, seconds: float) -> dict:
-    epochs = history[-1]["epoch"] if history else 0
-    line = f"{job.name}: {epochs} epochs ({trained} this run, {seconds:.1f} s)"
-    if best and best.get("val"):
-        v = best["val"]
-        line += f"; best epoch {best['epoch']}: val PSNR {v['psnr']:.2f} dB vs noisy {v['noisy_psnr']:.2f} dB"
-    elif best:
-        line += f"; best epoch {best['epoch']}: train loss {best['train_loss']:.4f}"
-    line += f" -> {job.folder}"
-    return {"name": job.name, "folder": str(job.folder), "epochs": epochs, "trained_epochs": trained,
-            "best": best, "seconds": seconds, "line": line}
