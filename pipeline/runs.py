@@ -6,6 +6,7 @@ One folder per model and sample count (``spp<N>``, or ``sppany`` for one model s
 - ``isik`` (the Isik baseline): ``<runs>/isik_spp<N>``;
 - ``afgsa``: ``<runs>/afgsa_spp<N>``; trained against another target than gt_clean
   (``afgsa.target``): ``<runs>/afgsa_<target>_spp<N>``;
+- ``base`` (the stand-in diffusion base of ``make pretrain``): ``<runs>/base`` (or ``pretrain.out``);
 - ``diffusion``: ``<runs>/diffusion_spp<N>``, with ``_<variant>`` (``diffusion.name``, or the
   variant given) and ``_base_only`` (``diffusion.control`` false) appended.
 
@@ -17,7 +18,7 @@ from pathlib import Path
 
 from .config import Config
 
-MODELS = ("cleaner", "isik", "afgsa", "diffusion")
+MODELS = ("cleaner", "isik", "afgsa", "base", "diffusion")
 
 
 def spp_tag(spp: int | str) -> str:
@@ -31,6 +32,8 @@ def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str 
     runs = Path(cfg.runs)
     if model == "cleaner":
         return runs / "cleaner"
+    if model == "base":
+        return Path(cfg.pretrain.out) if cfg.pretrain.out else runs / "base"
     if model == "isik":
         return runs / f"isik_{spp_tag(spp)}"
     if model == "afgsa":

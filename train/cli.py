@@ -15,7 +15,7 @@ import torch
 from pipeline.config import PAPER_STEPS, Config
 from pipeline.exr import StoreError, write_image
 from pipeline.metrics import PSNR_CEILING, psnr
-from pipeline.runs import pick_device
+from pipeline.runs import pick_device, run_dir as runs_dir
 from pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
@@ -145,7 +145,7 @@ def _base_hash(cfg: Config, run: Path) -> str:
 def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     """Train a new stand-in base (IF-II layout) as a restoration prior (``train.pretrain``)."""
     p = cfg.pretrain
-    out = Path(p.out) if p.out else Path(cfg.runs) / "base"
+    out = runs_dir(cfg, "base")
     pictures, sources, frames = gather_pictures(cfg.store, list(p.images))
     device = pick_device(cfg.diffusion.device)
     form = Formulation.from_config(cfg.diffusion)
