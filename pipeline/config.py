@@ -40,7 +40,7 @@ class DatasetConfig:
         "gt_pass_spp are pooled exactly until an image reaches it or gt_max_spp (docs/store.md). null: one render "
         "of gt_spp.", None)
     gt_pass_spp: int = doc("Samples per pixel of one pass of a progressive ground truth (also its minimum spp).", 64)
-    gt_max_spp: int = doc("Most samples per pixel of a progressive ground truth (a multiple of gt_pass_spp).", 2048)
+    gt_max_spp: int = doc("Most samples per pixel of a progressive ground truth (a multiple of gt_pass_spp).", 1024)
     stack_spp: int = doc("Samples per pixel of one low-spp stack (paper: 4).", 4)
     stacks: int = doc("Low-spp stacks per frame; spp 4/16/64 average 1/4/16 stacks (paper: 16).", 16)
     val_fraction: float = doc("Fraction of scenes in the validation split (paper: 0.03); at least one scene.", 0.03)
