@@ -98,10 +98,15 @@ def gt_quality(store: Store) -> dict:
     spp, seconds, psnr = [], 0.0, []
     for key in store.frames():
         rec = store.frame_record(key.scene, key.frame)
+        if rec is None or "gt" not in rec:
+            continue   # a failed frame (reported by the dataset stage)
         for name in ("gt1", "gt2"):
             spp.append(rec["images"][name]["spp"])
             seconds += rec["images"][name].get("render_seconds") or 0.0
         psnr.append(rec["gt"]["psnr_gt1_gt2"])
+    if not psnr:
+        return {"spp_mean": float("nan"), "render_s": 0.0, "psnr_gt1_gt2_median": float("nan"),
+                "psnr_gt1_gt2_min": float("nan")}
     return {"spp_mean": float(np.mean(spp)), "render_s": seconds, "psnr_gt1_gt2_median": float(np.median(psnr)),
             "psnr_gt1_gt2_min": float(np.min(psnr))}
 
