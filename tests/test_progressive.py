@@ -173,3 +173,17 @@ def test_bad_progressive_settings_are_refused(override, message):
 
     with pytest.raises(ConfigError, match=message):
         load_config(TINY, ["dataset.gt_target_psnr=40", "dataset.gt_pass_spp=16", override])
+
+
+@pytest.mark.parametrize("pass_spp", [48, "x"])
+def test_verify_flags_gt_spp_that_are_not_whole_passes(progressive_store, tmp_path, pass_spp):
+    import shutil
+
+    copy = tmp_path / "store"
+    shutil.copytree(progressive_store, copy)
+    store = Store(copy)
+    for scene in store.scenes():
+        store.write_scene_manifest(scene, {**store.scene_manifest(scene), "gt_pass_spp": pass_spp})
+    proc = cli("verify", copy, "--headers-only", check=False)
+    assert proc.returncode != 0
+    assert f"scene.json says a multiple of gt_pass_spp {pass_spp!r} up to 128" in proc.stdout + proc.stderr
