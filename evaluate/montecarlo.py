@@ -52,7 +52,9 @@ def mc_curve(store: Store, key: FrameKey, reference: np.ndarray, cost: RenderCos
         points.append(_point(k * n, cost, img, reference, f"{k} stack{'s' if k > 1 else ''}"))
     if reference_name != "gt2" and store.image_path(key.scene, key.frame, "gt2").exists():
         gt2 = store.read_image(key.scene, key.frame, "gt2", ["color"])[0]["color"]
-        points.append(_point(int(sm["gt_spp"]), cost, gt2, reference, "GT2"))
+        # The header's spp: a progressive GT2 (dataset.gt_target_psnr) stops below the scene's gt_spp.
+        spp = int(store.image_header(key.scene, key.frame, "gt2")["spp"])
+        points.append(_point(spp, cost, gt2, reference, "GT2"))
     return points
 
 

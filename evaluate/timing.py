@@ -55,7 +55,7 @@ def render_cost(record: dict) -> RenderCost:
         raise ValueError("frame record has no render_seconds: cannot model the render time")
     if stacks and gts:
         n_lo, t_lo = stacks[0][0], float(np.median([t for _, t in stacks]))
-        n_hi, t_hi = gts[0][0], min(t for _, t in gts)
+        n_hi, t_hi = min(gts, key=lambda g: g[1])   # the faster GT with its own spp (progressive GTs differ)
         if n_hi > n_lo and t_hi > t_lo:
             b = (t_hi - t_lo) / (n_hi - n_lo)
             return RenderCost(max(0.0, t_lo - b * n_lo), b, "fit")

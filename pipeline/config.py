@@ -8,7 +8,9 @@ file and the dotted key.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
+import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +33,15 @@ class DatasetConfig:
     scenes: int = doc("Number of random scenes.", 24)
     frames: int = doc("Frames per scene along the random camera move (paper: 8).", 2)
     resolution: list = doc("Image size [width, height] in pixels (paper: [256, 256]).", factory=lambda: [128, 128])
-    gt_spp: int = doc("Samples per pixel of each of the two ground truths GT1, GT2 (paper: 4096).", 1024)
+    gt_spp: int = doc("Samples per pixel of each of the two ground truths GT1, GT2 (paper: 4096) when "
+                      "gt_target_psnr is null.", 1024)
+    gt_target_psnr: float | None = doc(
+        "Render GT1 and GT2 progressively to this error: the PSNR in dB (Reinhard tonemap, peak 1, as the metric) "
+        "that each is expected to have against the true image, estimated from its per-pixel variance; passes of "
+        "gt_pass_spp are pooled exactly until an image reaches it or gt_max_spp (docs/store.md). null: one render "
+        "of gt_spp.", None)
+    gt_pass_spp: int = doc("Samples per pixel of one pass of a progressive ground truth (also its minimum spp).", 64)
+    gt_max_spp: int = doc("Most samples per pixel of a progressive ground truth (a multiple of gt_pass_spp).", 1024)
     stack_spp: int = doc("Samples per pixel of one low-spp stack (paper: 4).", 4)
     stacks: int = doc("Low-spp stacks per frame; spp 4/16/64 average 1/4/16 stacks (paper: 16).", 16)
     val_fraction: float = doc("Fraction of scenes in the validation split (paper: 0.03); at least one scene.", 0.03)
@@ -341,6 +351,10 @@ _FLOAT_TEXT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 
 def _check_type(value: Any, tp: Any, where: str) -> Any:
     """Validate (and gently coerce int → float) a YAML value against a field's annotation."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
+        inner = [a for a in args if a is not type(None)]
+        return None if value is None else _check_type(value, inner[0], where)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__}")
@@ -437,6 +451,7 @@ def validate(cfg: Config, source: str) -> None:
     for key in ("gt_spp", "stack_spp", "stacks"):
         if getattr(d, key) < 1:
             bad(f"dataset.{key}", "must be >= 1")
+    _validate_progressive_gt(d, bad)
     if not 0 <= d.val_fraction < 1 or not 0 <= d.test_fraction < 1 or d.val_fraction + d.test_fraction >= 1:
         bad("dataset.val_fraction/test_fraction", "fractions in [0, 1) that sum to less than 1")
     if cfg.render.features not in ("auto", "all"):
@@ -484,6 +499,17 @@ def validate(cfg: Config, source: str) -> None:
         bad("pretrain.channels", f"expected positive multiples of 16 (group norm), got {cfg.pretrain.channels!r}")
     if not all(isinstance(k, int) and k >= 1 for k in cfg.pretrain.scales) or not cfg.pretrain.scales:
         bad("pretrain.scales", f"expected integers >= 1, got {cfg.pretrain.scales!r}")
+
+
+def _validate_progressive_gt(d: DatasetConfig, bad) -> None:
+    if d.gt_target_psnr is None:
+        return
+    if not math.isfinite(d.gt_target_psnr) or d.gt_target_psnr <= 0:
+        bad("dataset.gt_target_psnr", f"expected a positive number of dB or null, got {d.gt_target_psnr!r}")
+    if d.gt_pass_spp < 2:
+        bad("dataset.gt_pass_spp", f"must be >= 2 (a pass's variance needs two samples), got {d.gt_pass_spp}")
+    if d.gt_max_spp < d.gt_pass_spp or d.gt_max_spp % d.gt_pass_spp:
+        bad("dataset.gt_max_spp", f"must be a multiple of gt_pass_spp ({d.gt_pass_spp}), got {d.gt_max_spp}")
 
 
 def _validate_afgsa(a: AfgsaConfig, bad) -> None:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from collections import Counter
 
+import numpy as np
+
 from . import schema
 from .exr import StoreError
 from .store import Store
@@ -22,6 +24,7 @@ def inspect_store(root: str, frame: str | None = None) -> dict:
     omitted: Counter = Counter()
     spp: Counter = Counter()
     incomplete = []
+    gt_rows: list[tuple] = []
     for scene in m["scenes"]:
         sm = store.scene_manifest(scene)
         for f in range(int(sm["frames"])):
@@ -31,6 +34,8 @@ def inspect_store(root: str, frame: str | None = None) -> dict:
                 incomplete.append(f"{scene}/{f:03d}")
                 continue
             frames_done += 1
+            if "gt" in rec:
+                gt_rows.append((sm.get("preset") or sm.get("split"), rec["gt"]))
             for name, img in rec["images"].items():
                 images += 1
                 bytes_ += img.get("bytes", 0)
@@ -45,10 +50,29 @@ def inspect_store(root: str, frame: str | None = None) -> dict:
         "render_seconds": {k: round(v, 2) for k, v in render_s.items()},
         "nonfinite": nonfinite,
         "omitted_channels": dict(omitted.most_common()),
+        **({"gt": gt_summary(gt_rows)} if gt_rows else {}),
     })
     if frame is not None:
         report["frame"] = inspect_frame(store, frame)
     return report
+
+
+def _gt_stats(rows: list[dict]) -> dict:
+    spp = [v for g in rows for v in g["spp"].values()]
+    psnr = [g["psnr_gt1_gt2"] for g in rows]
+    est = [v for g in rows for v in g["estimated_psnr"].values() if v is not None]
+    return {"frames": len(rows), "spp_mean": round(float(np.mean(spp)), 1), "spp_min": min(spp), "spp_max": max(spp),
+            "psnr_gt1_gt2_median": round(float(np.median(psnr)), 2), "psnr_gt1_gt2_min": round(min(psnr), 2),
+            "estimated_psnr_median": round(float(np.median(est)), 2) if est else None}
+
+
+def gt_summary(rows: list[tuple]) -> dict:
+    """Ground-truth quality over the frames whose ``frame.json`` has a ``gt`` record (the spp each GT
+    reached, its estimated PSNR, the GT1-vs-GT2 PSNR): all of them and per scene family (the stress
+    preset, else the split)."""
+    out = _gt_stats([g for _, g in rows])
+    out["by_family"] = {fam: _gt_stats([g for f, g in rows if f == fam]) for fam in sorted({f for f, _ in rows})}
+    return out
 
 
 def inspect_frame(store: Store, key: str) -> dict:
@@ -60,13 +84,15 @@ def inspect_frame(store: Store, key: str) -> dict:
     rec = store.frame_record(scene, f)
     if rec is None:
         raise StoreError(f"{store.frame_dir(scene, f)}: frame is not complete (no frame.json)")
-    out = {"scene": scene, "frame": f, "timing": rec["timing"], "features": rec["features"], "images": {}}
+    out = {"scene": scene, "frame": f, "timing": rec["timing"], "features": rec["features"], "images": {},
+           **({"gt": rec["gt"]} if "gt" in rec else {})}
     for name in rec["images"]:
         h = store.image_header(scene, f, name)
         stored = [ch for b in h["buffers"] for ch in schema.BY_NAME[b].exr_channels + schema.BY_NAME[b].variance_channels
                   if ch not in h["constants"]]
         out["images"][name] = {"spp": h["spp"], "seed": h["seed"], "size": f"{h['width']}x{h['height']}",
                                "render_seconds": h.get("render_seconds"), "nonfinite": h.get("nonfinite", {}),
+                               "estimated_psnr": h.get("estimated_psnr"), "passes": h.get("passes"),
                                "channels": stored, "constants": h["constants"],
                                "bytes": rec["images"][name].get("bytes")}
     return out
@@ -83,6 +109,8 @@ def format_report(r: dict) -> str:
     if r["omitted_channels"]:
         top = ", ".join(f"{k} ({v})" for k, v in list(r["omitted_channels"].items())[:12])
         lines.append(f"  constant channels left out (images): {top}")
+    if "gt" in r:
+        lines += _format_gt(r["gt"])
     if r["incomplete"]:
         lines.append(f"  incomplete frames: {', '.join(r['incomplete'][:10])}"
                      + (" ..." if len(r["incomplete"]) > 10 else ""))
@@ -94,7 +122,19 @@ def format_report(r: dict) -> str:
             lines.append(f"  {name}: {img['size']} {img['spp']} spp seed {img['seed']} "
                          f"{img['render_seconds']} s {img['bytes']} B; {len(img['channels'])} channels, "
                          f"{len(img['constants'])} constant; non-finite {img['nonfinite'] or 0}")
+        if "gt" in fr:
+            g = fr["gt"]
+            lines.append(f"  ground truth: spp {g['spp']}, estimated PSNR {g['estimated_psnr']} dB, "
+                         f"GT1 vs GT2 {g['psnr_gt1_gt2']} dB")
         first = next(iter(fr["images"].values()))
         lines.append(f"  channels of {next(iter(fr['images']))}: {' '.join(first['channels'])}")
         lines.append(f"  constants: {first['constants']}")
     return "\n".join(lines)
+
+
+def _format_gt(g: dict) -> list[str]:
+    def line(label: str, s: dict) -> str:
+        return (f"{label}: {s['frames']} frames, spp {s['spp_min']}..{s['spp_max']} (mean {s['spp_mean']}), "
+                f"GT1 vs GT2 PSNR median {s['psnr_gt1_gt2_median']} dB (min {s['psnr_gt1_gt2_min']}), "
+                f"estimated PSNR median {s['estimated_psnr_median']} dB")
+    return [line("  ground truth", g)] + [line(f"    {fam}", s) for fam, s in g["by_family"].items()]

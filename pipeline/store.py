@@ -69,13 +69,15 @@ def poolable(spp: int, stack_spp: int, stacks: int) -> bool:
     return spp % stack_spp == 0 and 1 <= spp // stack_spp <= stacks
 
 
-def combine_stacks(images: list[dict[str, np.ndarray]], spp_each: int) -> dict[str, np.ndarray]:
-    """Average K independent stacks of ``spp_each`` samples, with the exact pooled variance.
+def combine_stacks(images: list[dict[str, np.ndarray]], spp_each) -> dict[str, np.ndarray]:
+    """Average K independent stacks, with the exact pooled variance.
 
-    Each stack k gives a mean m_k and the variance of that mean v_k = s_k²/n (n = spp_each).
-    The result equals what one render with K·n samples reports: mean m = Σ m_k / K and
-    variance of the mean s²/(K n) with the pooled sample variance
-        s² = [ Σ_k (n−1)·n·v_k + n·Σ_k (m_k − m)² ] / (K n − 1),
+    ``spp_each``: the samples of every stack (an int) or one count per stack (a list; the
+    progressive ground truth pools its running estimate with each new pass this way).
+    Stack k gives a mean m_k of n_k samples and the variance of that mean v_k = s_k²/n_k. The
+    result equals what one render with N = Σ n_k samples reports: mean m = Σ n_k·m_k / N and
+    variance of the mean s²/N with the pooled sample variance
+        s² = [ Σ_k (n_k−1)·n_k·v_k + Σ_k n_k·(m_k − m)² ] / (N − 1),
     i.e. within-stack and between-stack scatter together (tests/test_store.py checks this
     against the variance computed from the pooled samples directly).
     """
@@ -83,19 +85,23 @@ def combine_stacks(images: list[dict[str, np.ndarray]], spp_each: int) -> dict[s
         raise ValueError("combine_stacks needs at least one stack")
     if len(images) == 1:
         return {k: v.copy() for k, v in images[0].items()}
-    K, n = len(images), spp_each
+    counts = [int(spp_each)] * len(images) if np.isscalar(spp_each) else [int(c) for c in spp_each]
+    if len(counts) != len(images):
+        raise ValueError(f"combine_stacks: {len(images)} stacks but {len(counts)} sample counts")
+    N = float(sum(counts))
     out: dict[str, np.ndarray] = {}
     names = [k for k in images[0] if not k.endswith(".variance")]
     for name in names:
         means = np.stack([img[name].astype(np.float64) for img in images])
-        m = means.mean(axis=0)
+        n = np.array(counts, dtype=np.float64).reshape((-1,) + (1,) * (means.ndim - 1))
+        m = (n * means).sum(axis=0) / N
         out[name] = m.astype(np.float32)
         vkey = schema.variance_name(name)
         if vkey in images[0]:
-            within = sum(img[vkey].astype(np.float64) for img in images) * (n - 1) * n
-            between = n * ((means - m) ** 2).sum(axis=0)
-            s2 = (within + between) / (K * n - 1)
-            out[vkey] = (s2 / (K * n)).astype(np.float32)
+            within = sum(c * (c - 1) * img[vkey].astype(np.float64) for c, img in zip(counts, images))
+            between = (n * (means - m) ** 2).sum(axis=0)
+            s2 = (within + between) / (N - 1)
+            out[vkey] = (s2 / N).astype(np.float32)
     return out
 
 

@@ -221,8 +221,12 @@ def _check_image(store: Store, path: Path, name: str, img: dict, sm: dict, f: in
     if (header["width"], header["height"]) != size:
         report.add(path, f"image is {header['width']}x{header['height']}, the scene's frames are {size[0]}x{size[1]}")
     spp = sm["gt_spp"] if name.startswith("gt") else sm["stack_spp"]
-    if "spp" in header and header["spp"] != spp:
-        report.add(path, f"rendered at {header['spp']} spp, scene.json says {spp}")
+    allowed, says = [spp], f"{spp}"
+    if name.startswith("gt") and sm.get("gt_target_psnr") is not None:   # progressive: whole passes up to gt_spp
+        step = sm.get("gt_pass_spp") if type(sm.get("gt_pass_spp")) is int and sm["gt_pass_spp"] > 0 else spp + 1
+        allowed, says = range(step, spp + 1, step), f"a multiple of gt_pass_spp {sm.get('gt_pass_spp')!r} up to {spp}"
+    if "spp" in header and header["spp"] not in allowed:
+        report.add(path, f"rendered at {header['spp']} spp, scene.json says {says}")
     seed = (sm.get("seeds") or {}).get(str(f), {}).get(name)
     if seed is not None and header.get("seed") != seed:
         report.add(path, f"seed {header.get('seed')}, scene.json says {seed}")

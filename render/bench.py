@@ -82,13 +82,33 @@ def dataset_shares(cfg: Config, scenes: int) -> dict:
         stats = run(sub, quiet=True)
         wall = time.perf_counter() - t0
         tm = stats["timing"]
-        return {"scenes": scenes, "frames": stats["frames"], "wall_s": wall,
+        return {"scenes": scenes, "frames": stats["frames"], "wall_s": wall, "gt": gt_quality(Store(sub.store)),
                 "render_share": tm["render"] / wall, "build_share": tm["build"] / wall,
                 "write_share": tm["write"] / wall,
                 "rest_share": 1 - (tm["render"] + tm["build"] + tm["write"]) / wall,
                 "msamples_per_s": stats["samples"] / wall / 1e6}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def gt_quality(store: Store) -> dict:
+    """Ground truths of a rendered store: mean spp reached, GT render seconds, GT1-vs-GT2 PSNR median/min."""
+    import numpy as np
+
+    spp, seconds, psnr = [], 0.0, []
+    for key in store.frames():
+        rec = store.frame_record(key.scene, key.frame)
+        if rec is None or "gt" not in rec:
+            continue   # a failed frame (reported by the dataset stage)
+        for name in ("gt1", "gt2"):
+            spp.append(rec["images"][name]["spp"])
+            seconds += rec["images"][name].get("render_seconds") or 0.0
+        psnr.append(rec["gt"]["psnr_gt1_gt2"])
+    if not psnr:
+        return {"spp_mean": float("nan"), "render_s": 0.0, "psnr_gt1_gt2_median": float("nan"),
+                "psnr_gt1_gt2_min": float("nan")}
+    return {"spp_mean": float(np.mean(spp)), "render_s": seconds, "psnr_gt1_gt2_median": float(np.median(psnr)),
+            "psnr_gt1_gt2_min": float(np.min(psnr))}
 
 
 def omission_savings(cfg: Config, timing_spp: int = 128) -> dict:
@@ -181,15 +201,25 @@ def format_markdown(r: dict, cfg: Config) -> str:
                      f"{row['ours_all_s']:.3f} | {row['ratio_all']:.2f}x | {row['ours_needed_s']:.3f} | "
                      f"{row['ratio_needed']:.2f}x |")
     d = r["dataset"]
+    g = d["gt"]
     o = r["omission"]
     lines += ["", f"## Dataset stage wall time ({d['scenes']} scenes, {d['frames']} frames of the configured dataset)", "",
               "| rendering | building scenes | writing EXR | rest | wall s | M samples/s |",
               "| --- | --- | --- | --- | --- | --- |",
               f"| {d['render_share']:.1%} | {d['build_share']:.1%} | {d['write_share']:.1%} | {d['rest_share']:.1%} | "
               f"{d['wall_s']:.1f} | {d['msamples_per_s']:.2f} |", "",
+              f"Ground truths ({_gt_rule(cfg)}): {g['spp_mean']:.0f} spp on average, {g['render_s']:.1f} s of GT "
+              f"rendering, GT1 vs GT2 PSNR median {g['psnr_gt1_gt2_median']:.2f} dB (min {g['psnr_gt1_gt2_min']:.2f}).", "",
               f"## Leaving out what a scene does not need (store {o['store']}, {o['images']} images)", "",
               f"- disk: {o['bytes_omitted'] / 2**20:.2f} MiB with omission vs {o['bytes_full'] / 2**20:.2f} MiB with every "
               f"channel written: {o['disk_saving']:.1%} saved",
               f"- render time at {o['timing_spp']} spp, frame 0 of every scene: {o['render_s_needed']:.2f} s with the needed features vs "
               f"{o['render_s_all']:.2f} s with all: {o['time_saving']:.1%} saved", ""]
     return "\n".join(lines)
+
+
+def _gt_rule(cfg: Config) -> str:
+    d = cfg.dataset
+    if d.gt_target_psnr is None:
+        return f"fixed {d.gt_spp} spp"
+    return f"target {d.gt_target_psnr:g} dB, passes of {d.gt_pass_spp}, cap {d.gt_max_spp}"

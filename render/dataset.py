@@ -60,8 +60,8 @@ class Plan:
             for f in range(sm["frames"]):
                 tasks.append(FrameTask(
                     store=str(cfg.store), scene=sm["scene"], frame=f, desc=sm["description"],
-                    resolution=tuple(sm["resolution"]), gt_spp=sm["gt_spp"], stack_spp=sm["stack_spp"],
-                    stacks=sm["stacks"], seeds=sm["seeds"][str(f)], render=dataclasses.asdict(cfg.render)))
+                    resolution=tuple(sm["resolution"]), seeds=sm["seeds"][str(f)], render=dataclasses.asdict(cfg.render),
+                    **task_spp(sm)))
         return tasks
 
 
@@ -107,13 +107,27 @@ def make_plan(cfg: Config) -> Plan:
     return Plan(scenes, splits)
 
 
+def gt_settings(d: config_mod.DatasetConfig) -> dict:
+    """The ground-truth keys of a scene manifest: ``gt_spp`` alone (a fixed count), or with a target
+    ``gt_target_psnr``, ``gt_pass_spp`` and ``gt_spp`` = ``gt_max_spp``, the most a GT can have."""
+    if d.gt_target_psnr is None:
+        return {"gt_spp": d.gt_spp}
+    return {"gt_spp": d.gt_max_spp, "gt_target_psnr": d.gt_target_psnr, "gt_pass_spp": d.gt_pass_spp}
+
+
+def task_spp(sm: dict) -> dict:
+    """The sample-count fields of a ``FrameTask`` from a scene manifest (or ``scene_record``)."""
+    return {"gt_spp": sm["gt_spp"], "gt_target_psnr": sm.get("gt_target_psnr"),
+            "gt_pass_spp": sm.get("gt_pass_spp", 0), "stack_spp": sm["stack_spp"], "stacks": sm["stacks"]}
+
+
 def scene_record(cfg: Config, sid: str, index: int, split: str, preset: str | None, frames: int,
                  resolution: list | None, seeds: dict, desc: dict) -> dict:
     """The static part of a scene manifest (``scene.json``); see docs/store.md."""
     d = cfg.dataset
     return {
         "scene": sid, "index": index, "split": split, "preset": preset, "frames": frames,
-        "resolution": resolution, "gt_spp": d.gt_spp, "stack_spp": d.stack_spp, "stacks": d.stacks,
+        "resolution": resolution, **gt_settings(d), "stack_spp": d.stack_spp, "stacks": d.stacks,
         "images": image_names(d.stacks), "seeds": seeds,
         "integrator": {"type": "split", "max_depth": cfg.render.max_depth, "rr_depth": cfg.render.rr_depth,
                        "features": cfg.render.features, "filter": "box"},
@@ -171,7 +185,8 @@ def write_manifests(store: Store, cfg: Config, plan: Plan) -> None:
 
 
 def finalize_scene_manifests(store: Store, plan: Plan) -> None:
-    """Add each finished frame's render times, bytes and non-finite counts to its scene manifest."""
+    """Add each finished frame's render times, bytes, non-finite counts and ground-truth record (spp
+    reached, estimated PSNR, GT1-vs-GT2 PSNR) to its scene manifest."""
     for sm in plan.scenes:
         frames = {}
         for f in range(sm["frames"]):
@@ -179,7 +194,8 @@ def finalize_scene_manifests(store: Store, plan: Plan) -> None:
             if rec is not None:
                 frames[str(f)] = {"timing": rec["timing"], "bytes": rec["bytes"], "nonfinite": rec["nonfinite"],
                                   "features": rec["features"],
-                                  "render_seconds": {n: r.get("render_seconds") for n, r in rec["images"].items()}}
+                                  "render_seconds": {n: r.get("render_seconds") for n, r in rec["images"].items()},
+                                  **({"gt": rec["gt"]} if "gt" in rec else {})}
         current = store.scene_manifest(sm["scene"])
         if current.get("rendered") != frames:
             store.write_scene_manifest(sm["scene"], {**current, "rendered": frames})

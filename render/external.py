@@ -121,7 +121,7 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
 
 
 def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size) -> dict:
-    from .dataset import render_frame_entry, scene_record
+    from .dataset import render_frame_entry, scene_record, task_spp
     from .frame import FrameTask
 
     index = _register(store, cfg, sid)
@@ -132,8 +132,7 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
     record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
     store.write_scene_manifest(sid, {**record, "packages": package_versions()})
     task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,
-                     gt_spp=d.gt_spp, stack_spp=d.stack_spp, stacks=d.stacks, seeds=seeds,
-                     render=dataclasses.asdict(cfg.render))
+                     seeds=seeds, render=dataclasses.asdict(cfg.render), **task_spp(record))
     stats = {"failed": 0}
     for _, result, error in run_tasks([task], render_frame_entry, cfg.executor):
         if error is not None:

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline import schema
+from pipeline import metrics, schema
 from pipeline.exr import StoreError
 from pipeline.mitsuba_env import import_mitsuba
-from pipeline.store import Store, image_names, sha256
+from pipeline.store import GT_IMAGES, Store, image_names, sha256
 
 
 @dataclass
@@ -36,6 +36,8 @@ class FrameTask:
     seeds: dict           # image name -> seed
     render: dict          # RenderConfig as a dict
     images: list = field(default_factory=list)  # subset to render; empty = all
+    gt_target_psnr: float | None = None  # progressive GT: see render.progressive; None = gt_spp in one render
+    gt_pass_spp: int = 0                 # spp per pass of a progressive GT (gt_spp is then its cap)
 
 
 _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}}
@@ -75,8 +77,6 @@ def _sensor(mi, task: FrameTask, scene):
 
 def render_frame(task: FrameTask) -> dict:
     """Render the missing images of one frame, then write its ``frame.json``. Returns it."""
-    from render.buffers import render_image
-
     t_start = time.perf_counter()
     store = Store(task.store)
     names = task.images or image_names(task.stacks)
@@ -96,6 +96,7 @@ def render_frame(task: FrameTask) -> dict:
     build_s += time.perf_counter() - t0
 
     records: dict[str, dict] = {}
+    gt_color: dict[str, np.ndarray] = {}
     render_s = write_s = 0.0
     reused = 0
     for name in names:
@@ -108,16 +109,16 @@ def render_frame(task: FrameTask) -> dict:
                 continue
             except StoreError:
                 path.unlink()  # unreadable leftover (e.g. written by an older version): render again
-        spp = task.gt_spp if name.startswith("gt") else task.stack_spp
-        result = render_image(mi, scene, sensor, spp=spp, seed=task.seeds[name], features=features,
-                              max_depth=task.render["max_depth"], rr_depth=task.render["rr_depth"])
+        result, extra = _render_one(mi, scene, sensor, task, name, features)
         render_s += result.seconds
         t0 = time.perf_counter()
-        meta = {"image": name, "spp": spp, "seed": task.seeds[name], "scene": task.scene, "frame": task.frame,
-                "render_seconds": round(result.seconds, 4), "nonfinite": result.nonfinite,
-                "features": sorted(features)}
+        meta = {"image": name, "spp": extra.pop("spp"), "seed": task.seeds[name], "scene": task.scene,
+                "frame": task.frame, "render_seconds": round(result.seconds, 4), "nonfinite": result.nonfinite,
+                "features": sorted(features), **extra}
         records[name] = store.write_image(task.scene, task.frame, name, result.buffers, result.constants,
                                           meta, omit_constant=task.render["omit_constant"])
+        if name in GT_IMAGES:
+            gt_color[name] = result.buffers["color"]
         write_s += time.perf_counter() - t0
     w, h = (int(v) for v in sensor.film().size())
     record = {
@@ -129,6 +130,7 @@ def render_frame(task: FrameTask) -> dict:
         "timing": {"build": round(build_s, 4), "render": round(render_s, 4), "write": round(write_s, 4),
                    "total": round(time.perf_counter() - t_start, 4)},
         "reused_images": reused,
+        **gt_summary(store, task, records, gt_color),
         # The camera frame (columns: left, up, forward, origin): lets consumers turn the
         # world-space normals into camera space (train.data).
         "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
@@ -137,3 +139,43 @@ def render_frame(task: FrameTask) -> dict:
     if not task.images:
         store.write_frame_record(task.scene, task.frame, record)
     return record
+
+
+def _render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tuple:
+    """One image of the frame: a stack in one render of stack_spp; a ground truth by the scene's stop
+    rule (render.progressive). Returns the result and the extra header fields (spp; for a ground
+    truth its estimated PSNR and the number of passes)."""
+    from render.buffers import render_image
+
+    from .progressive import StopRule, render_to_target
+
+    def render_pass(spp, seed):
+        return render_image(mi, scene, sensor, spp=spp, seed=seed, features=features,
+                            max_depth=task.render["max_depth"], rr_depth=task.render["rr_depth"])
+
+    if name not in GT_IMAGES:
+        return render_pass(task.stack_spp, task.seeds[name]), {"spp": task.stack_spp}
+    rule = StopRule(task.gt_target_psnr, task.gt_pass_spp or task.gt_spp, task.gt_spp)
+    r = render_to_target(render_pass, task.seeds[name], rule)
+    extra = {"spp": r.spp, "estimated_psnr": _finite_psnr(r.estimated_psnr)}
+    if rule.target_psnr is not None:
+        extra["passes"] = r.passes
+    return r, extra
+
+
+def _finite_psnr(value: float) -> float:
+    """A PSNR for JSON (which has no inf): identical images count as metrics.PSNR_CEILING."""
+    return round(min(value, metrics.PSNR_CEILING), 3)
+
+
+def gt_summary(store: Store, task: FrameTask, records: dict, gt_color: dict) -> dict:
+    """The frame record's ``gt`` entry: spp reached and estimated PSNR per ground truth, and the
+    measured PSNR of GT1 against GT2 (either may come from disk when the frame was resumed)."""
+    if not all(n in records for n in GT_IMAGES):
+        return {}
+    for name in GT_IMAGES:
+        if name not in gt_color:
+            gt_color[name] = store.read_image(task.scene, task.frame, name, ["color"])[0]["color"]
+    return {"gt": {"spp": {n: records[n]["spp"] for n in GT_IMAGES},
+                   "estimated_psnr": {n: records[n].get("estimated_psnr") for n in GT_IMAGES},
+                   "psnr_gt1_gt2": _finite_psnr(metrics.psnr(gt_color["gt1"], gt_color["gt2"]))}}

@@ -13,13 +13,20 @@ machine by ``python -m pipeline plan --measure`` (kept below with the date and t
   pixel count.
 - **writing** an image (EXR ZIP, atomic rename, SHA-256) costs ``write_s_per_mpx`` per
   megapixel; building the scene once per frame ``build_s``.
+- **ground-truth spp**: ``dataset.gt_spp`` without a target. With ``dataset.gt_target_psnr`` (a
+  progressive GT, ``render.progressive``) the expected spp of a GT is the mean, over the measured
+  distribution of a GT's estimated PSNR at a reference spp (``gt_psnr``: the 20 mid-quantiles,
+  2.5 % ... 97.5 %, of the GTs of the default dataset at 1024 spp), of the spp the stop rule reaches
+  from it (``render.progressive.expected_spp``: +3 dB per doubling, whole passes, the cap); each pass
+  costs the per-image overhead.
 - **disk** per image from the channel schema (``pipeline.schema``: float32 radiance and
   variances, half features), times the ZIP ratio measured on real frames (ground truths
   compress better than 4 spp stacks); ``gt_clean`` is one float32 RGB image.
 
 ``--store STORE`` replaces the measured rate by one fitted to the frames of an existing store
 (their ``frame.json`` render seconds, spp and resolution; the store's ``render.threads`` and
-``executor.workers`` tell how many cores one render used) and its bytes per image, so a plan for a
+``executor.workers`` tell how many cores one render used), its bytes per image and, where its
+images record an estimated PSNR, the GT error distribution, so a plan for a
 cluster can be calibrated on a pilot run there.
 
 Wall time for N workers assumes perfect scaling over frames (frames are independent; measured
@@ -77,7 +84,13 @@ MEASURED: dict = {
   "stack": 0.453,
   "gt_clean": 0.879
  },
- "gt_spp_for_ratio": 1024
+ "gt_spp_for_ratio": 1024,
+ "gt_psnr": {
+  "source": "data/default (configs/default.yaml, 86 frames, 172 GTs at 1024 spp, 128x128, max_depth 8), 2026-12-01",
+  "spp": 1024,
+  "quantiles": [38.0, 39.5, 41.3, 42.5, 43.5, 45.1, 46.9, 47.6, 48.2, 48.7, 49.7, 50.2, 50.6, 51.5, 52.9, 54.8,
+                56.0, 56.9, 58.6, 85.1]
+ }
 }
 
 GB = 1e9
@@ -116,6 +129,18 @@ def seconds_per_sample(constants: dict, resolution: int, max_depth: int) -> tupl
     return cost, max(overhead, 0.0)
 
 
+def expected_gt_spp(d, constants: dict) -> tuple[float, float]:
+    """(expected spp, expected passes) of one ground truth (see the module docstring)."""
+    from .progressive import StopRule, expected_spp
+
+    if d.gt_target_psnr is None:
+        return d.gt_spp, 1
+    rule = StopRule(d.gt_target_psnr, d.gt_pass_spp, d.gt_max_spp)
+    dist = constants["gt_psnr"]
+    spps = [expected_spp(q, dist["spp"], rule) for q in dist["quantiles"]]
+    return float(np.mean(spps)), float(np.mean(spps)) / d.gt_pass_spp
+
+
 def estimate(cfg: Config, constants: dict | None = None) -> dict:
     """Per-frame and total cost of the config's dataset stage (see the module docstring)."""
     from .stress import STRESS_PRESETS
@@ -130,9 +155,10 @@ def estimate(cfg: Config, constants: dict | None = None) -> dict:
     cost, overhead = seconds_per_sample(c, side, cfg.render.max_depth)
     write = c["write_s_per_mpx"] * px / 1e6
     raw = raw_bytes_per_pixel() * px
+    gt_spp, gt_passes = expected_gt_spp(d, c)
     parts = {
-        "gt": {"images": 2, "spp": d.gt_spp,
-               "core_s": 2 * (overhead + px * d.gt_spp * cost + write),
+        "gt": {"images": 2, "spp": gt_spp, "passes": gt_passes, "target_psnr": d.gt_target_psnr,
+               "core_s": 2 * (gt_passes * overhead + px * gt_spp * cost + write),
                "bytes": 2 * raw * c["zip_ratio"]["gt"]},
         "stacks": {"images": d.stacks, "spp": d.stack_spp,
                    "core_s": d.stacks * (overhead + px * d.stack_spp * cost + write),
@@ -144,7 +170,7 @@ def estimate(cfg: Config, constants: dict | None = None) -> dict:
     frame_bytes = sum(p["bytes"] for p in parts.values())
     return {
         "frames": frames, "scenes": d.scenes, "stress_scenes": stress, "resolution": [w, h],
-        "max_depth": cfg.render.max_depth, "samples_per_frame": px * (2 * d.gt_spp + d.stacks * d.stack_spp),
+        "max_depth": cfg.render.max_depth, "samples_per_frame": px * (2 * gt_spp + d.stacks * d.stack_spp),
         "seconds_per_sample": cost, "overhead_s": overhead, "build_s": c["build_s"], "parts": parts,
         "frame_core_s": frame_core_s, "frame_bytes": frame_bytes,
         "total_core_h": frame_core_s * frames / 3600, "total_bytes": frame_bytes * frames,
@@ -179,7 +205,11 @@ def format_table(est: dict, workers: tuple[int, ...] = DEFAULT_WORKERS, title: s
         tot = f"{core_s * n / 3600:,.1f} core-h" if core_s is not None else "-"
         lines.append(f"| {name} | {cpu} | {nbytes / 2**20:,.1f} MiB | {tot} | {nbytes * n / GB:,.2f} GB |")
 
-    row(f"GT ({p['gt']['images']} x {p['gt']['spp']} spp)", p["gt"]["core_s"], p["gt"]["bytes"])
+    g = p["gt"]
+    gt_label = (f"GT ({g['images']} x {g['spp']} spp)" if g["target_psnr"] is None else
+                f"GT ({g['images']} x ~{g['spp']:.0f} spp expected: target {g['target_psnr']:g} dB, "
+                f"~{g['passes']:.1f} passes)")
+    row(gt_label, g["core_s"], g["bytes"])
     row(f"stacks ({p['stacks']['images']} x {p['stacks']['spp']} spp)", p["stacks"]["core_s"], p["stacks"]["bytes"])
     row("scene build", est["build_s"], 0)
     row("gt_clean (1 image)", None, p["gt_clean"]["bytes"])
@@ -313,7 +343,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
     cpus = os.cpu_count() or 1
     cores = min(threads, cpus / workers) if threads > 0 else cpus / workers
     depth = int(conf.get("render", {}).get("max_depth", 8))
-    points, gt_ratio, stack_ratio, sizes = [], [], [], []
+    points, gt_ratio, stack_ratio, sizes, gt_psnr = [], [], [], [], []
     frames = 0
     for key in store.frames():
         rec = store.frame_record(key.scene, key.frame)
@@ -324,6 +354,8 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
         for name, img in rec["images"].items():
             if img.get("render_seconds") is None or img.get("reused"):
                 continue
+            if img.get("estimated_psnr") is not None:   # the GT's error at the reference spp (+3 dB per doubling)
+                gt_psnr.append(float(img["estimated_psnr"]) + 10 * math.log10(c["gt_psnr"]["spp"] / int(img["spp"])))
             points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
             (gt_ratio if name.startswith("gt") else stack_ratio).append(
                 int(img["bytes"]) / (raw_bytes_per_pixel() * px))
@@ -343,6 +375,9 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
         c["zip_ratio"]["gt"] = float(np.mean(gt_ratio))
     if stack_ratio:
         c["zip_ratio"]["stack"] = float(np.mean(stack_ratio))
+    if gt_psnr:
+        c["gt_psnr"] = {"source": f"{len(gt_psnr)} GTs of {store.root}", "spp": c["gt_psnr"]["spp"],
+                        "quantiles": np.percentile(gt_psnr, np.arange(2.5, 100, 5)).round(2).tolist()}
     c["source"] = (f"calibrated on {frames} frames of {store.root} ({cores:g} cores per render, "
                    f"max_depth {depth}; {1 / b / 1e6:.2f} M samples/core-s there)")
     return c

@@ -15,12 +15,13 @@ def test_bench_writes_its_report(tmp_path):
     d = report["dataset"]
     assert d["frames"] == 1 and 0 < d["render_share"] < 1
     assert d["build_share"] > 0 and d["write_share"] > 0
+    assert d["gt"]["spp_mean"] == 64 and d["gt"]["render_s"] > 0 and d["gt"]["psnr_gt1_gt2_median"] > 10
     o = report["omission"]
     # Omission can cost bytes on tiny images (the header's JSON vs ZIP-compressed constant
     # channels), so the report must state the measured saving, whatever its sign.
     assert o["images"] == 6 and o["bytes_full"] > 0 and o["bytes_omitted"] > 0
     assert o["render_s_needed"] > 0 and o["render_s_all"] > 0
     md = (tmp_path / "bench" / "bench.md").read_text()
-    assert "Split-buffer integrator" in md
+    assert "Split-buffer integrator" in md and "Ground truths (fixed 64 spp): 64 spp on average" in md
     assert f"{o['disk_saving']:.1%} saved" in md and f"{o['time_saving']:.1%} saved" in md
     assert result["omission"] == o

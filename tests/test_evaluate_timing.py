@@ -22,6 +22,16 @@ def test_render_cost_fits_fixed_and_per_sample_seconds():
     assert cost.seconds(64) == pytest.approx(0.05 + 0.128)
 
 
+def test_render_cost_with_progressive_gts_of_different_spp():
+    # t(N) = 0.05 + 0.002·N; GT1 stopped at 1024 spp, GT2 at 512 (dataset.gt_target_psnr): the fit pairs
+    # the faster GT's time with its own spp.
+    rec = record([0.058] * 4, [])
+    rec["images"].update({"gt1": {"spp": 1024, "render_seconds": 0.05 + 2.048},
+                          "gt2": {"spp": 512, "render_seconds": 0.05 + 1.024}})
+    cost = render_cost(rec)
+    assert (cost.how, cost.b, cost.a) == ("fit", pytest.approx(0.002), pytest.approx(0.05))
+
+
 def test_render_cost_without_a_second_sample_count_is_proportional():
     cost = render_cost(record([0.04, 0.04], []))
     assert cost.how == "proportional" and cost.a == 0 and cost.b == pytest.approx(0.01)

@@ -110,3 +110,19 @@ def test_fit_survives_timing_noise():
     assert a == 0.0 and b > 0
     a, b = _fit([(100, 0.010), (800, 0.080)])
     assert b == pytest.approx(1e-4) and a == pytest.approx(0.0, abs=1e-9)
+
+
+def test_progressive_gt_uses_the_expected_spp_from_the_target():
+    """Every GT of a (synthetic) measured distribution estimates 48 dB at 1024 spp: a 45 dB target needs
+    1024·10^(-0.3) = 513.2 spp, i.e. 9 whole passes of 64 (576 spp), each pass with its overhead."""
+    c = {**MEASURED, "gt_psnr": {"spp": 1024, "quantiles": [48.0] * 20}}
+    fixed = estimate(load_config(None, ["dataset.gt_spp=576"]), c)
+    prog = estimate(load_config(None, ["dataset.gt_target_psnr=45", "dataset.gt_pass_spp=64",
+                                       "dataset.gt_max_spp=1024"]), c)
+    g = prog["parts"]["gt"]
+    assert (g["spp"], g["passes"]) == (576, 9)
+    assert g["core_s"] == pytest.approx(fixed["parts"]["gt"]["core_s"] + 2 * 8 * prog["overhead_s"])
+    assert prog["samples_per_frame"] == fixed["samples_per_frame"]
+    capped = estimate(load_config(None, ["dataset.gt_target_psnr=60", "dataset.gt_max_spp=2048"]), c)
+    assert capped["parts"]["gt"]["spp"] == 2048
+    assert "target 45 dB" in cli("plan", "dataset.gt_target_psnr=45").stdout

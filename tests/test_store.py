@@ -161,6 +161,25 @@ def test_combine_stacks_equals_pooled_samples():
     np.testing.assert_allclose(out["color.variance"], allsamp.var(0, ddof=1) / (K * n), rtol=1e-4)
 
 
+def test_combine_stacks_unequal_counts_equals_pooled_samples():
+    """Estimates of 12, 4 and 1 samples (a progressive GT pools its running estimate with each
+    new pass): mean and variance of the mean equal those of the 17 samples taken together."""
+    rng = np.random.default_rng(2)
+    counts, h, w = [12, 4, 1], 3, 4
+    samples = rng.gamma(0.5, 2.0, size=(sum(counts), h, w, 3))
+    parts, lo = [], 0
+    for n in counts:
+        s = samples[lo:lo + n]
+        lo += n
+        var = s.var(0, ddof=1) / n if n > 1 else np.zeros_like(s[0])
+        parts.append({"color": s.mean(0).astype(np.float32), "color.variance": var.astype(np.float32)})
+    out = combine_stacks(parts, counts)
+    np.testing.assert_allclose(out["color"], samples.mean(0), rtol=1e-5)
+    np.testing.assert_allclose(out["color.variance"], samples.var(0, ddof=1) / len(samples), rtol=1e-4)
+    with pytest.raises(ValueError, match="3 stacks but 2 sample counts"):
+        combine_stacks(parts, counts[:2])
+
+
 def test_image_seeds_are_distinct():
     frames, images = 8, 18
     seeds = {image_seed(3, s, f, i, frames, images) for s in range(300) for f in range(frames) for i in range(images)}
