@@ -117,7 +117,8 @@ def render_frame(task: FrameTask) -> dict:
                 "render_seconds": round(result.seconds, 4), "nonfinite": result.nonfinite,
                 "features": sorted(features)}
         records[name] = store.write_image(task.scene, task.frame, name, result.buffers, result.constants,
-                                          meta, omit_constant=task.render["omit_constant"])
+                                          meta, omit_constant=task.render["omit_constant"],
+                                          encoding=task.render.get("encoding", "compact"))
         write_s += time.perf_counter() - t0
     w, h = (int(v) for v in sensor.film().size())
     record = {
