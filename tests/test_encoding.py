@@ -180,3 +180,25 @@ def test_encoding_config_key():
     assert load_config(None, ["render.encoding=exact"]).render.encoding == "exact"
     with pytest.raises(ConfigError, match=r"render\.encoding: expected 'compact' or 'exact', got 'zip'"):
         load_config(None, ["render.encoding=zip"])
+
+
+def test_bytes_per_channel_group(tmp_path):
+    """``verify STORE --bytes N``: per frame, the files' true sizes, and each group's bytes."""
+    from pipeline.verify import GROUPS, measure_bytes
+    from tests.helpers import cli
+    root = make_clean_store(tmp_path / "old", encoding="exact")
+    result = measure_bytes(root, frames=2)
+    store = Store(root)
+    keys = store.frames()
+    picked = [keys[0], keys[-1]]
+    assert result["frames"] == 2
+    assert result["stored"]["files"] == [sum(r["bytes"] for r in store.frame_record(k.scene, k.frame)["images"].values())
+                                         for k in picked]
+    stored, compact = result["stored"]["groups"], result["compact"]["groups"]
+    assert set(stored) == set(GROUPS)
+    # the synthetic features are constant (left out); everything with pixel data counts
+    assert stored["features (half)"] == 0 and compact["features (half)"] == 0
+    for group in ("beauty", "beauty variance", "radiance components", "depth"):
+        assert stored[group] > 0 and compact[group] > 0, group
+    table = cli("verify", root, "--bytes", "2").stdout
+    assert "| **files (mean)** |" in table and table.count("\n| ") == 2 + len(GROUPS) + 2   # head, rule, groups, totals
