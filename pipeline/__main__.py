@@ -158,7 +158,10 @@ def cmd_bench(args) -> int:
 
 
 def cmd_verify(args) -> int:
-    from .verify import run_verify
+    from .verify import bytes_table, measure_bytes, run_verify
+    if args.bytes:
+        print(bytes_table(measure_bytes(args.store, args.bytes)))
+        return 0
     return run_verify(args.store, quiet=args.quiet, pixels=not args.headers_only, jobs=args.jobs)
 
 
@@ -316,6 +319,8 @@ def _tool_parsers(sub) -> None:
     p.add_argument("--headers-only", action="store_true", help="skip pixel data and checksums (fast)")
     p.add_argument("--jobs", type=int, default=1, help="check scenes in this many processes")
     p.add_argument("--quiet", action="store_true", help="only the summary line")
+    p.add_argument("--bytes", type=int, default=0, metavar="N",
+                   help="instead of checking: bytes per channel group of N frames, as stored and re-encoded compact")
     p.set_defaults(fn=cmd_verify)
 
     p = _with_config(sub.add_parser("plan", help="estimate CPU core-hours, disk and wall time of the dataset stage"))

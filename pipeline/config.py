@@ -84,6 +84,10 @@ class RenderConfig:
     rr_depth: int = doc("Path depth at which Russian roulette starts.", 5)
     features: str = doc("'auto': compute only the features the scene's materials can produce; 'all': every feature.", "auto")
     omit_constant: bool = doc("Leave out channels that are constant over a frame; the EXR header records the constant.", True)
+    encoding: str = doc("How new store images are written (docs/store.md, 'Bytes per channel group'): 'compact' "
+                        "(the beauty summed from its components, variances and depth float32 with 5 and 10 "
+                        "mantissa bits, ZSTD; needs OpenEXR >= 3.5 to read) or 'exact' (every value as "
+                        "rendered, ZIP, readable by any OpenEXR tool). Either reads the same way.", "compact")
     threads: int = doc("drjit worker threads per render process (0: all cores).", 0)
 
 
@@ -456,6 +460,8 @@ def validate(cfg: Config, source: str) -> None:
         bad("dataset.val_fraction/test_fraction", "fractions in [0, 1) that sum to less than 1")
     if cfg.render.features not in ("auto", "all"):
         bad("render.features", f"expected 'auto' or 'all', got {cfg.render.features!r}")
+    if cfg.render.encoding not in ("compact", "exact"):
+        bad("render.encoding", f"expected 'compact' or 'exact', got {cfg.render.encoding!r}")
     if cfg.render.max_depth < 1:
         bad("render.max_depth", "must be >= 1")
     if cfg.executor.kind not in ("local", "ray"):

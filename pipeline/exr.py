@@ -4,7 +4,18 @@ An image holds a set of schema buffers (``pipeline.schema``), each with its vari
 that are constant over the frame are left out when ``omit_constant`` is set; the header attribute
 ``mcdenoise`` (JSON) records their values, and ``read_image`` restores them, so a reader never
 sees a difference. Radiance and variance are float32; features are stored in the schema's dtype
-(half for albedo/normal/roughness/...). Compression is ZIP (lossless): never DWA/B44 (lossy).
+(half for albedo/normal/roughness/...). Compression is lossless (ZIP or ZSTD): never DWA/B44.
+
+Two encodings (``ENCODINGS``; docs/store.md, "Bytes per channel group", has the measurements):
+
+- ``exact``: every value as rendered, ZIP; a format version 2 record, what every store held
+  before the compact encoding existed (and what any OpenEXR reader opens);
+- ``compact`` (the store's default, format version 3, the record's ``encoding`` says how): the
+  beauty is left out when it equals the sum of the radiance components within
+  ``BEAUTY_TOLERANCE`` (the reader sums them, ``schema.beauty_from_components``); variances and
+  depth stay float32 with their mantissa rounded to ``MANTISSA_BITS`` (relative error at most
+  2^-(bits+1)), so ZSTD compresses them; the radiance components and the half features are
+  stored exactly. ZSTD needs OpenEXR >= 3.5 to read.
 
 Every problem with a file raises ``StoreError`` naming the path and, where it applies, the
 channel and what was expected.
@@ -39,8 +50,20 @@ from .errors import StoreError, StoreWriteError
 from .numerics import constant_value
 
 FORMAT = "mcdenoise-image"
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)          # 1: no checksum
+FORMAT_VERSION = 3              # the compact encoding; the exact one writes version 2 records
+EXACT_VERSION = 2
+READ_VERSIONS = (1, 2, 3)       # 1: no checksum; 3: an 'encoding' record
+ENCODINGS = ("compact", "exact")
+# Mantissa bits kept by the compact encoding (float32 has 23): variances, and the depth mean.
+# Relative error <= 2^-(bits+1): 2^-6 = 1.6 % for a variance, below the sampling error of the
+# variance estimate itself (sqrt(2/(n-1)): 4.4 % at 1024 spp, 82 % at 4 spp; the models' outputs
+# move by < 0.002 dB, docs/store.md); 2^-11 for depth, the precision of the half features.
+MANTISSA_BITS = {"variance": 5, "depth": 10}
+# The beauty is derived when |beauty - sum of components| <= this x sum of |components| in every
+# pixel, else stored. The renderer accumulates beauty and components separately in float32, so
+# they agree only to round-off: at most 1.2e-6 (2^-19.7) over the 1548 images of data/default
+# (docs/store.md), while summing 1024 float32 samples alone may err by 1024 x 2^-24 = 6e-5.
+BEAUTY_TOLERANCE = 2.0 ** -18
 META_KEY = "mcdenoise"
 # Refuse absurd headers before allocating: 16k pixels a side, 4096² pixels in all (an image of
 # every schema channel at that size decodes to ~3 GB) are far above any frame we render.
@@ -52,7 +75,8 @@ MAX_HEADER_BYTES = 1 << 20
 VOLATILE_KEYS = ("render_seconds",)
 MAGIC = b"\x76\x2f\x31\x01"
 # EXR compression code -> (name, scanlines per chunk); only lossless ones are accepted.
-LOSSLESS = {0: ("NO", 1), 1: ("RLE", 1), 2: ("ZIPS", 1), 3: ("ZIP", 16), 4: ("PIZ", 32)}
+LOSSLESS = {0: ("NO", 1), 1: ("RLE", 1), 2: ("ZIPS", 1), 3: ("ZIP", 16), 4: ("PIZ", 32), 13: ("ZSTD", 1)}
+COMPRESSION = {"compact": "ZSTD", "exact": "ZIP"}
 PIXEL_TYPES = {1: np.dtype(np.float16), 2: np.dtype(np.float32)}   # 0 (uint) is never written
 
 
@@ -131,8 +155,37 @@ def read_json(path: Path, what: str = "manifest") -> dict:
     return data
 
 
-def _round_to_storage(value: float, dtype: type) -> float:
-    return float(np.asarray(value, dtype=dtype))
+def _round_to_storage(value: float, dtype: type, bits: int | None = None) -> float:
+    arr = np.asarray([value], dtype=dtype)
+    return float((round_mantissa(arr, bits) if bits is not None else arr)[0])
+
+
+def round_mantissa(values: np.ndarray, bits: int) -> np.ndarray:
+    """float32 ``values`` rounded to the nearest number with ``bits`` mantissa bits (of 23).
+
+    |result - x| <= 2^-(bits+1) * max(|x|, 2^-126) (the float32 normal range: relative error
+    2^-(bits+1)). A magnitude that would round up past the largest float32 is truncated instead,
+    so finite values stay finite.
+    """
+    u = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
+    drop = 23 - int(bits)
+    if drop <= 0:
+        return u.view(np.float32).copy()
+    mask = np.uint32((0xFFFFFFFF << drop) & 0xFFFFFFFF)
+    out = ((u + np.uint32(1 << (drop - 1))) & mask).view(np.float32)
+    overflow = ~np.isfinite(out)
+    if overflow.any():
+        out[overflow] = (u[overflow] & mask).view(np.float32)
+    return out
+
+
+def _mantissa_bits(key: str, encoding: str) -> int | None:
+    """Mantissa bits the ``encoding`` keeps for array ``key`` (None: all of them)."""
+    if encoding != "compact":
+        return None
+    if key.endswith(".variance"):
+        return MANTISSA_BITS["variance"]
+    return MANTISSA_BITS["depth"] if key == "depth" else None
 
 
 def _schema_order(buffers: set[str]) -> list[str]:
@@ -158,11 +211,13 @@ def _checked_buffer(path: Path, key: str, arrays: dict[str, np.ndarray], size: i
 
 
 def _buffer_channels(path: Path, buffers: list[str], arrays: dict[str, np.ndarray], constants: dict[str, float],
-                     omit_constant: bool) -> tuple[tuple[int, int], dict[str, np.ndarray], dict[str, float]]:
+                     omit_constant: bool, encoding: str = "exact"
+                     ) -> tuple[tuple[int, int], dict[str, np.ndarray], dict[str, float]]:
     """(HxW, stored channels, omitted channel constants) of every buffer and its variance.
 
     A key in ``constants`` is omitted with that value rounded to the channel's storage type; with
-    ``omit_constant`` so is a channel whose stored data is constant over the frame."""
+    ``omit_constant`` so is a channel whose stored data is constant over the frame. Values are
+    rounded to the ``encoding``'s mantissa bits first (``_mantissa_bits``)."""
     shape = None
     channels: dict[str, np.ndarray] = {}
     omitted: dict[str, float] = {}
@@ -172,14 +227,17 @@ def _buffer_channels(path: Path, buffers: list[str], arrays: dict[str, np.ndarra
         buf = schema.BY_NAME[name]
         for key, names, dtype in ((name, buf.exr_channels, buf.dtype),
                                   (schema.variance_name(name), buf.variance_channels, np.float32)):
+            bits = _mantissa_bits(key, encoding)
             if key in constants:
                 for ch in names:
-                    omitted[ch] = _round_to_storage(constants[key], dtype)
+                    omitted[ch] = _round_to_storage(constants[key], dtype, bits)
                 continue
             arr = _checked_buffer(path, key, arrays, buf.size, shape)
             shape = arr.shape[:2]
             for c, ch in enumerate(names):
                 data = np.ascontiguousarray(arr[..., c], dtype=dtype)
+                if bits is not None:
+                    data = round_mantissa(data, bits)
                 value = constant_value(data) if omit_constant else None
                 if value is not None:
                     omitted[ch] = value
@@ -202,32 +260,38 @@ def _add_layers(path: Path, channels: dict[str, np.ndarray], layers: dict[str, n
 
 
 def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
-                meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None
-                ) -> dict:
+                meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None,
+                encoding: str = "exact") -> dict:
     """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
 
     ``constants`` maps keys that were not computed at all (pruned features) to their value.
     ``layers``: extra HxWx3 float32 layers of ``schema.OUTPUT_LAYERS`` (a denoiser's ``std``), written
     as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
+    ``encoding``: one of ``ENCODINGS`` (module docstring); 'exact' writes what this function always
+    wrote (a version 2 record, ZIP).
     Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
     """
+    if encoding not in ENCODINGS:
+        raise StoreError(f"{path}: encoding {encoding!r} is not one of {', '.join(ENCODINGS)}")
     constants = dict(constants or {})
     buffers = _schema_order({k.removesuffix(".variance") for k in list(arrays) + list(constants)})
-    shape, channels, omitted = _buffer_channels(path, buffers, arrays, constants, omit_constant)
+    shape, channels, omitted = _buffer_channels(path, buffers, arrays, constants, omit_constant, encoding)
     _add_layers(path, channels, layers or {}, shape)
+    record = {"format": FORMAT, "version": EXACT_VERSION, "buffers": buffers}
+    if encoding == "compact":
+        derived = _derive_beauty(path, buffers, channels, omitted, shape)
+        record.update(version=FORMAT_VERSION, encoding={"name": encoding, "beauty": "sum" if derived else "stored",
+                                                        "mantissa_bits": dict(MANTISSA_BITS)})
     if not channels:
-        # OpenEXR needs at least one channel; keep the beauty's red even if constant.
-        first = schema.BY_NAME[buffers[0]]
-        ch = first.exr_channels[0]
-        channels[ch] = np.full(shape, omitted.pop(ch), dtype=first.dtype)
-    record = {
-        "format": FORMAT, "version": FORMAT_VERSION, "buffers": buffers,
-        "height": int(shape[0]), "width": int(shape[1]),
-        "constants": dict(sorted(omitted.items())), **({"layers": sorted(layers)} if layers else {}), **(meta or {}),
-    }
+        # OpenEXR needs at least one channel: keep one constant channel (the beauty's red if it has one).
+        first = schema.BY_NAME[buffers[0]].exr_channels[0]
+        ch = first if first in omitted else sorted(omitted)[0]
+        channels[ch] = np.full(shape, omitted.pop(ch), dtype=schema.storage_dtype(ch))
+    record.update({"height": int(shape[0]), "width": int(shape[1]), "constants": dict(sorted(omitted.items())),
+                   **({"layers": sorted(layers)} if layers else {}), **(meta or {})})
     record["checksum"] = checksum(record, channels)
     header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
+        "compression": getattr(OpenEXR, f"{COMPRESSION[encoding]}_COMPRESSION"),
         "type": OpenEXR.scanlineimage,
         META_KEY: json.dumps(record, sort_keys=True, allow_nan=False),
     }
@@ -238,6 +302,25 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
 
     atomic_write_bytes(Path(path), write)
     return record
+
+
+def _derive_beauty(path: Path, buffers: list[str], channels: dict[str, np.ndarray], omitted: dict[str, float],
+                   shape) -> bool:
+    """Leave the beauty's channels out of ``channels``/``omitted`` when the reader can sum it from the
+    components: all are present and the beauty is within ``BEAUTY_TOLERANCE`` of their sum in every
+    pixel. Returns whether it did."""
+    if "color" not in buffers or not all(name in buffers for name in schema.RADIANCE_COMPONENTS):
+        return False
+    parts = {name: _gather(path, schema.BY_NAME[name].exr_channels, channels, omitted, shape)
+             for name in ("color", *schema.RADIANCE_COMPONENTS)}
+    magnitude = sum(np.abs(parts[name].astype(np.float64)) for name in schema.RADIANCE_COMPONENTS)
+    error = np.abs(parts["color"].astype(np.float64) - schema.beauty_from_components(parts))
+    if not np.all(error <= BEAUTY_TOLERANCE * magnitude):
+        return False
+    for ch in schema.BY_NAME["color"].exr_channels:
+        channels.pop(ch, None)
+        omitted.pop(ch, None)
+    return True
 
 
 def checksum(record: dict, channels: dict[str, np.ndarray]) -> str:
@@ -343,7 +426,7 @@ def _header_info(attrs: dict, fail) -> dict:
         fail(f"EXR data window {w}x{h} is not a valid size (1..{MAX_SIDE} a side, at most {MAX_PIXELS} pixels)")
     comp = attrs["compression"][1][0]
     if comp not in LOSSLESS:
-        fail(f"EXR compression {comp} is lossy or unknown (the store uses lossless ZIP)")
+        fail(f"EXR compression {comp} is lossy or unknown (the store uses lossless ZIP or ZSTD)")
     if attrs["lineOrder"][1][0] > 2:
         fail(f"EXR line order {attrs['lineOrder'][1][0]} is not valid")
     from . import schema
@@ -434,6 +517,7 @@ def _open(path: Path, header_only: bool = False):
         raise StoreError(f"{path}: image size {w!r}x{h!r} is not a valid size (1..{MAX_SIDE})")
     if (info["height"], info["width"]) != (h, w):
         raise StoreError(f"{path}: data window {info['width']}x{info['height']} disagrees with the recorded {w}x{h}")
+    _check_encoding(path, record, info["channels"])
     return record, f, header
 
 
@@ -442,7 +526,8 @@ def _no_constant(name: str):
 
 
 def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict]:
-    """Read an image: ``{name: HxWxC float32, name.variance: ...}`` with constants restored.
+    """Read an image: ``{name: HxWxC float32, name.variance: ...}`` with constants restored and a
+    derived beauty summed from its components (the compact encoding).
 
     ``buffers`` restricts the result to those buffers (faster for consumers that need few).
     """
@@ -462,41 +547,78 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
         raise StoreError(f"{path}: header 'constants' must be a mapping")
     h, w = record["height"], record["width"]
     try:
-        channels = f.channels()
+        pixels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as exc:
         raise StoreError(f"{path}: corrupt or truncated EXR pixel data ({type(exc).__name__}: {exc})") from None
-    out: dict[str, np.ndarray] = {}
-    for name in wanted:
+    derive = "color" in wanted and _beauty_derived(record)
+    need = list(dict.fromkeys(wanted + (list(schema.RADIANCE_COMPONENTS) if derive else [])))
+    arrays: dict[str, np.ndarray] = {}
+    for name in need:
         buf = schema.BY_NAME[name]
         for key, names, dtype in ((name, buf.exr_channels, buf.dtype),
                                   (schema.variance_name(name), buf.variance_channels, np.float32)):
-            arr = np.empty((h, w, buf.size), dtype=np.float32)
-            for c, ch in enumerate(names):
-                if ch in channels:
-                    pix = channels[ch].pixels
-                    if pix is None or pix.shape != (h, w):
-                        raise StoreError(f"{path}: channel {ch!r} has shape "
-                                         f"{None if pix is None else pix.shape}, expected {(h, w)}")
-                    if pix.dtype != dtype:
-                        raise StoreError(f"{path}: channel {ch!r} is {pix.dtype}, expected {np.dtype(dtype).name}")
-                    arr[..., c] = pix
-                elif ch in constants:
-                    value = constants[ch]
-                    if not isinstance(value, (int, float)) or not np.isfinite(value):
-                        raise StoreError(f"{path}: constant for channel {ch!r} is {value!r}, expected a finite number")
-                    arr[..., c] = value
-                else:
-                    raise StoreError(f"{path}: channel {ch!r} of buffer {name!r} is missing (neither stored nor a recorded constant)")
-            out[key] = arr
+            if not (derive and key == "color"):
+                arrays[key] = _gather(path, names, pixels, constants, (h, w), dtype, name)
+    if derive:
+        arrays["color"] = schema.beauty_from_components(arrays)
     if "checksum" in record:
-        stored_channels = {name: ch.pixels for name, ch in channels.items()}
-        if any(p is None or p.shape != (h, w) for p in stored_channels.values()):
+        if any(p is None or p.shape != (h, w) for p in pixels.values()):
             raise StoreError(f"{path}: a channel's pixel data does not have the shape {(h, w)}")
-        actual = checksum(record, stored_channels)
+        actual = checksum(record, pixels)
         if actual != record["checksum"]:
             raise StoreError(f"{path}: checksum mismatch (header {record['checksum']!r}, data {actual!r}): "
                              f"the file is damaged")
-    return out, record
+    return {key: arrays[key] for name in wanted for key in (name, schema.variance_name(name))}, record
+
+
+def _gather(path: Path, names: tuple[str, ...], pixels: dict, constants: dict, shape, dtype: type | None = None,
+            buffer: str | None = None) -> np.ndarray:
+    """HxWxlen(``names``) float32 array of EXR channels ``names``, each from ``pixels`` (checked against
+    ``shape`` and, given, the storage ``dtype``) or its recorded constant."""
+    arr = np.empty((*shape, len(names)), dtype=np.float32)
+    for c, ch in enumerate(names):
+        if ch in pixels:
+            pix = pixels[ch]
+            if pix is None or pix.shape != tuple(shape):
+                raise StoreError(f"{path}: channel {ch!r} has shape {None if pix is None else pix.shape}, "
+                                 f"expected {tuple(shape)}")
+            if dtype is not None and pix.dtype != dtype:
+                raise StoreError(f"{path}: channel {ch!r} is {pix.dtype}, expected {np.dtype(dtype).name}")
+            arr[..., c] = pix
+        elif ch in constants:
+            value = constants[ch]
+            if not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise StoreError(f"{path}: constant for channel {ch!r} is {value!r}, expected a finite number")
+            arr[..., c] = value
+        else:
+            raise StoreError(f"{path}: channel {ch!r} of buffer {buffer!r} is missing (neither stored nor a "
+                             f"recorded constant)")
+    return arr
+
+
+def _beauty_derived(record: dict) -> bool:
+    """Whether the image leaves the beauty out for the reader to sum (checked by ``_check_encoding``)."""
+    return record.get("version") == 3 and record["encoding"]["beauty"] == "sum"
+
+
+def _check_encoding(path: Path, record: dict, stored_channels) -> None:
+    """A version 3 record names a known encoding; a derived beauty has no stored or constant channel
+    and all its components are listed."""
+    if record["version"] < 3:
+        return
+    enc = record.get("encoding")
+    if not (isinstance(enc, dict) and enc.get("name") in ENCODINGS and enc.get("beauty") in ("sum", "stored")):
+        raise StoreError(f"{path}: header record 'encoding' is {enc!r}, expected "
+                         f"{{'name': one of {', '.join(ENCODINGS)}, 'beauty': 'sum' or 'stored', ...}}")
+    if enc["beauty"] == "sum":
+        listed = record.get("buffers") if isinstance(record.get("buffers"), list) else []
+        constants = record.get("constants") if isinstance(record.get("constants"), dict) else {}
+        missing = [n for n in ("color", *schema.RADIANCE_COMPONENTS) if n not in listed]
+        kept = [ch for ch in schema.BY_NAME["color"].exr_channels if ch in stored_channels or ch in constants]
+        if missing or kept:
+            raise StoreError(f"{path}: the beauty is marked as the sum of its components, but "
+                             + (f"buffers {', '.join(missing)} are not listed" if missing
+                                else f"channels {', '.join(kept)} are stored"))
 
 
 def read_layers(path: Path) -> dict[str, np.ndarray]:

@@ -106,6 +106,19 @@ def exr_channel_map() -> dict[str, tuple[str, int, bool]]:
     return out
 
 
+def beauty_from_components(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """The beauty as the sum of the radiance components (HxWx3 float32 arrays in ``arrays``).
+
+    Summed in float64 in ``RADIANCE_COMPONENTS`` order and rounded once to float32, so the result
+    is a deterministic function of the stored components: the compact encoding
+    (``pipeline.exr``, docs/store.md) stores the components and derives the beauty with this.
+    """
+    total = np.zeros(arrays[RADIANCE_COMPONENTS[0]].shape, np.float64)
+    for name in RADIANCE_COMPONENTS:
+        total += arrays[name]
+    return total.astype(np.float32)
+
+
 def storage_dtype(exr_channel: str) -> type:
     buf, _, is_var = exr_channel_map()[exr_channel]
     return np.float32 if is_var else BY_NAME[buf].dtype

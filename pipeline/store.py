@@ -226,9 +226,11 @@ class Store:
 
     # ---- images ------------------------------------------------------------------------
     def write_image(self, scene: str, frame: int, image: str, arrays, constants=None, meta=None,
-                    omit_constant: bool = True) -> dict:
+                    omit_constant: bool = True, encoding: str = "compact") -> dict:
+        """Write one image (``pipeline.exr.write_image``; a store's images are compact unless the
+        config's ``render.encoding`` says 'exact'); its record plus ``bytes`` and ``sha256``."""
         path = self.image_path(scene, frame, image)
-        record = write_image(path, arrays, constants, meta, omit_constant)
+        record = write_image(path, arrays, constants, meta, omit_constant, encoding=encoding)
         return {**record, "bytes": path.stat().st_size, "sha256": sha256(path)}
 
     def read_image(self, scene: str, frame: int, image: str, buffers: list[str] | None = None):

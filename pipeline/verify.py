@@ -15,6 +15,10 @@ What is checked (each problem is reported as ``PATH: what is wrong``):
   ``--headers-only``) the pixels decoded: storage types per schema (float32 radiance and
   variance), the header checksum, every value finite, the header's repaired non-finite counts
   equal to ``frame.json``'s.
+- the image's encoding (``pipeline.exr``): a version 3 (compact) image is ZSTD-compressed, names a
+  known encoding, leaves out the beauty only when it lists all its components (the reader
+  checks that), and (with pixels) holds variances and depth with no more mantissa bits than its
+  record states; version 1 and 2 (exact) images are ZIP-compressed.
 - ``gt_clean.exr``: made by the cleaner that ``cleaner.json`` names (header ``cleaner_sha256``),
   listed there, the frame's size; ``cleaner.json``'s checkpoint, where it still exists, has that
   hash; no gt_clean without a cleaner.json.
@@ -234,6 +238,7 @@ def _check_image(store: Store, path: Path, name: str, img: dict, sm: dict, f: in
     if missing:
         report.add(path, f"buffers {', '.join(missing)} are missing")
     _check_channels(path, header, report)
+    _check_encoding(path, header, arrays, report)
     if arrays is not None:
         for key, arr in arrays.items():
             bad = int(np.count_nonzero(~np.isfinite(arr)))
@@ -249,6 +254,33 @@ def _check_channels(path: Path, header: dict, report: Report) -> None:
     both = sorted(stored & set(header.get("constants", {})))
     if both:
         report.add(path, f"channels {', '.join(both)} are stored and also recorded as constants")
+
+
+def _check_encoding(path: Path, header: dict, arrays: dict | None, report: Report) -> None:
+    """Compression as the record's encoding says; stored variances/depth within its mantissa bits."""
+    from .exr import COMPRESSION, scan_exr
+    # read_image/read_header checked a version 3 record's encoding; older images are all exact.
+    encoding = header["encoding"]["name"] if header.get("version") == 3 else "exact"
+    compression = scan_exr(path)["compression"]
+    if compression != COMPRESSION[encoding]:
+        report.add(path, f"{encoding} image compressed with {compression}, expected {COMPRESSION[encoding]}")
+    bits = header["encoding"].get("mantissa_bits") if encoding == "compact" else None
+    if arrays is None or encoding != "compact":
+        return
+    if not isinstance(bits, dict):
+        report.add(path, f"encoding record's mantissa_bits is {bits!r}, expected {{'variance': n, 'depth': n}}")
+        return
+    for key, arr in arrays.items():
+        kind = "variance" if key.endswith(".variance") else key if key == "depth" else None
+        if kind is None:
+            continue
+        if not isinstance(bits.get(kind), int) or not 0 <= bits[kind] <= 23:
+            report.add(path, f"encoding record states no mantissa bits for {kind} (expected 0..23)")
+            continue
+        extra = np.count_nonzero(arr.view(np.uint32) & np.uint32((1 << (23 - bits[kind])) - 1))
+        if extra:
+            report.add(path, f"buffer {key!r} has {extra} values with more than the {bits[kind]} mantissa bits "
+                             f"its encoding states")
 
 
 def _check_gt_clean(path: Path, key: str, cleaner: dict | None, size: tuple, report: Report, pixels: bool) -> None:
@@ -292,6 +324,99 @@ def _leftovers(folder: Path, report: Report, known: set | None, recursive: bool)
             report.add(path, "temporary file left by an interrupted write (delete it, or rerun the stage)")
         elif known is not None and path not in known:
             report.add(path, "unexpected file in the store")
+
+
+# ---- bytes per channel group (``verify STORE --bytes N``; the table in docs/store.md) -----------------
+
+GROUPS = ("beauty", "beauty variance", "radiance components", "component variances", "features (half)", "depth",
+          "feature variances")
+
+
+def channel_group(channel: str) -> str:
+    """The ``GROUPS`` entry of a schema EXR channel."""
+    buf, _, is_var = schema.exr_channel_map()[channel]
+    if buf == "color":
+        return GROUPS[1] if is_var else GROUPS[0]
+    if schema.BY_NAME[buf].radiance:
+        return GROUPS[3] if is_var else GROUPS[2]
+    return GROUPS[6] if is_var else GROUPS[5] if buf == "depth" else GROUPS[4]
+
+
+def group_bytes(path: Path) -> dict[str, int]:
+    """Bytes of each channel group of an image: the group's stored channels written alone with the
+    image's compression (each with its own header and chunk overhead, so the groups add up to a
+    few % more than the file)."""
+    import tempfile
+
+    import OpenEXR
+
+    from .exr import scan_exr
+    compression = getattr(OpenEXR, f"{scan_exr(path)['compression']}_COMPRESSION")
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        channels = {name: ch.pixels.copy() for name, ch in f.channels().items()}
+    groups: dict[str, dict] = {}
+    for name, pixels in channels.items():
+        groups.setdefault(channel_group(name), {})[name] = pixels
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for group, part in groups.items():
+            with OpenEXR.File({"compression": compression, "type": OpenEXR.scanlineimage}, part) as f:
+                f.write(f"{tmp}/g.exr")
+            out[group] = Path(f"{tmp}/g.exr").stat().st_size
+    return out
+
+
+def measure_bytes(root: str | Path, frames: int = 8) -> dict:
+    """Bytes per frame and channel group of ``frames`` complete frames spread evenly over the store:
+    as stored, and each image re-encoded with the compact encoding (in a temporary folder).
+
+    Returns ``{"frames": n, "stored"|"compact": {"groups": {group: bytes}, "files": [bytes per frame]}}``.
+    """
+    import tempfile
+
+    from .exr import write_image
+    store = Store(root)
+    keys = [k for k in store.frames() if store.frame_record(k.scene, k.frame) is not None]
+    picked = [keys[i] for i in sorted({int(i) for i in np.linspace(0, len(keys) - 1, min(frames, len(keys)))})]
+    result = {kind: {"groups": dict.fromkeys(GROUPS, 0), "files": []} for kind in ("stored", "compact")}
+    with tempfile.TemporaryDirectory() as tmp:
+        for key in picked:
+            totals = dict.fromkeys(result, 0)
+            for name in store.frame_record(key.scene, key.frame)["images"]:
+                path = store.image_path(key.scene, key.frame, name)
+                arrays, header = read_image(path)
+                meta = {k: v for k, v in header.items() if k not in _IMAGE_KEYS}
+                write_image(Path(tmp) / "c.exr", arrays, meta=meta, encoding="compact")
+                for kind, file in (("stored", path), ("compact", Path(tmp) / "c.exr")):
+                    totals[kind] += file.stat().st_size
+                    for group, n in group_bytes(file).items():
+                        result[kind]["groups"][group] += n
+            for kind, n in totals.items():
+                result[kind]["files"].append(n)
+    result["frames"] = len(picked)
+    return result
+
+
+# Record keys that write_image sets itself (the rest is the caller's meta).
+_IMAGE_KEYS = {"format", "version", "buffers", "height", "width", "constants", "checksum", "encoding", "layers"}
+
+
+def bytes_table(result: dict) -> str:
+    """``measure_bytes``'s result as a markdown table in MiB per frame."""
+    n = max(result["frames"], 1)
+
+    def mib(v: float) -> str:
+        return f"{v / n / 2**20:.2f}"
+
+    lines = [f"{result['frames']} frames; MiB per frame (each group written alone, with its own header and "
+             "chunks: the groups add up to a few % more than the files)", "",
+             "| channel group | stored | compact |", "| --- | ---: | ---: |"]
+    for group in GROUPS:
+        lines.append(f"| {group} | {mib(result['stored']['groups'][group])} | {mib(result['compact']['groups'][group])} |")
+    s, c = result["stored"]["files"], result["compact"]["files"]
+    lines.append(f"| **files (mean)** | **{mib(sum(s))}** | **{mib(sum(c))}** |")
+    lines.append(f"| files (largest frame) | {max(s, default=0) / 2**20:.2f} | {max(c, default=0) / 2**20:.2f} |")
+    return "\n".join(lines)
 
 
 def run_verify(root: str, quiet: bool = False, pixels: bool = True, jobs: int = 1) -> int:

@@ -116,7 +116,8 @@ def render_frame(task: FrameTask) -> dict:
                 "frame": task.frame, "render_seconds": round(result.seconds, 4), "nonfinite": result.nonfinite,
                 "features": sorted(features), **extra}
         records[name] = store.write_image(task.scene, task.frame, name, result.buffers, result.constants,
-                                          meta, omit_constant=task.render["omit_constant"])
+                                          meta, omit_constant=task.render["omit_constant"],
+                                          encoding=task.render.get("encoding", "compact"))
         if name in GT_IMAGES:
             gt_color[name] = result.buffers["color"]
         write_s += time.perf_counter() - t0

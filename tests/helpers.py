@@ -81,8 +81,8 @@ def _image(truth: np.ndarray, noise: float, rng: np.random.Generator, spp: int) 
     return arrays
 
 
-def make_clean_store(root: Path, seed: int = 0) -> Path:
-    """2 train scenes + 1 val scene × 2 frames × 16² px; returns the store root."""
+def make_clean_store(root: Path, seed: int = 0, encoding: str = "compact") -> Path:
+    """2 train scenes + 1 val scene × 2 frames × 16² px, images in ``encoding``; returns the store root."""
     store = Store(root)
     rng = np.random.default_rng(seed)
     names = image_names(STACKS)
@@ -99,7 +99,7 @@ def make_clean_store(root: Path, seed: int = 0) -> Path:
             for k, name in enumerate(names):
                 noise = 0.1 if name.startswith("gt") else 0.5
                 records[name] = store.write_image(scene, f, name, _image(truth, noise, rng, 64),
-                                                  meta={"image": name, "scene": scene, "frame": f})
+                                                  meta={"image": name, "scene": scene, "frame": f}, encoding=encoding)
             store.write_frame_record(scene, f, {"images": records})
     return root
 

@@ -27,7 +27,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline import schema
-from pipeline.exr import VOLATILE_KEYS, StoreError, read_image, write_image
+from pipeline.exr import ENCODINGS, VOLATILE_KEYS, StoreError, read_image, write_image
 from pipeline.store import Store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,17 +108,30 @@ def reader():
     r.close()
 
 
+@pytest.fixture(scope="module", params=ENCODINGS)
+def original(request, tmp_path_factory):
+    """A valid image in each encoding (``_original``): every fuzz test runs on both."""
+    return _original(tmp_path_factory, request.param)
+
+
 @pytest.fixture(scope="module")
-def original(tmp_path_factory):
-    """A valid 20x12 image with every buffer, some constant channels and a volatile field."""
+def exact_original(tmp_path_factory):
+    return _original(tmp_path_factory, "exact")
+
+
+def _original(tmp_path_factory, encoding: str) -> dict:
+    """A valid 20x12 image with every buffer, some constant channels and a volatile field; in the
+    compact encoding the beauty is the sum of its components, so the reader derives it."""
     rng = np.random.default_rng(5)
     arrays = {}
     for b in schema.BUFFERS:
         arrays[b.name] = rng.random((12, 20, b.size)).astype(np.float32) * 4
         arrays[schema.variance_name(b.name)] = (rng.random((12, 20, b.size)) * 1e-3).astype(np.float32)
     arrays["transmission"][:] = 0.0
+    if encoding == "compact":
+        arrays["color"] = schema.beauty_from_components(arrays)
     path = tmp_path_factory.mktemp("fuzz") / "orig.exr"
-    write_image(path, arrays, meta={"image": "gt1", "spp": 64, "seed": 3, "render_seconds": 1.25})
+    write_image(path, arrays, meta={"image": "gt1", "spp": 64, "seed": 3, "render_seconds": 1.25}, encoding=encoding)
     read, record = read_image(path)
     return {"bytes": path.read_bytes(), "digest": digest(read), "record": stable(record), "path": path}
 
@@ -389,8 +402,9 @@ def test_fuzz_manifests(tmp_path_factory, capsys):
     assert tally["StoreError"] > 0
 
 
-def test_version_1_images_without_checksum_still_read(original, tmp_path):
+def test_version_1_images_without_checksum_still_read(exact_original, tmp_path):
     """Stores written before the checksum existed stay readable (without that check)."""
+    original = exact_original
     record = json.loads(OpenEXR.File(str(original["path"]), header_only=True).header()["mcdenoise"])
     del record["checksum"]
     old = tmp_path / "v1.exr"

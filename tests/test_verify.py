@@ -39,7 +39,7 @@ def _edit_json(path, fn):
     path.write_text(json.dumps(data))
 
 
-def _rewrite_exr(path, edit_channels, edit_record=None):
+def _rewrite_exr(path, edit_channels, edit_record=None, compression=None):
     """Rewrite an image with changed pixels, a correct checksum, and a frame.json that agrees,
     so that only the damage under test remains."""
     from pipeline.store import sha256
@@ -52,7 +52,7 @@ def _rewrite_exr(path, edit_channels, edit_record=None):
     if edit_record:
         edit_record(record)
     record["checksum"] = checksum(record, chans)
-    with OpenEXR.File({"compression": header["compression"], "type": header["type"],
+    with OpenEXR.File({"compression": compression or header["compression"], "type": header["type"],
                        "mcdenoise": json.dumps(record)}, chans) as f:
         f.write(str(path))
     frame = path.parent / "frame.json"
@@ -67,7 +67,19 @@ def _flip(path):
 
 
 def _nan(chans):
-    chans["R"][3, 4] = np.nan
+    # The store is compact: the beauty is the sum of the stored components, a NaN in one reaches it.
+    chans["diffuse_direct.R"][3, 4] = np.nan
+    return chans
+
+
+def _extra_mantissa_bit(chans):
+    bits = chans["variance.G"].view(np.uint32)
+    bits[5, 6] |= 1
+    return chans
+
+
+def _beauty_back(chans):
+    chans.update({c: np.zeros_like(chans["diffuse_direct.R"]) for c in "RGB"})
     return chans
 
 
@@ -93,8 +105,14 @@ DAMAGE = {
     "channel dropped": (lambda r: _rewrite_exr(r / FRAME / "gt1.exr", _drop_albedo_g), "gt1.exr",
                         "channel 'albedo.G' of buffer 'albedo' is missing"),
     "constant and stored": (lambda r: _rewrite_exr(r / FRAME / "s00.exr", lambda c: c,
-                                                   lambda rec: rec["constants"].update({"R": 0.0})),
-                            "s00.exr", "channels R are stored and also recorded as constants"),
+                                                   lambda rec: rec["constants"].update({"diffuse_direct.R": 0.0})),
+                            "s00.exr", "channels diffuse_direct.R are stored and also recorded as constants"),
+    "variance beyond its mantissa bits": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", _extra_mantissa_bit),
+                                          "s02.exr", "buffer 'color.variance' has 1 values with more than the 5"),
+    "derived beauty stored": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", _beauty_back), "s02.exr",
+                              "the beauty is marked as the sum of its components, but channels R, G, B are stored"),
+    "compact image as ZIP": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", lambda c: c, compression=OpenEXR.ZIP_COMPRESSION),
+                             "s02.exr", "compact image compressed with ZIP, expected ZSTD"),
     "other cleaner": (lambda r: _edit_json(r / "cleaner.json", lambda d: d.update(sha256="0" * 64)),
                       "gt_clean.exr", "cleaner.json names 000000000000"),
     "gt_clean missing": (lambda r: (r / FRAME / "gt_clean.exr").unlink(), "gt_clean.exr", "listed in cleaner.json but missing"),

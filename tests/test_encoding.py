@@ -1,0 +1,204 @@
+"""The compact store encoding (pipeline.exr, docs/store.md "Bytes per channel group"): every
+encoded value within its stated bound, everything else exact, and old (exact, version 2) stores
+still read and verify."""
+import json
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from pipeline import schema
+from pipeline.config import ConfigError, load_config
+from pipeline.exr import (
+    BEAUTY_TOLERANCE,
+    MANTISSA_BITS,
+    StoreError,
+    read_header,
+    read_image,
+    round_mantissa,
+    scan_exr,
+    write_image,
+)
+from pipeline.store import Store
+from pipeline.verify import verify_store
+from tests.helpers import make_clean_store
+
+
+def rendered_like(h=24, w=20, seed=0):
+    """Buffers as a renderer leaves them: the beauty accumulated on its own in float32 (so it equals
+    the sum of the components only to round-off), variances over many decades and exact zeros."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for b in schema.BUFFERS:
+        shape = (h, w, b.size)
+        out[b.name] = (rng.lognormal(-1, 2, shape) if b.radiance or b.name == "depth" else rng.random(shape))
+        out[b.name] = out[b.name].astype(np.float32)
+        var = rng.lognormal(-12, 8, shape) * (rng.random(shape) > 0.2)
+        out[schema.variance_name(b.name)] = np.minimum(var, 1e30).astype(np.float32)
+    out["color"] = accumulated_beauty(out)
+    return out
+
+
+def accumulated_beauty(arrays):
+    color = np.zeros(arrays["emission"].shape, np.float32)
+    for name in reversed(schema.RADIANCE_COMPONENTS):   # float32, in another order than the reader's sum
+        color = color + arrays[name]
+    return color
+
+
+def assert_within(back, exact, bound, key):
+    err = np.abs(back.astype(np.float64) - exact)
+    limit = bound * np.maximum(np.abs(exact.astype(np.float64)), 2.0 ** -126)
+    assert np.all(err <= limit), f"{key}: max error / bound {np.max(err / limit):.3g}"
+
+
+@pytest.mark.parametrize("bits", [0, 3, 7, 10, 22])
+def test_round_mantissa_keeps_its_bound_over_the_whole_float32_range(bits):
+    rng = np.random.default_rng(bits)
+    tiny = np.array([0.0, 1e-45, 3e-42, 1.17e-38, 1.1754942e-38], np.float32)
+    huge = np.array([np.finfo(np.float32).max, 3.4e38, 1e38], np.float32)
+    x = np.concatenate([tiny, huge, -huge, np.exp(rng.uniform(-100, 88, 20000)).astype(np.float32)])
+    x = np.concatenate([x, -x[:100]])
+    r = round_mantissa(x, bits)
+    assert r.dtype == np.float32 and np.all(np.isfinite(r))
+    assert not np.any(r.view(np.uint32) & np.uint32((1 << (23 - bits)) - 1)), "bits below the kept mantissa"
+    assert_within(r, x, 2.0 ** -(bits + 1), f"{bits} bits")
+    # the nearest representable value, not just any within the bound: rounding again changes nothing
+    np.testing.assert_array_equal(round_mantissa(r, bits), r)
+    np.testing.assert_array_equal(round_mantissa(x, 23), x)
+
+
+def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
+    img = rendered_like()
+    write_image(tmp_path / "exact.exr", img, encoding="exact")
+    rec = write_image(tmp_path / "compact.exr", img, encoding="compact")
+    exact, _ = read_image(tmp_path / "exact.exr")
+    back, header = read_image(tmp_path / "compact.exr")
+    assert header == rec and rec["version"] == 3
+    assert rec["encoding"] == {"name": "compact", "beauty": "sum", "mantissa_bits": MANTISSA_BITS}
+    assert back.keys() == exact.keys()
+    for b in schema.BUFFERS:
+        var = schema.variance_name(b.name)
+        assert_within(back[var], img[var], 2.0 ** -(MANTISSA_BITS["variance"] + 1), var)
+        assert np.count_nonzero(back[var] == 0) == np.count_nonzero(img[var] == 0)
+        if b.name == "depth":
+            assert_within(back[b.name], img[b.name], 2.0 ** -(MANTISSA_BITS["depth"] + 1), b.name)
+        elif b.name != "color":   # radiance components float32, features in their half: as the exact encoding
+            np.testing.assert_array_equal(back[b.name], exact[b.name], err_msg=b.name)
+    np.testing.assert_array_equal(exact["color"], img["color"])
+    assert not np.array_equal(back["color"], img["color"])    # the beauty really is derived here
+    magnitude = sum(np.abs(img[n].astype(np.float64)) for n in schema.RADIANCE_COMPONENTS)
+    assert np.all(np.abs(back["color"].astype(np.float64) - img["color"]) <= BEAUTY_TOLERANCE * magnitude)
+    info = scan_exr(tmp_path / "compact.exr")
+    assert info["compression"] == "ZSTD" and not {"R", "G", "B"} & set(info["channels"])
+    assert info["channels"]["variance.R"] == np.float32 and info["channels"]["depth.Z"] == np.float32
+    assert scan_exr(tmp_path / "exact.exr")["compression"] == "ZIP"
+    assert (tmp_path / "compact.exr").stat().st_size < (tmp_path / "exact.exr").stat().st_size
+    # a reader asking for the beauty alone gets the same derived beauty
+    alone, _ = read_image(tmp_path / "compact.exr", ["color"])
+    assert list(alone) == ["color", "color.variance"]
+    np.testing.assert_array_equal(alone["color"], back["color"])
+
+
+def test_beauty_that_is_not_the_sum_of_its_components_is_stored_exactly(tmp_path):
+    img = rendered_like()
+    img["color"][3, 4, 1] *= 1 + 8 * BEAUTY_TOLERANCE       # one pixel off by more than round-off
+    rec = write_image(tmp_path / "a.exr", img, encoding="compact")
+    back, _ = read_image(tmp_path / "a.exr")
+    assert rec["encoding"]["beauty"] == "stored" and "R" in scan_exr(tmp_path / "a.exr")["channels"]
+    np.testing.assert_array_equal(back["color"], img["color"])
+    # an image without the components (GT_clean, a denoiser's output) keeps its beauty too
+    only = {"color": img["color"], "color.variance": np.zeros_like(img["color"])}
+    assert write_image(tmp_path / "b.exr", only, encoding="compact")["encoding"]["beauty"] == "stored"
+    np.testing.assert_array_equal(read_image(tmp_path / "b.exr")[0]["color"], img["color"])
+
+
+def test_constant_channels_and_pruned_features_in_the_compact_encoding(tmp_path):
+    img = rendered_like()
+    for name in ("emission", "emission.variance"):
+        img[name][:] = 0                       # no emitter in view
+    img["color"] = accumulated_beauty(img)
+    img["depth.variance"][:] = 0.1             # constant, rounded like the stored values would be
+    del img["metallic"], img["metallic.variance"]
+    rec = write_image(tmp_path / "a.exr", img, constants={"metallic": 0.0, "metallic.variance": 1 / 3},
+                      encoding="compact")
+    back, _ = read_image(tmp_path / "a.exr")
+    assert rec["encoding"]["beauty"] == "sum" and "emission.R" in rec["constants"]
+    assert back["depth.variance"][0, 0, 0] == round_mantissa(np.float32([0.1]), MANTISSA_BITS["variance"])[0]
+    assert_within(back["metallic.variance"], np.float32([[[1 / 3]]]), 2.0 ** -(MANTISSA_BITS["variance"] + 1),
+                  "metallic.variance")
+    assert np.all(back["emission"] == 0)
+
+
+def test_inconsistent_compact_header_is_refused(tmp_path):
+    write_image(tmp_path / "a.exr", rendered_like(), encoding="compact")
+    with OpenEXR.File(str(tmp_path / "a.exr"), separate_channels=True) as f:
+        chans = {k: v.pixels.copy() for k, v in f.channels().items()}
+        record = json.loads(f.header()["mcdenoise"])
+    for change, message in ((lambda r: r["encoding"].update(name="tiny"), "header record 'encoding' is"),
+                            (lambda r: r.pop("encoding"), "header record 'encoding' is None"),
+                            (lambda r: r["buffers"].remove("specular_direct"), "buffers specular_direct are not listed")):
+        bad = json.loads(json.dumps(record))
+        change(bad)
+        with OpenEXR.File({"compression": OpenEXR.ZSTD_COMPRESSION, "mcdenoise": json.dumps(bad)}, dict(chans)) as f:
+            f.write(str(tmp_path / "bad.exr"))
+        with pytest.raises(StoreError, match=r"bad\.exr: .*" + message):
+            read_header(tmp_path / "bad.exr")
+
+
+def test_old_format_store_still_reads_and_verifies(tmp_path):
+    """A store written the old way (every value exact, ZIP, version 2 records) reads as before and
+    gives what the compact store of the same data gives, within the compact encoding's bounds."""
+    old = Store(make_clean_store(tmp_path / "old", encoding="exact"))
+    new = Store(make_clean_store(tmp_path / "new", encoding="compact"))
+    assert verify_store(old.root).problems == [] and verify_store(new.root).problems == []
+    for key in old.frames():
+        for image in ("gt1", "s01"):
+            rec = old.image_header(key.scene, key.frame, image)
+            assert rec["version"] == 2 and "encoding" not in rec
+            assert scan_exr(old.image_path(key.scene, key.frame, image))["compression"] == "ZIP"
+        a, b = old.read(key.scene, key.frame, spp=8), new.read(key.scene, key.frame, spp=8)
+        for k in a:
+            bound = 2.0 ** -(MANTISSA_BITS["variance" if k.endswith(".variance") else "depth"] + 1)
+            if k.endswith(".variance") or k == "depth":
+                assert_within(b[k], a[k], 3 * bound, k)       # pooling two stacks adds float32 round-off
+            else:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_rendered_store_is_compact_and_derives_every_beauty(tiny_store):
+    """The dataset stage writes the compact encoding, and real renders meet the beauty tolerance."""
+    store = Store(tiny_store[0])
+    for key in store.frames():
+        for image in store.frame_record(key.scene, key.frame)["images"]:
+            rec = store.image_header(key.scene, key.frame, image)
+            assert rec["version"] == 3 and rec["encoding"]["beauty"] == "sum", f"{key}/{image}"
+
+
+def test_encoding_config_key():
+    assert load_config(None).render.encoding == "compact"
+    assert load_config(None, ["render.encoding=exact"]).render.encoding == "exact"
+    with pytest.raises(ConfigError, match=r"render\.encoding: expected 'compact' or 'exact', got 'zip'"):
+        load_config(None, ["render.encoding=zip"])
+
+
+def test_bytes_per_channel_group(tmp_path):
+    """``verify STORE --bytes N``: per frame, the files' true sizes, and each group's bytes."""
+    from pipeline.verify import GROUPS, measure_bytes
+    from tests.helpers import cli
+    root = make_clean_store(tmp_path / "old", encoding="exact")
+    result = measure_bytes(root, frames=2)
+    store = Store(root)
+    keys = store.frames()
+    picked = [keys[0], keys[-1]]
+    assert result["frames"] == 2
+    assert result["stored"]["files"] == [sum(r["bytes"] for r in store.frame_record(k.scene, k.frame)["images"].values())
+                                         for k in picked]
+    stored, compact = result["stored"]["groups"], result["compact"]["groups"]
+    assert set(stored) == set(GROUPS)
+    # the synthetic features are constant (left out); everything with pixel data counts
+    assert stored["features (half)"] == 0 and compact["features (half)"] == 0
+    for group in ("beauty", "beauty variance", "radiance components", "depth"):
+        assert stored[group] > 0 and compact[group] > 0, group
+    table = cli("verify", root, "--bytes", "2").stdout
+    assert "| **files (mean)** |" in table and table.count("\n| ") == 2 + len(GROUPS) + 2   # head, rule, groups, totals
