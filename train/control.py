@@ -14,6 +14,29 @@ At initialisation every zero conv outputs 0, so the controlled model equals the 
 stem's last layer is zero too, so the copied encoder first sees what the base's encoder sees.
 Only the Control Module trains (``ControlledDenoiser.trainable_parameters``); with
 ``train_base=True`` the base trains as well, for comparison.
+
+Why not ``diffusers.ControlNetModel.from_unet`` (checked with diffusers 0.42.1 on the
+``default_config`` stand-in and on ``train/base_model_paper``): it cannot copy an IF-II-layout UNet.
+
+* ``ControlNetModel`` builds only the ``UNetMidBlock2DCrossAttn`` and ``UNetMidBlock2D`` middle blocks;
+  IF-II's ``UNetMidBlock2DSimpleCrossAttn`` makes ``from_unet`` raise
+  ``ValueError: unknown mid_block_type : UNetMidBlock2DSimpleCrossAttn`` for both bases.
+* It has no ``cross_attention_norm`` argument, so its ``SimpleCrossAttnDownBlock2D`` lacks IF's
+  ``norm_cross`` group norm: with the middle block type changed, copying the down blocks fails
+  (``Unexpected key(s) in state_dict: "1.attentions.0.norm_cross.weight", …``).
+* The embedding differs even where the weights copy: ``from_unet`` does not pass
+  ``addition_embed_type_num_heads`` (the copy's text pooling gets 64 heads, the base has 2: same
+  weight shapes, a different function), does not copy ``encoder_hid_proj``, and
+  ``ControlNetModel.forward`` applies neither ``encoder_hid_proj`` (the cross-attention would see the
+  raw ``encoder_hid_dim`` text embedding) nor ``time_embed_act`` (IF's ``time_embedding_act_fn``), so
+  the copied encoder could not reproduce the base's encoder features.
+* Its ``ControlNetConditioningEmbedding`` halves the resolution at each width after the first (made
+  for Stable Diffusion's 8× latents); this model works in pixel space and the stem keeps full
+  resolution (three stride-1 convs, widths 32/48/64). The shipped ``control.safetensors`` holds this
+  stem's weights, which have no counterpart there.
+
+So the copy stays explicit below: the same modules ``from_unet`` copies, plus ``encoder_hid_proj`` and
+``time_embed_act``, with ``_embedding`` following ``UNet2DConditionModel.forward``.
 """
 from __future__ import annotations
 
