@@ -332,8 +332,9 @@ def _tool_parsers(sub) -> None:
     p.set_defaults(fn=cmd_plan)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None, prog: str = "python -m pipeline") -> int:
+    """Run one stage; ``prog`` is the name --help shows (the installed command is ``mcdenoise``)."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     # The order of these calls is the order of the subcommands in --help.
     _dataset_parsers(sub)
