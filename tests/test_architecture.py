@@ -5,6 +5,11 @@
   ``pipeline/__main__.py``, which only dispatches to them.
 - No module uses another module's private (``_underscore``) name, by ``from m import _name`` or as
   ``m._name``: what a module shares is public.
+- Project modules are imported through the one installed name, ``mcdenoise.pipeline.config`` (or
+  relatively inside a package), never as a top-level ``pipeline.config``: that name works only in a
+  source checkout and would load a second copy of the module there. A package's ``__main__`` (run as
+  ``python -m pipeline``, whose package is then the top-level ``pipeline``) imports absolutely.
+  The checks below name modules without the ``mcdenoise.`` prefix.
 - Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
   never by importing another test module (its module-scoped fixtures would run once more there).
 """
@@ -19,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CORE = "pipeline"
 STAGES = ("render", "clean", "train", "evaluate")
 DISPATCH = {"pipeline.__main__"}
+PACKAGE = "mcdenoise"   # the installed name; pyproject.toml maps the folders above under it
 
 
 def modules() -> dict[str, Path]:
@@ -30,9 +36,14 @@ def modules() -> dict[str, Path]:
     return out
 
 
+def _project(name: str) -> str:
+    """``mcdenoise.pipeline.config`` -> ``pipeline.config``; other names as they are."""
+    return name.removeprefix(PACKAGE + ".")
+
+
 def _absolute(module: str, path: Path, node: ast.ImportFrom) -> str:
     if not node.level:
-        return node.module or ""
+        return _project(node.module or "")
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
     base = package[: len(package) - node.level + 1]
     return ".".join(base + ([node.module] if node.module else []))
@@ -43,11 +54,26 @@ def imports(module: str, path: Path) -> list[tuple[str, str | None, int]]:
     out = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            out += [(a.name, None, node.lineno) for a in node.names]
+            out += [(_project(a.name), None, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module == PACKAGE:
+            out += [(a.name, None, node.lineno) for a in node.names]     # from mcdenoise import render
         elif isinstance(node, ast.ImportFrom):
             src = _absolute(module, path, node)
             out += [(src, a.name, node.lineno) for a in node.names]
     return sorted(out, key=lambda x: x[2])
+
+
+def unprefixed_imports(path: Path) -> list[str]:
+    """Imports of a project folder by its bare top-level name (``from pipeline.x import``), and relative
+    imports in a ``__main__.py`` of one."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                 [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+        found += [f"{path.relative_to(ROOT)}:{node.lineno}: {n}" for n in names if n.split(".")[0] in (CORE, *STAGES)]
+        if isinstance(node, ast.ImportFrom) and node.level and path.name == "__main__.py":
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno}: relative import in a __main__")
+    return found
 
 
 def private_uses(module: str, path: Path, known: set[str]) -> list[str]:
@@ -58,8 +84,8 @@ def private_uses(module: str, path: Path, known: set[str]) -> list[str]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
-                if a.asname and a.name in known:
-                    aliases[a.asname] = a.name
+                if a.asname and _project(a.name) in known:
+                    aliases[a.asname] = _project(a.name)
         elif isinstance(node, ast.ImportFrom):
             src = _absolute(module, path, node)
             for a in node.names:
@@ -109,12 +135,16 @@ def test_the_checker_sees_what_it_forbids(tmp_path):
     """The checks above must be able to fail: a core module importing a stage inside a function,
     and a private name used through a module alias, are found."""
     core = tmp_path / "core.py"
-    core.write_text("def f():\n    from render.frame import FrameTask\n    from . import color as c\n    return c._clamp\n")
-    assert [src for src, _, _ in imports("pipeline.core", core)] == ["render.frame", "pipeline"]
+    core.write_text("def f():\n    from mcdenoise.render.frame import FrameTask\n    from . import color as c\n"
+                    "    from mcdenoise import clean\n    return c._clamp\n")
+    assert [src for src, _, _ in imports("pipeline.core", core)] == ["render.frame", "pipeline", "clean"]
+    main = tmp_path / "__main__.py"
+    main.write_text("import mcdenoise.pipeline.exr as exr\nfrom train.model import load\nfrom .config import Config\n")
     global ROOT
     old, ROOT = ROOT, tmp_path
     try:
-        assert private_uses("pipeline.core", core, {"pipeline.color", "render.frame"}) == ["core.py:4: pipeline.color._clamp"]
+        assert private_uses("pipeline.core", core, {"pipeline.color", "render.frame"}) == ["core.py:5: pipeline.color._clamp"]
+        assert unprefixed_imports(main) == ["__main__.py:2: train.model", "__main__.py:3: relative import in a __main__"]
     finally:
         ROOT = old
 
