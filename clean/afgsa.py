@@ -44,7 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pipeline import schema
+from mcdenoise.pipeline import schema
 
 from .data import CHANNELS, RADIANCE
 from .model import INPUT_CLAMP

@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import figures
-from pipeline.color import reinhard
-from pipeline.config import Config
-from pipeline.metrics import all_metrics
-from pipeline.runs import pick_device
-from pipeline.store import FrameKey, Store
+from mcdenoise.pipeline import figures
+from mcdenoise.pipeline.color import reinhard
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.metrics import all_metrics
+from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.store import FrameKey, Store
 
 from .data import frame_inputs
 from .model import load_model

@@ -25,11 +25,11 @@ import time
 import numpy as np
 import torch
 
-from pipeline.config import Config
-from pipeline.exr import StoreError, atomic_write_json, read_json
-from pipeline.progress import progress
-from pipeline.runs import pick_device, run_dir
-from pipeline.store import Store, sha256
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError, atomic_write_json, read_json
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.runs import pick_device, run_dir
+from mcdenoise.pipeline.store import Store, sha256
 
 from .data import RADIANCE, frame_inputs
 from .model import AffinityDenoiser, load_model

@@ -10,7 +10,7 @@ gt_clean.exr was made by the current checkpoint, so rerunning ``make gt-clean`` 
 """
 from __future__ import annotations
 
-from pipeline.config import Config
+from mcdenoise.pipeline.config import Config
 
 
 def cmd_gt_clean(cfg: Config, quiet: bool = False) -> int:

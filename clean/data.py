@@ -26,13 +26,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pipeline import features, schema
-from pipeline.features import (
+from mcdenoise.pipeline import features, schema
+from mcdenoise.pipeline.features import (
     RELATIVE_VARIANCE_MIN,
     VARIANCE_FLOOR,
     relative_variance_feature as relative_variance_feature,  # re-exported
 )
-from pipeline.store import FrameKey, Store, stack_name
+from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 
 RADIANCE = "color"
 # Preprocessed frames are kept in memory up to this many bytes (the EXR reads dominate otherwise).

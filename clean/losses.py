@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from pipeline.metrics import SMAPE_EPS, l1, smape
+from mcdenoise.pipeline.metrics import SMAPE_EPS, l1, smape
 
 __all__ = ["smape", "l1", "SMAPE_EPS", "log_radiance", "critic_loss", "generator_loss"]
 

@@ -300,8 +300,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from pipeline.errors import CheckpointError
-    from pipeline.exr import read_json
+    from mcdenoise.pipeline.errors import CheckpointError
+    from mcdenoise.pipeline.exr import read_json
 
     path = Path(path)
     if path.is_dir():

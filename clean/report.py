@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import figures
-from pipeline.color import reinhard
-from pipeline.config import Config
-from pipeline.exr import StoreError
-from pipeline.metrics import all_metrics, mse
-from pipeline.runs import pick_device
-from pipeline.store import Store
+from mcdenoise.pipeline import figures
+from mcdenoise.pipeline.color import reinhard
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.metrics import all_metrics, mse
+from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.store import Store
 
 from .data import frame_inputs
 from .model import load_model

@@ -45,15 +45,15 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline import runs
-from pipeline.checkpoint import plot_curves, save_safetensors
-from pipeline.config import Config
-from pipeline.errors import TrainError
-from pipeline.exr import atomic_write_json
-from pipeline.fit import Task, apply_update, fit
-from pipeline.metrics import PSNR_CEILING, all_metrics
-from pipeline.runs import pick_device
-from pipeline.store import Store
+from mcdenoise.pipeline import runs
+from mcdenoise.pipeline.checkpoint import plot_curves, save_safetensors
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.exr import atomic_write_json
+from mcdenoise.pipeline.fit import Task, apply_update, fit
+from mcdenoise.pipeline.metrics import PSNR_CEILING, all_metrics
+from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.store import Store
 
 from .data import (
     COLOR_VARIANCE_CHANNEL,

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.numerics import repair_nonfinite
 
 from .methods import Method
 

@@ -32,7 +32,7 @@ Names (``eval.methods``):
   ``ours_paper_small_skip24``, ``base_only_s1``.
   These are looked up lazily, as
 
-      from train.infer import load_denoiser
+      from mcdenoise.train.infer import load_denoiser
       den = load_denoiser(folder, device=device, base_only=False)
       hdr = den.denoise(buffers, spp=spp, steps=N, samples=K, seed=cfg.eval.seed)
 
@@ -49,9 +49,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import PAPER_STEPS, Config, ConfigError
-from pipeline.errors import PipelineError
-from pipeline.exr import StoreError
+from mcdenoise.pipeline.config import PAPER_STEPS, Config, ConfigError
+from mcdenoise.pipeline.errors import PipelineError
+from mcdenoise.pipeline.exr import StoreError
 
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
@@ -172,13 +172,13 @@ class OIDN(Method):
     device: str = "cpu"
 
     def __post_init__(self):
-        from pipeline import oidn
+        from mcdenoise.pipeline import oidn
         why = oidn.available()
         if why:
             raise MethodUnavailable(why)
 
     def denoise(self, buffers):
-        from pipeline import oidn
+        from mcdenoise.pipeline import oidn
         return oidn.denoise(buffers, aux=self.aux, quality=self.quality)
 
 
@@ -193,8 +193,8 @@ class CleanNet(Method):
     checkpoint: str = ""          # isik_spp<N>, or isik_sppany serving N
 
     def denoise(self, buffers):
-        from clean.apply import denoise
-        from clean.data import frame_inputs
+        from mcdenoise.clean.apply import denoise
+        from mcdenoise.clean.data import frame_inputs
 
         inputs, radiance = frame_inputs(buffers)
         return denoise(self.model, inputs, radiance, tile=self.tile, device=self.device)
@@ -228,7 +228,7 @@ class Diffusion(Method):
     last_std: object = None       # per-pixel std of the last call's samples (kN with N > 1)
 
     def set_frame(self, store, key) -> None:
-        from train.data import frame_rotation
+        from mcdenoise.train.data import frame_rotation
         self.rotation = frame_rotation(store, key)
 
     def note(self) -> str:
@@ -264,7 +264,7 @@ class Loader:
     _models: dict = field(default_factory=dict)
 
     def device(self) -> str:
-        from pipeline.runs import pick_device
+        from mcdenoise.pipeline.runs import pick_device
         return str(pick_device(self.cfg.eval.device))
 
     def load(self, name: str, spp: int) -> Method:
@@ -282,8 +282,8 @@ class Loader:
         return self._diffusion(name, spec, spp)
 
     def _clean_net(self, family: str, spp: int) -> Method:
-        from clean.model import load_model
-        from clean.train import baseline_checkpoint, run_dir
+        from mcdenoise.clean.model import load_model
+        from mcdenoise.clean.train import baseline_checkpoint, run_dir
 
         if family == "isik":
             folder = baseline_checkpoint(self.cfg, spp)
@@ -307,7 +307,7 @@ class Loader:
 
     def diffusion_folder(self, spp: int, variant: str) -> Path:
         """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""
-        from train.model import find_run
+        from mcdenoise.train.model import find_run
 
         cfg = dataclasses.replace(self.cfg, diffusion=dataclasses.replace(self.cfg.diffusion, control=True))
         try:
@@ -321,7 +321,7 @@ class Loader:
         key = ("diffusion", str(folder), base_only)
         if key not in self._models:
             try:
-                from train.infer import load_denoiser
+                from mcdenoise.train.infer import load_denoiser
                 self._models[key] = load_denoiser(folder, device=self.device(), base_only=base_only)
             except (OSError, StoreError, ConfigError, ValueError, KeyError) as exc:
                 raise MethodUnavailable(f"cannot load the diffusion model from {folder}: "

@@ -23,11 +23,11 @@ import math
 
 import numpy as np
 
-from pipeline import metrics
-from pipeline.config import Config
-from pipeline.exr import StoreError
-from pipeline.progress import progress
-from pipeline.store import FrameKey, Store
+from mcdenoise.pipeline import metrics
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import FrameKey, Store
 
 from .timing import RenderCost
 
@@ -118,9 +118,9 @@ def _pooled(store: Store, key: FrameKey, wanted: float) -> EqualTime:
 
 def _render_missing(cfg: Config, store: Store, plan: dict[FrameKey, int], quiet: bool) -> dict[FrameKey, str]:
     """Render ``mc<N>`` for every frame that lacks it, in worker processes; returns errors by frame."""
-    from pipeline.executors import run_tasks
-    from render.dataset import render_frame_entry
-    from render.frame import FrameTask
+    from mcdenoise.pipeline.executors import run_tasks
+    from mcdenoise.render.dataset import render_frame_entry
+    from mcdenoise.render.frame import FrameTask
 
     tasks = []
     for key, spp in plan.items():

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import figures
-from pipeline.config import Config, to_dict
-from pipeline.versions import machine, package_versions
+from mcdenoise.pipeline import figures
+from mcdenoise.pipeline.config import Config, to_dict
+from mcdenoise.pipeline.versions import machine, package_versions
 
 from .compare import REFERENCES, frame_values, scored_rows
 from .headline import headline

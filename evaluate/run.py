@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import Config, ConfigError
-from pipeline.exr import StoreError
-from pipeline.progress import progress
-from pipeline.store import FrameKey, Store, poolable
+from mcdenoise.pipeline.config import Config, ConfigError
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import FrameKey, Store, poolable
 
 from . import report, uncertainty
 from .compare import annotate
@@ -316,13 +316,13 @@ def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | Non
         raise ConfigError(f"eval.spp: expected positive sample counts, got {spps!r}")
     store = open_store(cfg) if not scenes else None
     if scenes:
-        from render.external import render_scene
+        from mcdenoise.render.external import render_scene
         for xml in scenes:
             render_scene(xml, cfg.store, cfg)
         store = open_store(cfg)
     groups = frame_groups(cfg, store)
     if scenes:
-        from render.external import scene_id
+        from mcdenoise.render.external import scene_id
         named = {scene_id(x, None) for x in scenes}
         groups[EXTERNAL] = [k for k in groups.get(EXTERNAL, []) if k.scene in named]
     metric_names, missing = usable_metrics(e.metrics)

@@ -20,8 +20,8 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
-from pipeline import metrics
-from pipeline.config import ConfigError
+from mcdenoise.pipeline import metrics
+from mcdenoise.pipeline.config import ConfigError
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline import schema
-from pipeline.config import Config
-from pipeline.progress import progress
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.progress import progress
 
 from .harness import run_method
 from .methods import Loader, MethodUnavailable, check_names

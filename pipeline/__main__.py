@@ -12,8 +12,8 @@ import json
 import sys
 from pathlib import Path
 
-from .config import ConfigError, documentation_markdown, load_config, to_dict
-from .errors import PipelineError
+from mcdenoise.pipeline.config import ConfigError, documentation_markdown, load_config, to_dict
+from mcdenoise.pipeline.errors import PipelineError
 
 
 def _config(args):
@@ -21,27 +21,27 @@ def _config(args):
 
 
 def cmd_dataset(args) -> int:
-    from render.dataset import run
+    from mcdenoise.render.dataset import run
     stats = run(_config(args), shard=args.shard, quiet=args.quiet)
     return 1 if stats["failed"] else 0
 
 
 def cmd_inspect(args) -> int:
-    from .inspect import format_report, inspect_store
+    from mcdenoise.pipeline.inspect import format_report, inspect_store
     report = inspect_store(args.store, frame=args.frame)
     print(json.dumps(report, indent=1, sort_keys=True) if args.json else format_report(report))
     return 0
 
 
 def cmd_render_scene(args) -> int:
-    from render.external import render_scene
+    from mcdenoise.render.external import render_scene
     cfg = _config(args)
     stats = render_scene(args.scene, args.store or cfg.store, cfg, resolution=args.resolution, name=args.name)
     return 1 if stats["failed"] else 0
 
 
 def cmd_gt_clean(args) -> int:
-    from clean.cli import cmd_gt_clean as run
+    from mcdenoise.clean.cli import cmd_gt_clean as run
     return run(_config(args), quiet=args.quiet)
 
 
@@ -57,29 +57,29 @@ def _spp(text: str):
 def cmd_train(args) -> int:
     cfg = _config(args)
     if args.model == "isik":
-        from clean.cli import cmd_train_isik
+        from mcdenoise.clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
     if args.model == "afgsa":
-        from clean.cli import cmd_train_afgsa
+        from mcdenoise.clean.cli import cmd_train_afgsa
         return cmd_train_afgsa(cfg, args.spp, quiet=args.quiet)
-    from train.cli import cmd_train as train_diffusion
+    from mcdenoise.train.cli import cmd_train as train_diffusion
     return train_diffusion(cfg, args.spp, quiet=args.quiet)
 
 
 def cmd_pretrain(args) -> int:
-    from train.cli import cmd_pretrain as run
+    from mcdenoise.train.cli import cmd_pretrain as run
     return run(_config(args), quiet=args.quiet)
 
 
 def cmd_pack(args) -> int:
-    from train.cli import cmd_pack as run
+    from mcdenoise.train.cli import cmd_pack as run
     return run(_config(args), args.split or ["train", "val"], quiet=args.quiet)
 
 
 def cmd_export(args) -> int:
     from pathlib import Path
 
-    from train.export import export
+    from mcdenoise.train.export import export
     export(_config(args), args.spp, Path(args.out), quiet=args.quiet, config=args.config)
     return 0
 
@@ -87,25 +87,25 @@ def cmd_export(args) -> int:
 def cmd_gpu_prepare(args) -> int:
     from pathlib import Path
 
-    from train.gpu_recipe import prepare
+    from mcdenoise.train.gpu_recipe import prepare
     prepare(_config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels)
     return 0
 
 
 def cmd_denoise(args) -> int:
-    from train.cli import cmd_denoise as run
+    from mcdenoise.train.cli import cmd_denoise as run
     return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples)
 
 
 def cmd_clean_report(args) -> int:
-    from clean.report import run_report
+    from mcdenoise.clean.report import run_report
     run_report(_config(args), out=args.out, spp=args.spp)
     return 0
 
 
 def cmd_afgsa_report(args) -> int:
-    from clean.afgsa_report import default_runs, run_afgsa_report
+    from mcdenoise.clean.afgsa_report import default_runs, run_afgsa_report
     cfg = _config(args)
     runs = default_runs(cfg, args.spp)
     for text in args.runs or []:
@@ -118,7 +118,7 @@ def cmd_afgsa_report(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from evaluate.run import run_eval
+    from mcdenoise.evaluate.run import run_eval
     spps = None
     if args.spp:
         try:
@@ -130,7 +130,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_stability(args) -> int:
-    from evaluate.stability import run_stability
+    from mcdenoise.evaluate.stability import run_stability
     data = run_stability(_config(args), out=args.out, quiet=args.quiet)
     failed = sum(c["status"] not in ("ok", "not available") for r in data["results"].values() for c in r.values())
     return 1 if failed else 0
@@ -146,19 +146,19 @@ def cmd_config(args) -> int:
 
 
 def cmd_bench_denoise(args) -> int:
-    from train.bench import run
+    from mcdenoise.train.bench import run
     run(_config(args), spp=args.spp, side=args.side, out=args.out)
     return 0
 
 
 def cmd_bench(args) -> int:
-    from render.bench import run_bench
+    from mcdenoise.render.bench import run_bench
     run_bench(_config(args), out=args.out)
     return 0
 
 
 def cmd_verify(args) -> int:
-    from .verify import bytes_table, measure_bytes, run_verify
+    from mcdenoise.pipeline.verify import bytes_table, measure_bytes, run_verify
     if args.bytes:
         print(bytes_table(measure_bytes(args.store, args.bytes)))
         return 0
@@ -166,7 +166,7 @@ def cmd_verify(args) -> int:
 
 
 def cmd_plan(args) -> int:
-    from render.plan import measure, run_plan
+    from mcdenoise.render.plan import measure, run_plan
     cfg = _config(args)
     if args.measure:
         print(json.dumps(measure(cfg), indent=1))

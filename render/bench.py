@@ -19,16 +19,16 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.config import Config
-from pipeline.store import Store
-from pipeline.timing import best_time
-from pipeline.versions import machine, package_versions
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.timing import best_time
+from mcdenoise.pipeline.versions import machine, package_versions
 
 
 def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeats: int = 3) -> list[dict]:
     import drjit as dr
 
-    from pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 
     from .buffers import make_sensor, needed_features, render_image
     from .scene import build_scene, random_scene
@@ -55,7 +55,7 @@ def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeat
             return lambda: render_image(mi, scene, sensor, spp=spp, seed=1, features=features,
                                         max_depth=cfg.render.max_depth, rr_depth=cfg.render.rr_depth)
 
-        from pipeline import schema
+        from mcdenoise.pipeline import schema
         needed = needed_features(mi, scene)
         for fn in (run_path, run_ours(set(schema.OPTIONAL_FEATURES)), run_ours(needed)):
             fn()  # warm-up: kernel compilation is not what we compare
@@ -117,9 +117,9 @@ def omission_savings(cfg: Config, timing_spp: int = 128) -> dict:
     Re-renders frame 0 of every scene at ``timing_spp`` with the needed features and with all
     of them, to measure the render-time saving of computing only what the scene needs.
     """
-    from pipeline import schema
-    from pipeline.exr import read_image, write_image
-    from pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.pipeline import schema
+    from mcdenoise.pipeline.exr import read_image, write_image
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 
     from .buffers import needed_features, render_image
     from .scene import build_scene, build_sensor

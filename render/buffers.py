@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.numerics import repair_nonfinite, sample_variance_of_mean
-from pipeline.schema import BY_NAME, OPTIONAL_FEATURES, variance_name
-from render.integrator import aov_layout, output_buffers, parse_features, register
+from mcdenoise.pipeline.numerics import repair_nonfinite, sample_variance_of_mean
+from mcdenoise.pipeline.schema import BY_NAME, OPTIONAL_FEATURES, variance_name
+from mcdenoise.render.integrator import aov_layout, output_buffers, parse_features, register
 
 # Value an optional feature takes where it is not computed (the integrator would produce it
 # for a scene that cannot exhibit the feature, and for background pixels).

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import config as config_mod
-from pipeline.config import Config
-from pipeline.executors import run_tasks, task_label
-from pipeline.exr import StoreError
-from pipeline.progress import progress
-from pipeline.store import Store, image_names, image_seed
-from pipeline.versions import package_versions
+from mcdenoise.pipeline import config as config_mod
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.executors import run_tasks, task_label
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import Store, image_names, image_seed
+from mcdenoise.pipeline.versions import package_versions
 
 # Keys that change what gets rendered: a store made with other values cannot be extended.
 _FIXED_KEYS = ("seed", "dataset", "scene", "render.max_depth", "render.rr_depth", "render.features",

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import Config, ConfigError
-from pipeline.errors import PipelineError
-from pipeline.executors import run_tasks
-from pipeline.exr import StoreError, atomic_write_bytes
-from pipeline.store import STORE_FORMAT, STORE_VERSION, Store, image_names, image_seed
-from pipeline.versions import package_versions
+from mcdenoise.pipeline.config import Config, ConfigError
+from mcdenoise.pipeline.errors import PipelineError
+from mcdenoise.pipeline.executors import run_tasks
+from mcdenoise.pipeline.exr import StoreError, atomic_write_bytes
+from mcdenoise.pipeline.store import STORE_FORMAT, STORE_VERSION, Store, image_names, image_seed
+from mcdenoise.pipeline.versions import package_versions
 
 
 class ExternalSceneError(PipelineError, RuntimeError):
@@ -43,7 +43,7 @@ def load_external_scene(mi, xml: str):
 
 def external_sensor(mi, scene, width: int | None, height: int | None):
     """A perspective sensor with the scene's first camera pose and field of view, our film."""
-    from render.buffers import make_sensor
+    from mcdenoise.render.buffers import make_sensor
 
     sensors = scene.sensors()
     if not sensors:

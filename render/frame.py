@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline import metrics, schema
-from pipeline.exr import StoreError
-from pipeline.mitsuba_env import import_mitsuba
-from pipeline.store import GT_IMAGES, Store, image_names, sha256
+from mcdenoise.pipeline import metrics, schema
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+from mcdenoise.pipeline.store import GT_IMAGES, Store, image_names, sha256
 
 
 @dataclass
@@ -45,7 +45,7 @@ _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}
 
 def _scene(mi, task: FrameTask):
     """The Mitsuba scene of ``task``, reusing the previous one when it is the same scene."""
-    from render.buffers import needed_features
+    from mcdenoise.render.buffers import needed_features
 
     if _CACHE["scene_id"] == task.scene:
         return _CACHE["scene"], _CACHE["features"], 0.0
@@ -53,10 +53,10 @@ def _scene(mi, task: FrameTask):
     gc.collect()
     t0 = time.perf_counter()
     if "xml" in task.desc:
-        from render.external import load_external_scene
+        from mcdenoise.render.external import load_external_scene
         scene = load_external_scene(mi, task.desc["xml"])
     else:
-        from render.scene import build_scene
+        from mcdenoise.render.scene import build_scene
         scene = build_scene(mi, task.desc)
     if task.render["features"] == "all":
         features = set(schema.OPTIONAL_FEATURES)
@@ -69,9 +69,9 @@ def _scene(mi, task: FrameTask):
 def _sensor(mi, task: FrameTask, scene):
     w, h = task.resolution or (None, None)
     if "xml" in task.desc:
-        from render.external import external_sensor
+        from mcdenoise.render.external import external_sensor
         return external_sensor(mi, scene, w, h)
-    from render.scene import build_sensor
+    from mcdenoise.render.scene import build_sensor
     return build_sensor(mi, task.desc, task.frame, w, h)
 
 
@@ -146,7 +146,7 @@ def _render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tupl
     """One image of the frame: a stack in one render of stack_spp; a ground truth by the scene's stop
     rule (render.progressive). Returns the result and the extra header fields (spp; for a ground
     truth its estimated PSNR and the number of passes)."""
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
 
     from .progressive import StopRule, render_to_target
 

@@ -63,7 +63,7 @@ E[x] and E[x^2] (hence the variance of the pixel mean) in one pass.
 """
 from __future__ import annotations
 
-from pipeline.schema import BUFFERS, OPTIONAL_FEATURES
+from mcdenoise.pipeline.schema import BUFFERS, OPTIONAL_FEATURES
 
 # Buffers the integrator always computes (the optional ones are added when enabled).
 ALWAYS = tuple(b.name for b in BUFFERS if b.name not in OPTIONAL_FEATURES)
@@ -104,7 +104,7 @@ def output_buffers(features) -> tuple[str, ...]:
 
 def aov_layout(features, moments: bool) -> list[tuple[str, bool, int]]:
     """Film channel layout after R,G,B: (buffer, is_second_moment, n_channels) per block."""
-    from pipeline.schema import BY_NAME
+    from mcdenoise.pipeline.schema import BY_NAME
     names = output_buffers(features)
     layout = [(n, False, BY_NAME[n].size) for n in names if n != "color"]
     if moments:
@@ -114,7 +114,7 @@ def aov_layout(features, moments: bool) -> list[tuple[str, bool, int]]:
 
 def aov_channel_names(layout: list[tuple[str, bool, int]]) -> list[str]:
     """Film AOV channel names of ``aov_layout``'s blocks: ``<buffer>.<c>``, ``<buffer>.m2.<c>`` for second moments."""
-    from pipeline.schema import BY_NAME
+    from mcdenoise.pipeline.schema import BY_NAME
     names = []
     for name, m2, _ in layout:
         b = BY_NAME[name]

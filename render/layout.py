@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from render.geometry import random_shape
-from render.materials import pick_family, random_color, random_material
-from render.textures import random_texture_params
+from mcdenoise.render.geometry import random_shape
+from mcdenoise.render.materials import pick_family, random_color, random_material
+from mcdenoise.render.textures import random_texture_params
 
 
 def _r(x: float, nd: int = 4) -> float:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from render.textures import random_color
+from mcdenoise.render.textures import random_color
 
 SKY_SIZE = (64, 128)  # latlong (rows, cols): small, since the sky is smooth apart from the sun
 

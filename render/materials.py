@@ -10,7 +10,7 @@ import json
 
 import numpy as np
 
-from render.textures import make_texture, random_color, random_texture_params
+from mcdenoise.render.textures import make_texture, random_color, random_texture_params
 
 FAMILIES = ("principled", "diffuse", "plastic", "roughplastic", "conductor", "roughconductor",
             "dielectric", "roughdielectric")

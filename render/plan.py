@@ -45,9 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import schema
-from pipeline.config import Config
-from pipeline.exr import StoreError
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError
 
 # Measured by `python -m pipeline plan --measure` (see measure()). Re-measure on the target
 # machine and paste the printed JSON here, or calibrate with --store.
@@ -252,9 +252,9 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
     """Measure the constants of the model on this machine (about two minutes on 2 cores)."""
     import drjit as dr
 
-    from pipeline.exr import write_image
-    from pipeline.mitsuba_env import import_mitsuba
-    from pipeline.store import sha256
+    from mcdenoise.pipeline.exr import write_image
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.pipeline.store import sha256
 
     from .buffers import needed_features, render_image
     from .scene import build_scene, build_sensor, random_scene
@@ -332,7 +332,7 @@ def _cpu_name() -> str:
 
 def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
     """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
-    from pipeline.store import Store
+    from mcdenoise.pipeline.store import Store
 
     c = json.loads(json.dumps(constants or MEASURED))
     store = Store(root)

@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.store import combine_stacks
+from mcdenoise.pipeline.store import combine_stacks
 
 
 @dataclass(frozen=True)

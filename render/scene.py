@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from render import camera as cam, lights as lt
-from render.geometry import list_mesh_files, mesh_arrays
-from render.layout import ground, place_objects, room_walls, surface_material
-from render.materials import TextureCache, bsdf_dict
-from render.stress import STRESS_PRESETS, stress_description
+from mcdenoise.render import camera as cam, lights as lt
+from mcdenoise.render.geometry import list_mesh_files, mesh_arrays
+from mcdenoise.render.layout import ground, place_objects, room_walls, surface_material
+from mcdenoise.render.materials import TextureCache, bsdf_dict
+from mcdenoise.render.stress import STRESS_PRESETS, stress_description
 
 DESC_VERSION = 1
 
@@ -154,7 +154,7 @@ def build_scene(mi, desc: dict, max_depth: int = 8):
 
 def build_sensor(mi, desc: dict, frame: int, width: int, height: int):
     """The perspective sensor (box filter, see render.buffers) of frame ``frame`` of the camera move."""
-    from render.buffers import make_sensor  # local: render.buffers is written separately
+    from mcdenoise.render.buffers import make_sensor  # local: render.buffers is written separately
 
     poses = desc["camera"]["frames"]
     if not 0 <= frame < len(poses):

@@ -11,9 +11,9 @@ import zlib
 
 import numpy as np
 
-from pipeline.config import SceneConfig
-from render import camera as cam, lights as lt
-from render.layout import ground, place_objects, rect, room_walls
+from mcdenoise.pipeline.config import SceneConfig
+from mcdenoise.render import camera as cam, lights as lt
+from mcdenoise.render.layout import ground, place_objects, rect, room_walls
 
 GREY = {"family": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
 WHITE = {"family": "diffuse", "reflectance": [0.75, 0.75, 0.75]}

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from pipeline import schema
-from pipeline.config import load_config
-from pipeline.store import Store, image_names
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.store import Store, image_names
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -115,9 +115,9 @@ def tiny_cfg(tmp_path: Path, **clean) -> object:
 
 def save_untrained_isik(folder: Path) -> None:
     """A small untrained Isik network saved as a run folder's best checkpoint."""
-    from clean.data import IN_CHANNELS
-    from clean.model import AffinityDenoiser
-    from clean.train import save_best
+    from mcdenoise.clean.data import IN_CHANNELS
+    from mcdenoise.clean.model import AffinityDenoiser
+    from mcdenoise.clean.train import save_best
 
     model = AffinityDenoiser(IN_CHANNELS, embed_channels=8, channels=[8, 8], affinity_channels=4, kernel_size=3,
                              dilations=[1, 2])
@@ -127,15 +127,15 @@ def save_untrained_isik(folder: Path) -> None:
 # ---- a tiny diffusion model -------------------------------------------------------------------------
 
 def tiny_unet_config() -> dict:
-    from train import base as base_lib
+    from mcdenoise.train import base as base_lib
     return base_lib.default_config([16, 32], layers_per_block=1, text_dim=16, attention_head_dim=8)
 
 
 def tiny_model(aux=None, control=True, seed=0):
     """A controlled denoiser on a two-level base (``aux`` condition channels; default: ``AUX_CHANNELS``)."""
-    from train import base as base_lib
-    from train.control import ControlledDenoiser, ControlModule
-    from train.data import AUX_CHANNELS
+    from mcdenoise.train import base as base_lib
+    from mcdenoise.train.control import ControlledDenoiser, ControlModule
+    from mcdenoise.train.data import AUX_CHANNELS
 
     unet, prompt = base_lib.build(tiny_unet_config(), seed=seed)
     return ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS if aux is None else aux) if control else None)

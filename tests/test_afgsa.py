@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from clean.afgsa import AFGSANet, GuidedAttention, PatchCritic, branch_channels, window_attention
-from clean.afgsa_report import fine_energy
-from clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
-from clean.losses import critic_loss, generator_loss, log_radiance
-from clean.model import load_model
-from clean.train import make_recipe, run_dir, save_best, train
-from evaluate.methods import Loader, MethodUnavailable, label
-from evaluate.stability import run_stability
-from pipeline.config import load_config
-from pipeline.store import Store
+from mcdenoise.clean.afgsa import AFGSANet, GuidedAttention, PatchCritic, branch_channels, window_attention
+from mcdenoise.clean.afgsa_report import fine_energy
+from mcdenoise.clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
+from mcdenoise.clean.losses import critic_loss, generator_loss, log_radiance
+from mcdenoise.clean.model import load_model
+from mcdenoise.clean.train import make_recipe, run_dir, save_best, train
+from mcdenoise.evaluate.methods import Loader, MethodUnavailable, label
+from mcdenoise.evaluate.stability import run_stability
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.store import Store
 from tests.helpers import TINY, make_clean_store
 
 # A network that runs in a fraction of a second on the tiny store.
@@ -104,7 +104,7 @@ def test_output_is_at_most_twice_the_brightest_noisy_pixel_nearby():
     """An overshooting network (head bias +5 in log space, x150) is held to 2 m + 1, m the brightest
     noisy colour within BOUND_RADIUS of the pixel; the raw log-space output (what the losses see)
     is not clamped."""
-    from clean.afgsa import BOUND_RADIUS
+    from mcdenoise.clean.afgsa import BOUND_RADIUS
 
     torch.manual_seed(7)
     net = AFGSANet(IN_CHANNELS, channels=8, extractor_channels=4, blocks=1, block_size=4, halo=1).eval()
@@ -302,8 +302,8 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
     and the crop grid is a picture. The tiny store's gt_clean is written here: the mean of GT1 and GT2."""
     from PIL import Image
 
-    from clean.afgsa_report import run_afgsa_report
-    from pipeline.metrics import all_metrics
+    from mcdenoise.clean.afgsa_report import run_afgsa_report
+    from mcdenoise.pipeline.metrics import all_metrics
 
     root = _linked(tmp_path, store_root, "report")
     store = Store(root / "store")
@@ -338,7 +338,7 @@ def test_spp_any_trains_one_run_for_every_count(tmp_path, store_root):
 
 
 def test_wall_seconds_adds_the_invocations_of_a_resumed_run():
-    from clean.train import wall_seconds
+    from mcdenoise.clean.train import wall_seconds
 
     # 2 epochs in one invocation (10 s, 20 s), then 2 more after a resume (5 s, 15 s)
     assert wall_seconds([{"seconds": s} for s in (10, 20, 5, 15)]) == 35

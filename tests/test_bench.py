@@ -1,8 +1,8 @@
 """`make bench` runs end to end (its numbers are claims for the README, not asserted here)."""
 import json
 
-from pipeline.config import load_config
-from render.bench import run_bench
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.render.bench import run_bench
 from tests.helpers import TINY
 
 

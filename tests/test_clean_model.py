@@ -3,10 +3,16 @@ import numpy as np
 import pytest
 import torch
 
-from clean.data import COLOR_VARIANCE_CHANNEL, IN_CHANNELS, decode_variance, frame_inputs, relative_variance_feature
-from clean.losses import smape
-from clean.model import AffinityDenoiser, apply_affinity_kernel, range_distance
-from pipeline import schema
+from mcdenoise.clean.data import (
+    COLOR_VARIANCE_CHANNEL,
+    IN_CHANNELS,
+    decode_variance,
+    frame_inputs,
+    relative_variance_feature,
+)
+from mcdenoise.clean.losses import smape
+from mcdenoise.clean.model import AffinityDenoiser, apply_affinity_kernel, range_distance
+from mcdenoise.pipeline import schema
 
 # Every model test runs with and without the range term.
 RANGE = [None, COLOR_VARIANCE_CHANNEL]
@@ -97,7 +103,7 @@ def test_smape_finite_at_extremes():
 
 
 def test_tiled_inference_matches_whole_frame(variance_channel):
-    from clean.apply import denoise
+    from mcdenoise.clean.apply import denoise
     model = small_model(variance_channel)
     g = torch.Generator().manual_seed(3)
     x = torch.randn(IN_CHANNELS, 20, 23, generator=g).numpy()
@@ -111,7 +117,7 @@ def test_tiled_inference_matches_whole_frame(variance_channel):
 
 def test_variance_feature_resolves_ground_truth_noise_levels():
     """The noise-level input must separate 1024-spp levels (rel ~1e-5..1e-2) as well as 4-spp ones."""
-    from clean.data import relative_variance_feature
+    from mcdenoise.clean.data import relative_variance_feature
 
     m2 = np.full(5, 0.09, np.float32)                        # radiance 0.3
     rel = np.array([0.0, 1e-5, 1e-3, 1e-1, 1.0], np.float32)
@@ -179,7 +185,7 @@ def test_untrained_range_term_removes_noise_and_keeps_edges():
     """With the range term an untrained network already behaves as a variance-aware NL-means:
     noise on flat regions drops, a 20σ step edge is not blurred across. Without it, the same
     untrained network does neither."""
-    from clean.apply import denoise
+    from mcdenoise.clean.apply import denoise
 
     truth = np.full((48, 48, 3), 0.5, np.float32)
     truth[:, 24:] = 0.7                                          # step of 20σ

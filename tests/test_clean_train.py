@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from clean import apply as clean_apply
-from clean.cli import cmd_gt_clean, cmd_train_isik
-from clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
-from clean.model import load_model
-from clean.train import baseline_checkpoint, run_dir, save_best, train
-from pipeline.store import Store
+from mcdenoise.clean import apply as clean_apply
+from mcdenoise.clean.cli import cmd_gt_clean, cmd_train_isik
+from mcdenoise.clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
+from mcdenoise.clean.model import load_model
+from mcdenoise.clean.train import baseline_checkpoint, run_dir, save_best, train
+from mcdenoise.pipeline.store import Store
 from tests.helpers import FRAMES, SCENES, SIZE, make_clean_store, tiny_cfg
 
 
@@ -198,8 +198,8 @@ def test_clean_report_scores_and_draws(cfg_dir):
     """clean-report: its GT1 and GT_clean rows are the metrics of the stored images against GT2,
     the MSE ratio shows the gain, the crop grid is a picture; the tiny store has no test split,
     which the baseline section says instead of failing."""
-    from clean.report import run_report
-    from pipeline.metrics import all_metrics, mse
+    from mcdenoise.clean.report import run_report
+    from mcdenoise.pipeline.metrics import all_metrics, mse
 
     cfg = tiny_cfg(cfg_dir, epochs=2)
     assert cmd_gt_clean(cfg, quiet=True) == 0 and cmd_train_isik(cfg, 4, quiet=True) == 0

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline import color, metrics
+from mcdenoise.pipeline import color, metrics
 
 PAIRS = [
     (color.reinhard, color.inverse_reinhard),

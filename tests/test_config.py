@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.config import ConfigError, documentation_markdown, load_config
+from mcdenoise.pipeline.config import ConfigError, documentation_markdown, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,7 +92,7 @@ def test_overrides_may_follow_options(capsys):
     stray options and non-override words are still refused."""
     import yaml
 
-    from pipeline.__main__ import main
+    from mcdenoise.pipeline.__main__ import main
 
     assert main(["config", "clean.lr=0.5", "--config", "configs/tiny.yaml", "clean.epochs=7", "clean.lr=0.25"]) == 0
     printed = yaml.safe_load(capsys.readouterr().out)

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import schema
-from pipeline.exr import read_image
-from pipeline.store import Store, image_names
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.exr import read_image
+from mcdenoise.pipeline.store import Store, image_names
 from tests.helpers import ROOT, TINY, assert_same_store, cli
 
 
@@ -196,7 +196,7 @@ def test_corrupt_image_in_store_names_the_file(tiny_store, tmp_path):
 
 def test_stress_presets_render_finite_with_counts(tmp_path):
     """Every stress preset renders through the real integrator; NaN/Inf, if any, are counted."""
-    from render.scene import STRESS_PRESETS
+    from mcdenoise.render.scene import STRESS_PRESETS
 
     root = tmp_path / "stress"
     cli("dataset", "--config", TINY, f"store={root}", "dataset.scenes=1", "dataset.frames=1",

@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline.exr import read_image
+from mcdenoise.pipeline.exr import read_image
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -162,10 +162,10 @@ def test_bench_denoise_reports_every_step_count(setup, tmp_path):
 def test_pack_equals_the_store_reader(setup):
     """Every pack item equals what the store reader and the model's encoders give for the same stacks,
     within float16 rounding; a pack made for another estimate is refused."""
-    from pipeline.store import Store
-    from train.data import frame_rotation, model_inputs, to_planar
-    from train.estimate import Estimator
-    from train.pack import PackPairs, build_pack, variant_stacks
+    from mcdenoise.pipeline.store import Store
+    from mcdenoise.train.data import frame_rotation, model_inputs, to_planar
+    from mcdenoise.train.estimate import Estimator
+    from mcdenoise.train.pack import PackPairs, build_pack, variant_stacks
 
     tmp, _ = setup
     store = Store(tmp / "store")
@@ -197,10 +197,10 @@ def test_export_is_self_contained_and_serves_as_the_shipped_model(setup, tmp_pat
     """An exported run loads from anywhere (relative base), denoises as the run does (within its float16
     weights), and is what a config without runs of its own falls back to; diffusion.shipped=false turns
     the fallback off."""
-    import train.model as tm
-    from pipeline.config import load_config
-    from pipeline.store import Store
-    from train.infer import load_denoiser
+    import mcdenoise.train.model as tm
+    from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.store import Store
+    from mcdenoise.train.infer import load_denoiser
 
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
@@ -252,7 +252,7 @@ def test_default_formulation_end_to_end(setup, tmp_path):
 def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
     """Everything of the GPU recipe but the GPU: crop packs, further training of an exported model, the
     bench, and an output folder that fits the device tool (at most 8 files under 16 MiB)."""
-    from train.gpu_recipe import crop_pack, main
+    from mcdenoise.train.gpu_recipe import crop_pack, main
 
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import CheckpointError
+from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.train import base as base_lib, diffusion
+from mcdenoise.train.control import ControlledDenoiser, ControlModule
+from mcdenoise.train.data import AUX_CHANNELS, augment, aux_names, condition, from_model, to_model
+from mcdenoise.train.sampler import sample, sample_tiled
+from mcdenoise.train.train import Job, TrainError, fit, lr_factor
 from tests.helpers import tiny_model, tiny_unet_config
-from train import base as base_lib, diffusion
-from train.control import ControlledDenoiser, ControlModule
-from train.data import AUX_CHANNELS, augment, aux_names, condition, from_model, to_model
-from train.sampler import sample, sample_tiled
-from train.train import Job, TrainError, fit, lr_factor
 
 TINY_UNET = tiny_unet_config()
 

@@ -7,9 +7,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline import schema
-from pipeline.config import ConfigError, load_config
-from pipeline.exr import (
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import ConfigError, load_config
+from mcdenoise.pipeline.exr import (
     BEAUTY_TOLERANCE,
     MANTISSA_BITS,
     StoreError,
@@ -19,8 +19,8 @@ from pipeline.exr import (
     scan_exr,
     write_image,
 )
-from pipeline.store import Store
-from pipeline.verify import verify_store
+from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.verify import verify_store
 from tests.helpers import make_clean_store
 
 
@@ -184,7 +184,7 @@ def test_encoding_config_key():
 
 def test_bytes_per_channel_group(tmp_path):
     """``verify STORE --bytes N``: per frame, the files' true sizes, and each group's bytes."""
-    from pipeline.verify import GROUPS, measure_bytes
+    from mcdenoise.pipeline.verify import GROUPS, measure_bytes
     from tests.helpers import cli
     root = make_clean_store(tmp_path / "old", encoding="exact")
     result = measure_bytes(root, frames=2)

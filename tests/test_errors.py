@@ -2,9 +2,9 @@
 base it had, and the command line turns any of them into one line on stderr and exit status 2."""
 import pytest
 
-import pipeline.__main__ as cli_main
-from evaluate.methods import MethodUnavailable
-from pipeline.errors import (
+import mcdenoise.pipeline.__main__ as cli_main
+from mcdenoise.evaluate.methods import MethodUnavailable
+from mcdenoise.pipeline.errors import (
     CheckpointError,
     ConfigError,
     MitsubaSetupError,
@@ -15,8 +15,8 @@ from pipeline.errors import (
     TaskFailed,
     TrainError,
 )
-from render.external import ExternalSceneError
-from train.formulation import FormulationError
+from mcdenoise.render.external import ExternalSceneError
+from mcdenoise.train.formulation import FormulationError
 
 BUILTIN_BASES = {ConfigError: ValueError, StoreError: RuntimeError, StoreWriteError: OSError,
                  CheckpointError: RuntimeError, TrainError: RuntimeError, MitsubaSetupError: RuntimeError,
@@ -35,8 +35,8 @@ def test_checkpoint_and_train_errors_are_still_store_errors():
 
 
 def test_train_error_is_one_class():
-    from clean.train import TrainError as clean_train_error
-    from train.train import TrainError as diffusion_train_error
+    from mcdenoise.clean.train import TrainError as clean_train_error
+    from mcdenoise.train.train import TrainError as diffusion_train_error
     assert clean_train_error is diffusion_train_error is TrainError
 
 

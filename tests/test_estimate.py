@@ -3,18 +3,18 @@ condition and a trained run's record."""
 import numpy as np
 import pytest
 
-from clean.apply import denoise
-from clean.data import IN_CHANNELS, frame_inputs
-from clean.model import AffinityDenoiser
-from pipeline import oidn
-from pipeline.exr import StoreError
+from mcdenoise.clean.apply import denoise
+from mcdenoise.clean.data import IN_CHANNELS, frame_inputs
+from mcdenoise.clean.model import AffinityDenoiser
+from mcdenoise.pipeline import oidn
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.train.data import AUX_CHANNELS, aux_names, model_inputs, to_planar
+from mcdenoise.train.estimate import Estimator, extra_names, load
 from tests.helpers import save_untrained_isik
-from train.data import AUX_CHANNELS, aux_names, model_inputs, to_planar
-from train.estimate import Estimator, extra_names, load
 
 
 def frame(seed=0, h=20, w=24):
-    from evaluate.stability import synthetic_buffers
+    from mcdenoise.evaluate.stability import synthetic_buffers
     return synthetic_buffers(h, w, seed=seed)
 
 

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluate.run import frame_groups, run_eval
-from evaluate.stability import synthetic_buffers
-from pipeline import schema
-from pipeline.config import load_config
-from pipeline.store import Store, image_names
+from mcdenoise.evaluate.run import frame_groups, run_eval
+from mcdenoise.evaluate.stability import synthetic_buffers
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.store import Store, image_names
 from tests.helpers import save_untrained_isik
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +74,7 @@ class FakeDiffusion:
     calls: list = []
 
     def __init__(self, folder, device, base_only):
-        from train.sampler import PAPER
+        from mcdenoise.train.sampler import PAPER
         self.folder, self.device, self.base_only, self.formulation = Path(folder), device, base_only, PAPER
 
     def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None, steps=None, start=None, samples=1,
@@ -92,7 +92,7 @@ class FakeDiffusion:
 
 
 def fake_infer_module() -> types.ModuleType:
-    mod = types.ModuleType("train.infer")
+    mod = types.ModuleType("mcdenoise.train.infer")
 
     def run_dir(cfg, spp):
         return Path(cfg.runs) / f"diffusion_spp{spp}"
@@ -121,7 +121,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     save_untrained_isik(runs / "isik_spp4")
     (runs / "diffusion_spp4").mkdir(parents=True)            # ours has a checkpoint at 4 spp only
     (runs / "diffusion_spp4" / "model.json").write_text("{}")
-    monkeypatch.setitem(sys.modules, "train.infer", fake_infer_module())
+    monkeypatch.setitem(sys.modules, "mcdenoise.train.infer", fake_infer_module())
     FakeDiffusion.calls.clear()
     methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_small_skip18"]
     cfg = load_config(TINY, [f"store={store_root}", f"runs={runs}", f"eval.methods={json.dumps(methods)}",
@@ -252,7 +252,7 @@ def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_
 
 def test_identical_method_reports_psnr_inf(store_root, tmp_path, monkeypatch):
     """A 'denoiser' that returns GT_clean: PSNR inf in the JSON (as the string) and the table."""
-    import evaluate.methods as em
+    import mcdenoise.evaluate.methods as em
 
     class Oracle(em.Method):
         name, device = "ours", "cpu"

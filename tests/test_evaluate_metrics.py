@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from evaluate.scoring import METRICS, best, check_metrics, score
-from pipeline import color, metrics
-from pipeline.config import ConfigError
+from mcdenoise.evaluate.scoring import METRICS, best, check_metrics, score
+from mcdenoise.pipeline import color, metrics
+from mcdenoise.pipeline.config import ConfigError
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 

@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from evaluate.compare import annotate
-from evaluate.headline import headline, leader_phrases
-from evaluate.stats import MIN_FRAMES, lead, mean_ci, paired_bootstrap, significant
+from mcdenoise.evaluate.compare import annotate
+from mcdenoise.evaluate.headline import headline, leader_phrases
+from mcdenoise.evaluate.stats import MIN_FRAMES, lead, mean_ci, paired_bootstrap, significant
 
 # ---- paired bootstrap ------------------------------------------------------------------------
 
@@ -193,7 +193,7 @@ def test_differences_to_oidn_and_noisy_are_attached_to_every_scored_row():
 def test_uncertainty_rank_and_calibration():
     """A σ that is the true error's scale ranks the error well and lies on the diagonal; a σ that
     is noise ranks nothing."""
-    from evaluate.uncertainty import calibration, pixel_pairs, rank_correlation
+    from mcdenoise.evaluate.uncertainty import calibration, pixel_pairs, rank_correlation
 
     rng = np.random.default_rng(0)
     ref = rng.random((64, 64, 3)).astype(np.float32)

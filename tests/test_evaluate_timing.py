@@ -3,8 +3,8 @@ import math
 
 import pytest
 
-from evaluate.report import reference_warning
-from evaluate.timing import RenderCost, equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
+from mcdenoise.evaluate.report import reference_warning
+from mcdenoise.evaluate.timing import RenderCost, equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 
 def record(stacks, gts, stack_spp=4, gt_spp=1024):

@@ -38,7 +38,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file
 
-from pipeline.verify import verify_store
+from mcdenoise.pipeline.verify import verify_store
 from tests.helpers import CLEAN_TINY, TIMING_KEYS, TINY, assert_same_store, cli, exr_payload
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -345,7 +345,7 @@ def test_worker_killed_mid_frame_is_retried(kind, slow_reference, tmp_path, caps
 
 def _fail_mid_write(monkeypatch, err: int = 28):
     """Make every atomic write fail half-way: the writer writes some bytes, then the OS says ENOSPC."""
-    import pipeline.exr as exr
+    import mcdenoise.pipeline.exr as exr
 
     real = exr.atomic_write_bytes
 
@@ -364,9 +364,9 @@ def _fail_mid_write(monkeypatch, err: int = 28):
 def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     import numpy as np
 
-    import pipeline.exr as exr
-    from pipeline import checkpoint, schema
-    from pipeline.store import Store
+    import mcdenoise.pipeline.exr as exr
+    from mcdenoise.pipeline import checkpoint, schema
+    from mcdenoise.pipeline.store import Store
 
     store = Store(tmp_path / "store")
     store.write_manifest({"scenes": [], "splits": {}})
@@ -452,7 +452,7 @@ def test_read_only_store_is_a_clear_error_naming_the_path(tiny_store, tmp_path):
 def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_path):
     """Regression: train.json and loss.png were written after last.safetensors, so a kill between
     them on the last epoch left a history one epoch short that no rerun repaired."""
-    from clean.train import run_dir, train
+    from mcdenoise.clean.train import run_dir, train
     from tests.helpers import make_clean_store, tiny_cfg
 
     make_clean_store(tmp_path / "store")
@@ -470,9 +470,9 @@ def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_pa
 
 def test_stale_temporary_files_of_a_killed_clean_run_are_removed(tmp_path):
     """A kill mid-write leaves ``.<name>.*.tmp``; the next run of the stage removes its own."""
-    from clean.cli import cmd_gt_clean
-    from clean.train import run_dir
-    from pipeline.store import Store
+    from mcdenoise.clean.cli import cmd_gt_clean
+    from mcdenoise.clean.train import run_dir
+    from mcdenoise.pipeline.store import Store
     from tests.helpers import make_clean_store, tiny_cfg
 
     make_clean_store(tmp_path / "store")

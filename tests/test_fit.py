@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline import features, schema
-from pipeline.errors import TrainError
-from pipeline.exr import atomic_write_json
-from pipeline.fit import Task, fit
+from mcdenoise.pipeline import features, schema
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.exr import atomic_write_json
+from mcdenoise.pipeline.fit import Task, fit
 
 
 class Toy(Task):
@@ -118,8 +118,8 @@ def _buffers(rng, size=6):
 
 
 def test_cleaner_and_diffusion_encodings_share_the_table():
-    from clean.data import channel_names, frame_inputs
-    from train.data import aux_names, condition
+    from mcdenoise.clean.data import channel_names, frame_inputs
+    from mcdenoise.train.data import aux_names, condition
 
     b = _buffers(np.random.default_rng(0))
     clean, diff = frame_inputs(b)[0], condition(b, 16)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from train.formulation import Formulation, FormulationError, snr_weight
-from train.sampler import sample, sample_many
+from mcdenoise.train.formulation import Formulation, FormulationError, snr_weight
+from mcdenoise.train.sampler import sample, sample_many
 
 G = torch.Generator().manual_seed(0)
 X = torch.rand(1, 3, 16, 16, generator=G) * 1.6 - 0.8          # the clean image, model space
@@ -175,8 +175,8 @@ def test_samples_mean_and_std():
 # ---- the denoiser around the model (train/infer.py) ------------------------------------------------
 
 def tiny_denoiser(estimate="oidn"):
+    from mcdenoise.train.infer import Denoiser
     from tests.helpers import tiny_model
-    from train.infer import Denoiser
 
     f = form(prediction="sample", estimate=estimate, residual=estimate != "none")
     m = tiny_model().eval()
@@ -187,7 +187,7 @@ def tiny_denoiser(estimate="oidn"):
 @pytest.mark.parametrize("estimate", ["oidn", "none"])
 def test_black_in_black_out(estimate):
     den = tiny_denoiser(estimate)
-    from evaluate.stability import synthetic_buffers
+    from mcdenoise.evaluate.stability import synthetic_buffers
 
     buffers = synthetic_buffers(16, 16, seed=2)
     buffers["color"][:] = 0
@@ -198,8 +198,8 @@ def test_black_in_black_out(estimate):
 
 
 def test_radiance_beyond_the_model_range_keeps_the_first_estimate():
-    from evaluate.stability import synthetic_buffers
-    from pipeline import oidn
+    from mcdenoise.evaluate.stability import synthetic_buffers
+    from mcdenoise.pipeline import oidn
 
     den = tiny_denoiser("oidn")
     buffers = synthetic_buffers(16, 16, seed=1)          # the renderer's buffers: the network runs
@@ -214,7 +214,7 @@ def test_radiance_beyond_the_model_range_keeps_the_first_estimate():
 
 
 def test_an_rgb_only_input_returns_the_first_estimate():
-    from pipeline import oidn
+    from mcdenoise.pipeline import oidn
     den = tiny_denoiser("oidn")
     color = np.random.default_rng(3).gamma(1.0, 0.3, (16, 16, 3)).astype(np.float32)
     out = den.denoise({"color": color}, spp=16)

@@ -26,9 +26,9 @@ import OpenEXR
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from pipeline import schema
-from pipeline.exr import ENCODINGS, VOLATILE_KEYS, StoreError, read_image, write_image
-from pipeline.store import Store
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.exr import ENCODINGS, VOLATILE_KEYS, StoreError, read_image, write_image
+from mcdenoise.pipeline.store import Store
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE_TIMEOUT_S = 30

@@ -4,15 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.numerics import repair_nonfinite
-from pipeline.schema import BUFFERS, BY_NAME, OPTIONAL_FEATURES, RADIANCE_COMPONENTS
+from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.schema import BUFFERS, BY_NAME, OPTIONAL_FEATURES, RADIANCE_COMPONENTS
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def mi():
-    from pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
     return import_mitsuba("llvm_ad_rgb")
 
 
@@ -23,7 +23,7 @@ def look_at(mi, origin, target, up=(0, 1, 0)):
 def mixed_scene_dict(mi, size=32):
     """Diffuse floor, principled (metallic / spec_trans), roughconductor, dielectric and
     plastic spheres, an area light and a constant environment that the camera sees."""
-    from render.buffers import make_sensor
+    from mcdenoise.render.buffers import make_sensor
     T = mi.ScalarTransform4f
 
     def sphere(c, r, bsdf):
@@ -55,7 +55,7 @@ def mixed(mi):
 
 @pytest.fixture(scope="module")
 def cbox(mi):
-    from render.buffers import make_sensor
+    from mcdenoise.render.buffers import make_sensor
     d = mi.cornell_box()
     d["sensor"] = make_sensor(mi, look_at(mi, (0, 0, 3.9), (0, 0, 0)), 40, 32, 32)
     scene = mi.load_dict(d)
@@ -72,7 +72,7 @@ def frame_mean_and_se(res, name):
 # --------------------------------------------------------------------------- radiance split
 
 def test_components_sum_to_color(mi, mixed):
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = mixed
     res = render_image(mi, scene, sensor, spp=16, seed=3)
     assert set(res.buffers) == {k for b in BUFFERS for k in (b.name, b.name + ".variance")}
@@ -89,7 +89,7 @@ def test_components_sum_to_color(mi, mixed):
 
 
 def test_diffuse_scene_has_no_specular_components(mi, cbox):
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = cbox
     res = render_image(mi, scene, sensor, spp=8, seed=1)
     assert np.all(res.buffers["specular_direct"] == 0)
@@ -99,7 +99,7 @@ def test_diffuse_scene_has_no_specular_components(mi, cbox):
 
 def test_color_matches_builtin_path(mi, mixed):
     """Same estimator as `path` (max_depth 8): frame means agree within a few standard errors."""
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = mixed
     spp = 512
     res = render_image(mi, scene, sensor, spp=spp, seed=11)
@@ -113,7 +113,7 @@ def test_color_matches_builtin_path(mi, mixed):
 
 def test_variance_matches_empirical(mi, cbox):
     """The moment-based variance of the pixel mean agrees with the spread of independent renders."""
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = cbox
     means, est = {"color": [], "diffuse_indirect": [], "normal": []}, {"color": [], "diffuse_indirect": [], "normal": []}
     for i in range(32):
@@ -131,7 +131,7 @@ def test_variance_matches_empirical(mi, cbox):
 # ------------------------------------------------------------------------------- features
 
 def test_disabled_features_leave_other_buffers_identical(mi, mixed):
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = mixed
     full = render_image(mi, scene, sensor, spp=4, seed=5)
     part = render_image(mi, scene, sensor, spp=4, seed=5, features={"emission"})
@@ -146,11 +146,11 @@ def test_disabled_features_leave_other_buffers_identical(mi, mixed):
 
 
 def test_needed_features(mi, cbox, mixed):
-    from render.buffers import needed_features
+    from mcdenoise.render.buffers import needed_features
     assert needed_features(mi, cbox[0]) == {"emission", "roughness"}
     assert needed_features(mi, mixed[0]) == set(OPTIONAL_FEATURES)
     # A principled material with constant metallic 0 and spec_trans 0 needs neither.
-    from render.buffers import make_sensor
+    from mcdenoise.render.buffers import make_sensor
     scene = mi.load_dict({
         "type": "scene", "sensor": make_sensor(mi, look_at(mi, (0, 0, 3), (0, 0, 0)), 40, 8, 8),
         "light": {"type": "point", "position": [0, 0, 3]},
@@ -175,7 +175,7 @@ def test_needed_features(mi, cbox, mixed):
      dict(roughness=0, metallic=0, transmission=0, albedo=[0.3, 0.3, 0.3])),
 ])
 def test_material_features(mi, bsdf, expect):
-    from render.buffers import make_sensor, render_image
+    from mcdenoise.render.buffers import make_sensor, render_image
     scene = mi.load_dict({
         "type": "scene", "sensor": make_sensor(mi, look_at(mi, (0, 0, 2), (0, 0, 0)), 30, 4, 4),
         "light": {"type": "point", "position": [0, 0, 2]},
@@ -192,7 +192,7 @@ def test_material_features(mi, bsdf, expect):
 def test_depth_normal_background(mi):
     """A plane 2.5 in front of a wide-angle camera covers the left half of the image; the
     right half sees the environment."""
-    from render.buffers import make_sensor, render_image
+    from mcdenoise.render.buffers import make_sensor, render_image
     T = mi.ScalarTransform4f
     d = 2.5
     scene = mi.load_dict({
@@ -226,7 +226,7 @@ def test_depth_normal_background(mi):
 
 
 def test_normals_unit_length_on_curved_hits(mi, mixed):
-    from render.buffers import render_image
+    from mcdenoise.render.buffers import render_image
     scene, sensor = mixed
     res = render_image(mi, scene, sensor, spp=1, seed=9)  # one sample per pixel: no averaging
     hit = res.buffers["depth"][..., 0] > 0
@@ -249,7 +249,7 @@ def test_repair_nonfinite_counts():
 
 
 def test_integrator_props_and_registration(mi):
-    from render.integrator import register
+    from mcdenoise.render.integrator import register
     register(mi)
     register(mi)  # idempotent
     integ = mi.load_dict({"type": "split", "features": "metallic", "moments": False, "max_depth": 3})

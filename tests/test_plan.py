@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import schema
-from pipeline.config import load_config
-from pipeline.store import Store
-from render.plan import MEASURED, calibrate_from_store, estimate, measure, raw_bytes_per_pixel
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.store import Store
+from mcdenoise.render.plan import MEASURED, calibrate_from_store, estimate, measure, raw_bytes_per_pixel
 from tests.helpers import TINY, cli
 
 PAPER = "configs/paper.yaml"
@@ -105,7 +105,7 @@ def test_measure_gives_constants_the_model_uses():
 
 
 def test_fit_survives_timing_noise():
-    from render.plan import _fit
+    from mcdenoise.render.plan import _fit
     a, b = _fit([(100, 0.020), (800, 0.015)])    # the larger render measured faster: noise
     assert a == 0.0 and b > 0
     a, b = _fit([(100, 0.010), (800, 0.080)])

@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import metrics
-from pipeline.store import Store
-from render.buffers import RenderResult
-from render.progressive import StopRule, estimated_psnr, expected_spp, pass_seed, render_to_target
+from mcdenoise.pipeline import metrics
+from mcdenoise.pipeline.store import Store
+from mcdenoise.render.buffers import RenderResult
+from mcdenoise.render.progressive import StopRule, estimated_psnr, expected_spp, pass_seed, render_to_target
 from tests.helpers import TINY, assert_same_store, cli
 
 
@@ -69,11 +69,11 @@ def test_pass_seeds_are_deterministic_and_distinct():
 def test_progressive_render_matches_one_render_of_the_total():
     """On a real scene, 4 passes of 16 spp pooled vs one render of 64 spp: the same estimator, so the
     two means differ by their combined noise only and the variances of the mean agree."""
-    from pipeline.config import load_config
-    from pipeline.mitsuba_env import import_mitsuba
-    from render.buffers import needed_features, render_image
-    from render.dataset import make_plan
-    from render.scene import build_scene, build_sensor
+    from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.render.buffers import needed_features, render_image
+    from mcdenoise.render.dataset import make_plan
+    from mcdenoise.render.scene import build_scene, build_sensor
 
     cfg = load_config(TINY)
     mi = import_mitsuba(cfg.render.variant, 0)
@@ -151,7 +151,7 @@ def test_progressive_frame_resumes_to_the_identical_images(progressive_store, tm
 
 
 def test_plan_calibrates_the_gt_error_distribution_on_the_store(progressive_store):
-    from render.plan import calibrate_from_store
+    from mcdenoise.render.plan import calibrate_from_store
 
     c = calibrate_from_store(progressive_store)
     store = Store(progressive_store)
@@ -168,8 +168,8 @@ def test_plan_calibrates_the_gt_error_distribution_on_the_store(progressive_stor
     ("dataset.gt_max_spp=100", "dataset.gt_max_spp: must be a multiple of gt_pass_spp"),
 ])
 def test_bad_progressive_settings_are_refused(override, message):
-    from pipeline.config import load_config
-    from pipeline.errors import ConfigError
+    from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.errors import ConfigError
 
     with pytest.raises(ConfigError, match=message):
         load_config(TINY, ["dataset.gt_target_psnr=40", "dataset.gt_pass_spp=16", override])

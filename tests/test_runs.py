@@ -2,8 +2,8 @@
 that delegate to it."""
 import pytest
 
-from pipeline.config import load_config
-from pipeline.runs import pick_device, run_dir
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.runs import pick_device, run_dir
 
 
 def test_every_model_has_its_folder(tmp_path):
@@ -27,8 +27,8 @@ def test_settings_that_name_the_folder(tmp_path):
 
 
 def test_stage_spellings_delegate(tmp_path):
-    from clean.train import run_dir as clean_run_dir
-    from train.model import run_dir as diffusion_run_dir
+    from mcdenoise.clean.train import run_dir as clean_run_dir
+    from mcdenoise.train.model import run_dir as diffusion_run_dir
 
     cfg = load_config(None, [f"runs={tmp_path}"])
     assert clean_run_dir(cfg) == run_dir(cfg, "cleaner")

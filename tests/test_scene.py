@@ -9,16 +9,16 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.config import SceneConfig
-from render import camera as cam
-from render.materials import FAMILIES
-from render.scene import STRESS_PRESETS, random_scene, stress_scene
-from render.textures import KINDS, make_texture, random_texture_params
+from mcdenoise.pipeline.config import SceneConfig
+from mcdenoise.render import camera as cam
+from mcdenoise.render.materials import FAMILIES
+from mcdenoise.render.scene import STRESS_PRESETS, random_scene, stress_scene
+from mcdenoise.render.textures import KINDS, make_texture, random_texture_params
 
 
 @pytest.fixture(scope="module")
 def mi():
-    from pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 
     return import_mitsuba("llvm_ad_rgb")
 
@@ -31,7 +31,7 @@ def _sensor(mi, desc, frame, size=32):
 
 
 def _render(mi, desc, frame=0, spp=4):
-    from render.scene import build_scene
+    from mcdenoise.render.scene import build_scene
 
     scene = build_scene(mi, desc)
     img = np.asarray(mi.render(scene, sensor=_sensor(mi, desc, frame), integrator=mi.load_dict({"type": "path"}),
@@ -138,7 +138,7 @@ def test_random_scenes_are_lit(mi):
 
 @pytest.mark.slow
 def test_build_sensor(mi):
-    from render.scene import build_sensor
+    from mcdenoise.render.scene import build_sensor
 
     desc = random_scene(SceneConfig(), 0, 0, 2)
     sensor = build_sensor(mi, desc, 1, 48, 32)

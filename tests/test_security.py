@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from pipeline.exr import StoreError
-from pipeline.store import Store
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.store import Store
 from tests.helpers import TINY, cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,8 +111,8 @@ def _evil_checkpoint(path: Path, marker: Path) -> None:
 
 
 def test_pickle_model_checkpoint_is_refused(tmp_path):
-    from clean.model import load_model
-    from clean.train import build_model, save_best
+    from mcdenoise.clean.model import load_model
+    from mcdenoise.clean.train import build_model, save_best
     from tests.helpers import tiny_cfg
 
     folder = tmp_path / "run"

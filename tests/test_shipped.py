@@ -8,10 +8,10 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from evaluate.stability import synthetic_buffers
-from pipeline.exr import read_image
-from train.infer import load_denoiser
-from train.model import SHIPPED_MODEL
+from mcdenoise.evaluate.stability import synthetic_buffers
+from mcdenoise.pipeline.exr import read_image
+from mcdenoise.train.infer import load_denoiser
+from mcdenoise.train.model import SHIPPED_MODEL
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import evaluate.methods as em
-from evaluate.harness import repaired_inputs, run_method
-from evaluate.stability import CASES, LARGE, run_stability, synthetic_buffers
-from pipeline import schema
-from pipeline.config import load_config
+import mcdenoise.evaluate.methods as em
+from mcdenoise.evaluate.harness import repaired_inputs, run_method
+from mcdenoise.evaluate.stability import CASES, LARGE, run_stability, synthetic_buffers
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import load_config
 from tests.helpers import save_untrained_isik
 
 ROOT = Path(__file__).resolve().parents[1]

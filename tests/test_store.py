@@ -5,9 +5,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline import schema
-from pipeline.exr import StoreError, read_header, read_image, write_image
-from pipeline.store import Store, combine_stacks, image_seed
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.exr import StoreError, read_header, read_image, write_image
+from mcdenoise.pipeline.store import Store, combine_stacks, image_seed
 
 
 def random_image(h=12, w=10, seed=0):

@@ -10,8 +10,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline.exr import checksum
-from pipeline.verify import verify_store
+from mcdenoise.pipeline.exr import checksum
+from mcdenoise.pipeline.verify import verify_store
 from tests.helpers import cli
 
 FRAME = "scenes/s00000/000"
@@ -42,7 +42,7 @@ def _edit_json(path, fn):
 def _rewrite_exr(path, edit_channels, edit_record=None, compression=None):
     """Rewrite an image with changed pixels, a correct checksum, and a frame.json that agrees,
     so that only the damage under test remains."""
-    from pipeline.store import sha256
+    from mcdenoise.pipeline.store import sha256
 
     with OpenEXR.File(str(path), separate_channels=True) as f:
         header = dict(f.header())

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import torch
 
-from pipeline.errors import CheckpointError
-from pipeline.exr import atomic_write_bytes, atomic_write_json
+from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.exr import atomic_write_bytes, atomic_write_json
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PROMPT = "prompt_embeds.safetensors"

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import schema
-from pipeline.config import PAPER_STEPS, Config
-from pipeline.exr import StoreError, atomic_write_json
-from pipeline.runs import pick_device
-from pipeline.timing import best_time
-from pipeline.versions import machine
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import PAPER_STEPS, Config
+from mcdenoise.pipeline.exr import StoreError, atomic_write_json
+from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.timing import best_time
+from mcdenoise.pipeline.versions import machine
 
 from . import base as base_lib
 from .formulation import Formulation

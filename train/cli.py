@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.config import PAPER_STEPS, Config
-from pipeline.exr import StoreError, write_image
-from pipeline.metrics import PSNR_CEILING, psnr
-from pipeline.runs import pick_device, run_dir as runs_dir
-from pipeline.store import FrameKey, Store, sha256
+from mcdenoise.pipeline.config import PAPER_STEPS, Config
+from mcdenoise.pipeline.exr import StoreError, write_image
+from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
+from mcdenoise.pipeline.runs import pick_device, run_dir as runs_dir
+from mcdenoise.pipeline.store import FrameKey, Store, sha256
 
 from . import base as base_lib
 from .data import DenoisePairs, frame_rotation, from_model
@@ -135,7 +135,7 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
 
 
 def _base_hash(cfg: Config, run: Path) -> str:
-    from pipeline.store import sha256
+    from mcdenoise.pipeline.store import sha256
     path = base_folder(cfg, run) / base_lib.WEIGHTS
     if not path.exists():
         raise TrainError(f"{path}: base weights missing; run `make pretrain` or set diffusion.base")
@@ -206,7 +206,7 @@ DEFAULT_EXR_SPP = 16
 
 def _exr_spp(path: Path) -> tuple[int, str]:
     """The sample count an EXR's mcdenoise header records, else ``DEFAULT_EXR_SPP`` (the middle of 4..64)."""
-    from pipeline.exr import read_header
+    from mcdenoise.pipeline.exr import read_header
     try:
         spp = read_header(path).get("spp")
     except StoreError:
@@ -265,7 +265,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         rotation = frame_rotation(store, key)
         source = f"{store.root}/{frame}"
     else:
-        from pipeline.exr import read_layers
+        from mcdenoise.pipeline.exr import read_layers
         buffers = read_layers(Path(exr))
         source = exr
     samples = f.samples if samples is None else int(samples)

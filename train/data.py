@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pipeline import color, features, schema
-from pipeline.store import FrameKey, Store
+from mcdenoise.pipeline import color, features, schema
+from mcdenoise.pipeline.store import FrameKey, Store
 
 from .estimate import Estimator, extra_names
 

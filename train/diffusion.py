@@ -28,7 +28,7 @@ import math
 
 import torch
 
-from pipeline.config import PAPER_STEPS  # noqa: F401  (IF's super27: len(super27()))
+from mcdenoise.pipeline.config import PAPER_STEPS  # noqa: F401  (IF's super27: len(super27()))
 
 TRAIN_STEPS = 1000
 

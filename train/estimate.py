@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.exr import StoreError
+from mcdenoise.pipeline.exr import StoreError
 
 KINDS = {"none": (), "oidn": ("oidn",), "isik": ("isik",), "oidn+isik": ("oidn", "isik")}
 # What the Isik network (and the diffusion model, trained on the same buffers) needs beyond R, G, B: the
@@ -56,10 +56,10 @@ class Estimator:
 
     def _component(self, name: str, buffers: dict[str, np.ndarray]) -> np.ndarray:
         if name == "oidn":
-            from pipeline import oidn
+            from mcdenoise.pipeline import oidn
             return oidn.denoise(buffers)
-        from clean.apply import denoise
-        from clean.data import frame_inputs
+        from mcdenoise.clean.apply import denoise
+        from mcdenoise.clean.data import frame_inputs
         inputs, radiance = frame_inputs(buffers)
         return denoise(self.isik, inputs, radiance, tile=self.tile, device=self.device)
 
@@ -78,7 +78,7 @@ def load(kind: str, isik_folder: str | Path | None, device: str = "cpu") -> Esti
         raise StoreError(f"diffusion.estimate: unknown first estimate {kind!r} (known: {', '.join(KINDS)})")
     isik = None
     if "isik" in KINDS[kind]:
-        from clean.model import load_model
+        from mcdenoise.clean.model import load_model
         folder = Path(isik_folder) if isik_folder else None
         if folder is None or not (folder / "model.safetensors").exists():
             raise StoreError(f"the first estimate {kind!r} needs a trained Isik network: none in {folder} "

@@ -22,10 +22,10 @@ import json
 import shutil
 from pathlib import Path
 
-from pipeline.checkpoint import save_safetensors
-from pipeline.config import Config
-from pipeline.exr import StoreError, atomic_write_json, read_json
-from pipeline.store import sha256
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError, atomic_write_json, read_json
+from mcdenoise.pipeline.store import sha256
 
 from . import base as base_lib
 from .estimate import KINDS

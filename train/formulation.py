@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from pipeline.config import ConfigError
+from mcdenoise.pipeline.config import ConfigError
 
 from . import diffusion as if_ddpm
 

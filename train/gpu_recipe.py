@@ -7,7 +7,7 @@ does not travel). Run there, as one command of the device tool (``carry: [".gpu"
 
     bash train/gpu_recipe.sh                  # MINUTES=6 OUT=$OUT by default
 
-which installs the wheels and runs ``python -m train.gpu_recipe``: it loads ``train/shipped``,
+which installs the wheels and runs ``python -m mcdenoise.train.gpu_recipe``: it loads ``train/shipped``,
 trains base and Control Module on the carried crops for ``--minutes`` (bf16 autocast, the shipped
 model's formulation and objective, the same loop as ``make train``), scores the 1-step output
 against the crops' first estimate on the carried validation crops, times the network at 256² and
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import torch
 
-from pipeline.checkpoint import save_safetensors
-from pipeline.config import PAPER_STEPS
-from pipeline.runs import pick_device
-from pipeline.timing import best_time
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.config import PAPER_STEPS
+from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.timing import best_time
 
 from .model import SHIPPED_MODEL, formulation, load
 from .pack import PackPairs
@@ -42,7 +42,7 @@ SIZES = {"256x256": (256, 256), "1920x1080": (1080, 1920)}
 
 
 def _validator(model, val: PackPairs, form, device, autocast):
-    from pipeline.metrics import psnr
+    from mcdenoise.pipeline.metrics import psnr
 
     from .data import from_model
 

@@ -9,4 +9,4 @@ MINUTES="${MINUTES:-6}"
 python -m pip install --quiet --no-index --no-deps --target .gpu/site .gpu/wheels/*.whl
 export PYTHONPATH="$PWD/.gpu/site:$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-python -m train.gpu_recipe --out "$OUT" --minutes "$MINUTES" "$@"
+python -m mcdenoise.train.gpu_recipe --out "$OUT" --minutes "$MINUTES" "$@"

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.numerics import repair_nonfinite
-from pipeline.runs import pick_device
+from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.runs import pick_device
 
 from .data import CLAMP, from_model, model_inputs, to_planar
 from .estimate import Estimator, has_renderer_buffers

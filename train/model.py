@@ -15,12 +15,12 @@ from pathlib import Path
 
 import torch
 
-from pipeline import runs
-from pipeline.checkpoint import save_safetensors
-from pipeline.config import Config
-from pipeline.errors import CheckpointError, StoreError
-from pipeline.exr import atomic_write_json, read_json
-from pipeline.store import sha256
+from mcdenoise.pipeline import runs
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import CheckpointError, StoreError
+from mcdenoise.pipeline.exr import atomic_write_json, read_json
+from mcdenoise.pipeline.store import sha256
 
 from . import base as base_lib
 from .control import ControlledDenoiser, ControlModule

@@ -28,10 +28,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pipeline.checkpoint import save_safetensors
-from pipeline.exr import StoreError
-from pipeline.progress import progress
-from pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
 
 from .data import augment, aux_names, frame_rotation, model_inputs, random_crop, to_planar
 from .estimate import Estimator

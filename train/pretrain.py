@@ -29,9 +29,9 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from pipeline.color import srgb_to_linear
-from pipeline.exr import StoreError
-from pipeline.store import Store
+from mcdenoise.pipeline.color import srgb_to_linear
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.store import Store
 
 from .data import augment, random_crop, to_model, to_planar
 from .estimate import Estimator

@@ -38,11 +38,11 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.checkpoint import NanGuard, plot_curves
-from pipeline.errors import TrainError
-from pipeline.exr import atomic_write_json
-from pipeline.fit import Task, apply_update, fit as run_fit
-from pipeline.versions import machine
+from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.exr import atomic_write_json
+from mcdenoise.pipeline.fit import Task, apply_update, fit as run_fit
+from mcdenoise.pipeline.versions import machine
 
 from . import diffusion
 
