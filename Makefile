@@ -42,7 +42,7 @@ $(STAMP): requirements.lock pyproject.toml
 
 # Mitsuba's LLVM variants need libLLVM >= 16 (14/15 abort on the first render).
 llvm:
-	@if $(PYTHON_SYS) -c "import sys; sys.path.insert(0, '.'); from pipeline.mitsuba_env import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
+	@if $(PYTHON_SYS) -c "import sys; sys.path.insert(0, '.'); from mcdenoise.pipeline.mitsuba_env import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
 		true; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
 		echo "installing libllvm19 (Mitsuba's LLVM backend needs LLVM >= 16)"; \

@@ -13,6 +13,7 @@ command. An installed package has them inside and leaves its path alone.
 """
 from pathlib import Path
 
-_ROOT = Path(__file__).resolve().parent.parent
-if not (Path(__file__).resolve().parent / "pipeline").is_dir() and (_ROOT / "pipeline" / "__init__.py").is_file():
-    __path__.append(str(_ROOT))  # noqa: F821 (the package's own search path, set by the import system)
+_HERE = Path(__file__).resolve().parent
+# A source checkout: the folders are this one's siblings (an installed package holds them inside).
+if not (_HERE / "pipeline").is_dir() and (_HERE.parent / "pipeline" / "__init__.py").is_file():
+    __path__.append(str(_HERE.parent))

@@ -122,6 +122,12 @@ def test_no_module_uses_another_modules_private_names():
     assert not found, "private names used outside their module:\n" + "\n".join(found)
 
 
+def test_project_modules_are_imported_through_the_installed_name():
+    paths = [*MODULES.values(), *sorted((ROOT / "tests").glob("*.py")), *sorted((ROOT / PACKAGE).glob("*.py"))]
+    found = [hit for path in paths for hit in unprefixed_imports(path)]
+    assert not found, f"imports that bypass {PACKAGE}. (run the import rewrite):\n" + "\n".join(found)
+
+
 def test_test_modules_do_not_import_each_other():
     found = []
     for path in sorted((ROOT / "tests").glob("test_*.py")):

@@ -1,5 +1,6 @@
 """The denoiser shipped in train/shipped: in the repository, small, documented, and it denoises."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -52,15 +53,17 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
 
 
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
-    """`python -m pipeline denoise --exr IN --out OUT` with nothing trained: an R,G,B EXR comes out denoised."""
+    """`python -m mcdenoise denoise --exr IN --out OUT` from another folder with nothing trained (the command
+    an installed package gives; the checkout is on PYTHONPATH): an R,G,B EXR comes out denoised."""
     truth = synthetic_buffers(32, 40, seed=7, noise=0.0)["color"]
     noisy = synthetic_buffers(32, 40, seed=7, noise=0.7)["color"]
     src, dst = tmp_path / "in.exr", tmp_path / "out.exr"
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
                       {c: np.ascontiguousarray(noisy[..., i]) for i, c in enumerate("RGB")}) as f:
         f.write(str(src))
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "denoise", "--exr", str(src), "--out", str(dst),
-                           f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True, text=True)
+    env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.run([sys.executable, "-m", "mcdenoise", "denoise", "--exr", str(src), "--out", str(dst),
+                           f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert proc.returncode == 0, proc.stderr
     out = read_image(dst)[0]["color"]
     assert np.isfinite(out).all() and _mse(out, truth) < 0.5 * _mse(noisy, truth)
