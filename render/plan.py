@@ -85,6 +85,9 @@ MEASURED: dict = {
   "gt_clean": 0.879
  },
  "gt_spp_for_ratio": 1024,
+ "encoding": "exact",
+ "compact_factor": 0.517,
+ "compact_factor_source": "verify data/default --bytes 100: 11.92 / 23.05 MiB per frame (86 frames), 2026-12-01",
  "gt_psnr": {
   "source": "data/default (configs/default.yaml, 86 frames, 172 GTs at 1024 spp, 128x128, max_depth 8), 2026-12-01",
   "spp": 1024,
@@ -98,6 +101,19 @@ DEFAULT_WORKERS = (1, 2, 16, 64, 256, 1024)
 
 
 # ---- bytes -------------------------------------------------------------------------------------
+
+def disk_ratio(c: dict, kind: str, encoding: str) -> float:
+    """Stored bytes over raw bytes of a ``kind`` image ('gt' or 'stack') written with ``encoding``.
+
+    ``zip_ratio`` was measured with the constants' own ``encoding`` (the exact one when not
+    recorded); for the other encoding it is scaled by ``compact_factor``, the ratio of the compact
+    to the exact bytes of the same images (``verify --bytes``, docs/store.md)."""
+    ratio = c["zip_ratio"][kind]
+    measured = c.get("encoding", "exact")
+    if encoding != measured:
+        ratio = ratio * c["compact_factor"] if encoding == "compact" else ratio / c["compact_factor"]
+    return ratio
+
 
 def raw_bytes_per_pixel(omit: tuple[str, ...] = ()) -> int:
     """Uncompressed bytes per pixel of a complete image: every buffer and its variance."""
@@ -159,10 +175,10 @@ def estimate(cfg: Config, constants: dict | None = None) -> dict:
     parts = {
         "gt": {"images": 2, "spp": gt_spp, "passes": gt_passes, "target_psnr": d.gt_target_psnr,
                "core_s": 2 * (gt_passes * overhead + px * gt_spp * cost + write),
-               "bytes": 2 * raw * c["zip_ratio"]["gt"]},
+               "bytes": 2 * raw * disk_ratio(c, "gt", cfg.render.encoding)},
         "stacks": {"images": d.stacks, "spp": d.stack_spp,
                    "core_s": d.stacks * (overhead + px * d.stack_spp * cost + write),
-                   "bytes": d.stacks * raw * c["zip_ratio"]["stack"]},
+                   "bytes": d.stacks * raw * disk_ratio(c, "stack", cfg.render.encoding)},
         "gt_clean": {"images": 1, "spp": None, "core_s": None,
                      "bytes": px * 3 * 4 * c["zip_ratio"]["gt_clean"]},
     }
@@ -290,7 +306,7 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
                                           max_depth=max(depths), rr_depth=cfg.render.rr_depth)
                     path = tmp / f"{kind}{i}_{res}.exr"
                     t0 = time.process_time()
-                    write_image(path, result.buffers, result.constants)
+                    write_image(path, result.buffers, result.constants, encoding=cfg.render.encoding)
                     sha256(path)
                     writes.append((time.process_time() - t0) / (res * res / 1e6))
                     ratios[kind].append(path.stat().st_size / raw)
@@ -317,6 +333,8 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
         "write_s_per_mpx": round(float(np.mean(writes)), 3),
         "zip_ratio": {k: round(float(np.mean(v)), 3) for k, v in ratios.items()},
         "gt_spp_for_ratio": gt_spp,
+        "encoding": cfg.render.encoding,
+        "compact_factor": MEASURED["compact_factor"],
     }
 
 
@@ -343,7 +361,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
     cpus = os.cpu_count() or 1
     cores = min(threads, cpus / workers) if threads > 0 else cpus / workers
     depth = int(conf.get("render", {}).get("max_depth", 8))
-    points, gt_ratio, stack_ratio, sizes, gt_psnr = [], [], [], [], []
+    points, gt_ratio, stack_ratio, sizes, gt_psnr, encodings = [], [], [], [], [], set()
     frames = 0
     for key in store.frames():
         rec = store.frame_record(key.scene, key.frame)
@@ -359,6 +377,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
             points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
             (gt_ratio if name.startswith("gt") else stack_ratio).append(
                 int(img["bytes"]) / (raw_bytes_per_pixel() * px))
+            encodings.add((img.get("encoding") or {}).get("name", "exact"))
         frames += 1
         if frames >= max_frames:
             break
@@ -371,6 +390,8 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
     measured_cost, _ = seconds_per_sample(c, side, depth)
     scale = b / measured_cost
     c["render"] = {str(side): {d: {"rate": v["rate"] / scale, "overhead_s": a} for d, v in base.items()}}
+    if len(encodings) == 1:   # the ratios below are that encoding's (a mixed store keeps the constants' label)
+        c["encoding"] = encodings.pop()
     if gt_ratio:
         c["zip_ratio"]["gt"] = float(np.mean(gt_ratio))
     if stack_ratio:
