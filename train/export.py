@@ -102,7 +102,7 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         "## Data", "",
         f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
         f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
-        f"GT {d.gt_spp} spp x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
+        f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
         "configs/default.yaml's scenes (another seed).", "",
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
@@ -133,3 +133,10 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
     lines += ["", "Evaluation against OIDN, Isik and the noisy input on the default test set: "
               "docs/example_report/eval.md.", ""]
     return "\n".join(lines)
+
+
+def _gt_spp(d) -> str:
+    """The ground truths' sample count as the card states it: fixed, or rendered to a target error."""
+    if d.gt_target_psnr is None:
+        return f"{d.gt_spp} spp"
+    return f"to an estimated {d.gt_target_psnr:g} dB in passes of {d.gt_pass_spp} spp (at most {d.gt_max_spp} spp)"
