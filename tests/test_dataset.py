@@ -16,6 +16,7 @@ import pytest
 
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.exr import read_image
+from mcdenoise.pipeline.inspect import _format_gt
 from mcdenoise.pipeline.store import Store, image_names
 from tests.helpers import ROOT, TINY, assert_same_store, cli
 
@@ -85,6 +86,16 @@ def test_inspect_reports_frames_and_constants(tiny_store):
     assert set(gt1["channels"]).isdisjoint(gt1["constants"])
     text = cli("inspect", root).stdout
     assert "6/6 frames complete" in text
+    # every image counted under its encoding (the tiny config writes the compact one, beauty derived)
+    assert report["encodings"] == {"compact, beauty sum": 6 * 6}
+    assert "encodings (images): compact, beauty sum: 36" in text
+
+
+def test_inspect_says_identical_instead_of_the_json_psnr_ceiling():
+    stats = {"frames": 2, "spp_min": 64, "spp_max": 64, "spp_mean": 64.0, "psnr_gt1_gt2_median": 999.0,
+             "psnr_gt1_gt2_min": 41.5, "estimated_psnr_median": None}
+    (line,) = _format_gt({**stats, "by_family": {}})
+    assert "median identical (min 41.5 dB)" in line and "estimated PSNR median n/a" in line and "999" not in line
 
 
 def test_kill_and_resume_matches_uninterrupted_run(tiny_store, tmp_path):
