@@ -596,15 +596,23 @@ def _gather(path: Path, names: tuple[str, ...], pixels: dict, constants: dict, s
     return arr
 
 
+def encoding_of(record: dict) -> dict:
+    """An image record's encoding (its header's, or its copy in frame.json): a version 3 record says it;
+    older images are all exact with the beauty stored."""
+    if record.get("version") == FORMAT_VERSION and isinstance(record.get("encoding"), dict):
+        return record["encoding"]
+    return {"name": "exact", "beauty": "stored"}
+
+
 def _beauty_derived(record: dict) -> bool:
     """Whether the image leaves the beauty out for the reader to sum (checked by ``_check_encoding``)."""
-    return record.get("version") == 3 and record["encoding"]["beauty"] == "sum"
+    return encoding_of(record).get("beauty") == "sum"
 
 
 def _check_encoding(path: Path, record: dict, stored_channels) -> None:
     """A version 3 record names a known encoding; a derived beauty has no stored or constant channel
     and all its components are listed."""
-    if record["version"] < 3:
+    if record["version"] < FORMAT_VERSION:
         return
     enc = record.get("encoding")
     if not (isinstance(enc, dict) and enc.get("name") in ENCODINGS and enc.get("beauty") in ("sum", "stored")):

@@ -9,7 +9,7 @@ from collections import Counter
 import numpy as np
 
 from . import schema
-from .exr import StoreError
+from .exr import StoreError, encoding_of
 from .metrics import PSNR_CEILING
 from .store import Store
 
@@ -46,8 +46,8 @@ def inspect_store(root: str, frame: str | None = None) -> dict:
                 nonfinite += sum(img.get("nonfinite", {}).values())
                 for ch in img.get("constants", {}):
                     omitted[ch] += 1
-                encoding = img.get("encoding") or {}
-                encodings[(encoding.get("name", "exact"), encoding.get("beauty", "stored"))] += 1
+                encoding = encoding_of(img)
+                encodings[(encoding["name"], encoding["beauty"])] += 1
     report.update({
         "frames": frames_total, "frames_complete": frames_done, "incomplete": incomplete[:50],
         "images": images, "bytes": bytes_, "spp": {str(k): v for k, v in sorted(spp.items())},

@@ -258,9 +258,9 @@ def _check_channels(path: Path, header: dict, report: Report) -> None:
 
 def _check_encoding(path: Path, header: dict, arrays: dict | None, report: Report) -> None:
     """Compression as the record's encoding says; stored variances/depth within its mantissa bits."""
-    from .exr import COMPRESSION, scan_exr
+    from .exr import COMPRESSION, encoding_of, scan_exr
     # read_image/read_header checked a version 3 record's encoding; older images are all exact.
-    encoding = header["encoding"]["name"] if header.get("version") == 3 else "exact"
+    encoding = encoding_of(header)["name"]
     compression = scan_exr(path)["compression"]
     if compression != COMPRESSION[encoding]:
         report.add(path, f"{encoding} image compressed with {compression}, expected {COMPRESSION[encoding]}")

@@ -350,6 +350,7 @@ def _cpu_name() -> str:
 
 def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
     """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
+    from mcdenoise.pipeline.exr import encoding_of
     from mcdenoise.pipeline.store import Store
 
     c = json.loads(json.dumps(constants or MEASURED))
@@ -377,7 +378,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
             points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
             (gt_ratio if name.startswith("gt") else stack_ratio).append(
                 int(img["bytes"]) / (raw_bytes_per_pixel() * px))
-            encodings.add((img.get("encoding") or {}).get("name", "exact"))
+            encodings.add(encoding_of(img)["name"])
         frames += 1
         if frames >= max_frames:
             break
