@@ -80,7 +80,8 @@ def cmd_export(args) -> int:
     from pathlib import Path
 
     from mcdenoise.train.export import export
-    export(_config(args), args.spp, Path(args.out), quiet=args.quiet, config=args.config)
+    export(_config(args), args.spp, Path(args.out), quiet=args.quiet, config=args.config,
+           overrides=args.overrides)
     return 0
 
 

@@ -228,6 +228,11 @@ class DiffusionConfig:
     snr_gamma: float = doc("gamma of the min-SNR loss weighting (Hang et al. 2023).", 5.0)
     snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
                            "step whose output is the one-step estimate).", 1.0)
+    loss_norm: str = doc("Refine formulation: 'crop' divides each training crop's loss by its first estimate's "
+                         "error, so every crop counts by its relative gain, as a mean of per-frame PSNRs does; "
+                         "'none': the plain weighted MSE, which the few hard crops dominate (and what runs from "
+                         "before this key trained with). The paper formulation keeps IF's hybrid loss. See "
+                         "train/formulation.py and docs/diffusion.md.", "crop")
     t_focus: float = doc("Probability that a training timestep is drawn from the timesteps the sampler visits with "
                          "one of train_steps steps (else uniform over 0..999).", 0.8)
     train_steps: list = doc("Step counts whose timesteps t_focus draws from (each count equally likely).",
@@ -298,7 +303,7 @@ class EvalConfig:
                         "diffusion_spp<N>_paper; see evaluate/methods.py). A method whose model is missing is listed "
                         "as not available.",
                         factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", "ours",
-                                         "ours_k4", "base_only"])
+                                         "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",

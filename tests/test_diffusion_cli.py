@@ -203,11 +203,15 @@ def test_export_is_self_contained_and_serves_as_the_shipped_model(setup, tmp_pat
     from mcdenoise.train.infer import load_denoiser
 
     tmp, keys = setup
-    run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
+    run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2", "diffusion.loss_norm=crop")
     out = tmp_path / "moved" / "shipped"
-    run("export", "--spp", "4", "--out", out, *keys)
+    run("export", "--spp", "4", "--out", out, *keys, "diffusion.loss_norm=crop")
     meta = json.loads((out / "model.json").read_text())
     assert meta["base"] == "base" and (out / "base" / "config.json").exists() and (out / "README.md").exists()
+    assert meta["formulation"]["loss_norm"] == "crop"
+    card = (out / "README.md").read_text()          # the card's commands make this model again
+    train_line = next(line for line in card.splitlines() if line.startswith("python -m pipeline train --model diffusion"))
+    assert "diffusion.loss_norm=crop" in train_line and all(k in train_line for k in cfg_overrides(keys))
     store = Store(tmp / "store")
     key = store.frames("test")[0]
     buffers = store.read(key.scene, key.frame, 4)

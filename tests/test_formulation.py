@@ -141,7 +141,68 @@ def test_loss_is_zero_for_the_oracle_and_positive_otherwise():
         assert float(f.loss(torch.zeros_like(exact), y, z, t, noise, sched)[0]) > 1e-3
 
 
+def _two_crops(f):
+    """An easy crop and one whose first estimate is 30 times further off (both far above the floor)."""
+    gen = torch.Generator().manual_seed(7)
+    image = (torch.rand(2, 3, 16, 16, generator=gen) * 1.6 - 0.8)
+    err = 0.03 * torch.randn(image.shape, generator=gen)
+    err[1] *= 30
+    return f.target(image + err, image), image
+
+
+@pytest.mark.parametrize("norm", ["none", "crop"])
+def test_crop_norm_counts_every_crop_by_its_relative_gain(norm):
+    f = form(prediction="sample", loss_norm=norm)
+    sched = f.scheduler("ddpm")
+    y, image = _two_crops(f)
+    t = torch.tensor([999, 999])
+    z = torch.randn(y.shape, generator=torch.Generator().manual_seed(1))
+    weights = f.crop_norm(y, image)
+
+    def loss_of(pred):
+        return float(f.loss(torch.cat([pred, torch.zeros_like(pred)], 1), y, z, t, z, sched, norm=weights)[0])
+    fix_easy = torch.stack([y[0] / 2, torch.zeros_like(y[1])])   # halves the easy crop's error only
+    fix_hard = torch.stack([torch.zeros_like(y[0]), y[1] / 2])   # halves the hard crop's error only
+    start = loss_of(torch.zeros_like(y))                           # the estimate itself
+    gain_easy, gain_hard = start - loss_of(fix_easy), start - loss_of(fix_hard)
+    assert gain_easy > 0 and gain_hard > 0
+    if norm == "crop":
+        assert gain_easy == pytest.approx(gain_hard, rel=3e-3)
+        assert start == pytest.approx(1.0, rel=3e-3)                 # every crop's estimate scores 1
+    else:                                                             # 30x the error: 900x the say
+        assert weights is None
+        assert gain_hard > 500 * gain_easy
+
+
+def test_crop_norm_is_finite_where_the_estimate_is_exact():
+    f = form(prediction="sample", loss_norm="crop")
+    y, image = _two_crops(f)
+    y[0] = 0                                                      # the estimate is the clean image
+    w = f.crop_norm(y, image)
+    assert torch.all(torch.isfinite(w)) and torch.all(w > 0)
+    sched = f.scheduler("ddpm")
+    t = torch.tensor([999, 999])
+    off = torch.full_like(y, 0.01)
+    loss = f.loss(torch.cat([off, off], 1), y, y, t, y, sched, norm=w)[0]
+    assert torch.isfinite(loss)
+
+
+def test_training_objective_with_crop_norm_starts_at_one_for_an_untrained_network():
+    f = form(prediction="sample", loss_norm="crop", t_focus=1.0)
+    y, image = _two_crops(f)
+    x = f.image_of(y, image)
+    net = torch.nn.Conv2d(3, 6, 1)
+    torch.nn.init.zeros_(net.weight), torch.nn.init.zeros_(net.bias)
+    step = f.objective([1])
+    loss, terms = step(lambda z, im, aux, t: net(z), {"target": x, "image": image, "noisy": image, "aux": None},
+                       torch.Generator().manual_seed(0), torch.device("cpu"), None)
+    assert float(loss.detach()) == pytest.approx(1.0, rel=1e-3)
+    loss.backward()
+    assert net.weight.grad.abs().sum() > 0
+
+
 @pytest.mark.parametrize("bad,match", [
+    (dict(loss_norm="pixel"), "diffusion.loss_norm"),
     (dict(prediction="epsilon"), "zero terminal SNR"),
     (dict(prediction="epsilon", schedule="if"), "paper formulation"),
     (dict(estimate="none"), "needs a first estimate"),
@@ -220,3 +281,14 @@ def test_an_rgb_only_input_returns_the_first_estimate():
     out = den.denoise({"color": color}, spp=16)
     assert den.last_estimate_only
     np.testing.assert_array_equal(out, oidn.denoise({"color": color}))
+
+
+def test_records_round_trip_and_runs_from_before_loss_norm_keep_their_fingerprint():
+    crop = form(loss_norm="crop")
+    assert Formulation.from_record(crop.record()) == crop
+    # train/shipped/model.json's record as exported before the key existed
+    before = {"estimate": "oidn", "prediction": "sample", "residual": True, "residual_scale": 0.05, "sampler": "ddim",
+              "schedule": "zero_snr", "skip": 0, "snr_floor": 1.0, "snr_gamma": 5.0, "start": "estimate", "steps": 1,
+              "t_focus": 0.8}
+    old = Formulation.from_record(before)
+    assert old.loss_norm == "none" and old.record() == before

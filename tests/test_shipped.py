@@ -50,6 +50,7 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
     one, std1 = shipped.denoise(noisy, spp=4, seed=2, samples=1, with_std=True)
     mean, std = shipped.denoise(noisy, spp=4, seed=2, samples=3, steps=3, with_std=True)
     assert np.all(std1 == 0) and np.all(std >= 0) and np.isfinite(mean).all()
+    assert std.max() > 0        # a trained network's samples differ (an untrained one returns its estimate)
 
 
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import shlex
 import shutil
 from pathlib import Path
 
@@ -32,7 +33,8 @@ from .estimate import KINDS
 from .model import FORMAT, formulation, run_dir
 
 
-def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None) -> Path:
+def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None,
+           overrides: list[str] | tuple = ()) -> Path:
     from safetensors.torch import load_file
 
     folder = run_dir(cfg, spp)
@@ -53,7 +55,7 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
     save_safetensors(tmp / "control.safetensors", control, {"format": FORMAT})
     record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
     atomic_write_json(tmp / "model.json", record)
-    (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out))
+    (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
     if not quiet:
@@ -78,8 +80,10 @@ def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
     save_file({k: _half(v) for k, v in weights.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
 
 
-def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", out: Path | None = None) -> str:
-    """The shipped model's README: what it is, what it saw, how it was trained, on what, how well it did."""
+def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", out: Path | None = None,
+               overrides: list[str] | tuple = ()) -> str:
+    """The shipped model's README: what it is, what it saw, how it was trained, on what, how well it did;
+    the command lines carry the ``overrides`` the run was trained and exported with."""
     train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
     m = train.get("machine") or {}
     hist = train.get("history", [])
@@ -107,8 +111,10 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
         f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
-        f"train_base {cfg.diffusion.train_base}, time budget {cfg.diffusion.time_budget_s:g} s. Best epoch "
-        f"{best.get('epoch')} by validation PSNR (epoch 0 is the untrained model, i.e. the first estimate).", "",
+        f"train_base {cfg.diffusion.train_base}, time budget {cfg.diffusion.time_budget_s:g} s, loss "
+        f"`{f.get('loss_norm', 'none')}`-normalised, t_focus {f.get('t_focus')} on the {list(cfg.diffusion.train_steps)}"
+        f"-step samplers' timesteps. Best epoch {best.get('epoch')} by validation PSNR (epoch 0 is the untrained "
+        f"model, i.e. the first estimate){_gain(best)}.", "",
         *(["**Training did not improve on the first estimate on the validation frames, so this model returns "
            "its first estimate exactly** (the network's last layer is still zero, and several samples agree). "
            "The later epochs stay in the run folder; rerunning the training command with a larger "
@@ -117,22 +123,33 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         f"Machine: {m.get('cuda') or m.get('processor', '?')}, {m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, "
         f"{m.get('torch_threads', '?')} "
         f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
-        "| epoch | val PSNR dB | first estimate dB | noisy dB | seconds |", "| --- | --- | --- | --- | --- |"]
+        "| epoch | val PSNR dB | first estimate dB | gain dB | noisy dB | seconds |",
+        "| --- | --- | --- | --- | --- | --- |"]
     for h in hist:
         v = h.get("val") or {}
-        lines.append(f"| {h['epoch']} | {v.get('psnr', float('nan')):.2f} | {v.get('estimate_psnr', float('nan')):.2f} "
-                     f"| {v.get('noisy_psnr', float('nan')):.2f} | {h.get('seconds')} |")
+        psnr, est = v.get("psnr", float("nan")), v.get("estimate_psnr", float("nan"))
+        lines.append(f"| {h['epoch']} | {psnr:.3f} | {est:.3f} | {psnr - est:+.4f} | {v.get('noisy_psnr', float('nan')):.2f} "
+                     f"| {h.get('seconds')} |")
     spp = record.get("spp")
+    extra = "".join(f" {shlex.quote(o)}" for o in overrides)
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
               *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
               *([f"python -m pipeline train --model isik --spp {spp} --config {config}"]
                 if "isik" in KINDS[f.get("estimate", "none")] else []),
               f"python -m pipeline pack --config {config}",
-              f"python -m pipeline train --model diffusion --spp {spp} --config {config}",
-              f"python -m pipeline export --config {config} --spp {spp} --out {out or 'train/shipped'}", "```"]
+              f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
+              f"python -m pipeline export --config {config} --spp {spp} --out {out or 'train/shipped'}{extra}",
+              "```"]
     lines += ["", "Evaluation against OIDN, Isik and the noisy input on the default test set: "
               "docs/example_report/eval.md.", ""]
     return "\n".join(lines)
+
+
+def _gain(best: dict) -> str:
+    v = best.get("val") or {}
+    if "psnr" not in v or "estimate_psnr" not in v:
+        return ""
+    return f": {v['psnr'] - v['estimate_psnr']:+.4f} dB over the first estimate on {v.get('frames', '?')} validation frames"
 
 
 def _gt_spp(d) -> str:

@@ -19,6 +19,7 @@ trip), ``model.json``, ``report.md``, ``result.json``, ``loss.png``. ``--device 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import tempfile
@@ -32,6 +33,7 @@ from mcdenoise.pipeline.config import PAPER_STEPS
 from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.timing import best_time
 
+from .formulation import LOSS_NORMS
 from .model import SHIPPED_MODEL, formulation, load
 from .pack import PackPairs
 from .sampler import sample_tiled
@@ -92,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--loss-norm", default="crop", choices=LOSS_NORMS,
+                    help="diffusion.loss_norm of the training (train/formulation.py)")
     ap.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
     args = ap.parse_args(argv)
     sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
@@ -100,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(args.device)
     model, meta = load(args.model, device)
-    form = formulation(meta)
+    form = dataclasses.replace(formulation(meta), loss_norm=args.loss_norm)
     model.train_base = True
     model.base.requires_grad_(True)
     autocast = autocast_dtype("auto", device)
