@@ -68,3 +68,28 @@ def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     assert proc.returncode == 0, proc.stderr
     out = read_image(dst)[0]["color"]
     assert np.isfinite(out).all() and _mse(out, truth) < 0.5 * _mse(noisy, truth)
+
+
+def _cornell_box_exr(path: Path, rfilter: str) -> None:
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    mi = import_mitsuba("llvm_ad_rgb")
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=64, height=64, rfilter={"type": rfilter})
+    img = np.asarray(mi.render(mi.load_dict(d), spp=4, seed=1), np.float32)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                      {c: np.ascontiguousarray(img[..., i]) for i, c in enumerate("RGB")}) as f:
+        f.write(str(path))
+
+
+def test_denoise_exr_warns_when_a_wide_reconstruction_filter_correlated_the_noise(tmp_path):
+    """Mitsuba's default film filter (gaussian) splats samples over neighbours; OIDN leaves such noise in
+    place, so `denoise --exr` says so and how to render instead; a box-filtered render gets no warning."""
+    env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    for rfilter, warned in (("gaussian", True), ("box", False)):
+        src, dst = tmp_path / f"{rfilter}.exr", tmp_path / f"{rfilter}_out.exr"
+        _cornell_box_exr(src, rfilter)
+        proc = subprocess.run([sys.executable, "-m", "mcdenoise", "denoise", "--exr", str(src), "--out", str(dst),
+                               "--spp", "4", f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True,
+                              text=True, env=env)
+        assert proc.returncode == 0 and dst.exists(), proc.stderr
+        assert ("spatially correlated" in proc.stderr and 'rfilter type="box"' in proc.stderr) == warned, proc.stderr

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -236,6 +237,19 @@ def _pack_sources(cfg: Config, store: Store, frames: list, quiet: bool) -> list:
     return [None if src is None else (pack, where[str(src[1])]) for src in frames]
 
 
+def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
+    """A warning on stderr when the input's noise is spatially correlated (pipeline/noise.py)."""
+    from mcdenoise.pipeline.noise import CORRELATED_BELOW, correlated_noise
+
+    ratio = correlated_noise(color)
+    if ratio is not None:
+        print(f"warning: {exr}: its noise looks spatially correlated (neighbour ratio {ratio:.2f} < "
+              f"{CORRELATED_BELOW}), as a wide reconstruction filter makes it (Mitsuba's default 'gaussian', "
+              "'tent'); OIDN, this denoiser's first estimate, leaves such noise in place. Render with "
+              "<rfilter type=\"box\"/> in the film (a nearly noise-free image can read this way too).",
+              file=sys.stderr, flush=True)
+
+
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
                 samples: int | None = None) -> int:
@@ -268,6 +282,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         from mcdenoise.pipeline.exr import read_layers
         buffers = read_layers(Path(exr))
         source = exr
+        _warn_if_correlated(exr, buffers["color"])
     samples = f.samples if samples is None else int(samples)
     if samples < 1:
         raise TrainError(f"--samples {samples}: expected at least 1")
