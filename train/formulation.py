@@ -37,8 +37,8 @@ Two formulations share the model, the data and the training loop:
   At t = T with x₀-prediction that is the crop's error relative to the estimate's, so each crop
   counts by how many dB the network gains or loses on it, as the evaluation's mean of per-frame
   PSNRs does. With the plain MSE (``none``) the few hard crops, whose errors are 10-100× larger,
-  dominate the gradient: measured on the shipped model's validation frames, the network then gains
-  a little on hard frames and loses 0.1-0.4 dB on every easy one (docs/diffusion.md). The paper
+  dominate the gradient: measured on the shipped model's validation frames, the network then holds
+  the hard frames level and loses 0.1-0.4 dB on the easy ones (docs/diffusion.md). The paper
   formulation keeps IF's hybrid loss (``train.diffusion``), which ``loss_norm`` does not change.
 """
 from __future__ import annotations
