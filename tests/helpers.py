@@ -139,3 +139,19 @@ def tiny_model(aux=None, control=True, seed=0):
 
     unet, prompt = base_lib.build(tiny_unet_config(), seed=seed)
     return ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS if aux is None else aux) if control else None)
+
+
+def cornell_box(rfilter: str, size: int = 64, spp: int = 4, seed: int = 1) -> np.ndarray:
+    """Mitsuba's Cornell box, stock path tracer, with the film's reconstruction filter ``rfilter``: (size, size, 3)."""
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    mi = import_mitsuba("llvm_ad_rgb")
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=size, height=size, rfilter={"type": rfilter})
+    return np.asarray(mi.render(mi.load_dict(d), spp=spp, seed=seed), np.float32)
+
+
+def write_rgb_exr(path: Path, rgb: np.ndarray) -> None:
+    """An EXR with only R, G and B, as another renderer writes it."""
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                      {c: np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("RGB")}) as f:
+        f.write(str(path))

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from mcdenoise.pipeline.noise import CORRELATED_BELOW, correlated_noise, neighbour_ratio
+from tests.helpers import cornell_box
 
 
 def _ramp_with_noise(seed: int, blur: bool) -> np.ndarray:
@@ -34,9 +35,5 @@ def test_a_linear_image_without_noise_and_tiny_or_flat_images_say_nothing():
 
 @pytest.mark.parametrize("rfilter,correlated", [("box", False), ("gaussian", True), ("tent", True)])
 def test_mitsuba_renders_with_a_wide_filter_are_told_apart(rfilter, correlated):
-    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
-    mi = import_mitsuba("llvm_ad_rgb")
-    d = mi.cornell_box()
-    d["sensor"]["film"].update(width=64, height=64, rfilter={"type": rfilter})
-    img = np.asarray(mi.render(mi.load_dict(d), spp=4, seed=1), np.float32)
+    img = cornell_box(rfilter)
     assert (correlated_noise(img) is not None) == correlated, neighbour_ratio(img)

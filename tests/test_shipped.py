@@ -6,13 +6,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
 import pytest
 
 from mcdenoise.evaluate.stability import synthetic_buffers
 from mcdenoise.pipeline.exr import read_image
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import SHIPPED_MODEL
+from tests.helpers import cornell_box, write_rgb_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,9 +59,7 @@ def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     truth = synthetic_buffers(32, 40, seed=7, noise=0.0)["color"]
     noisy = synthetic_buffers(32, 40, seed=7, noise=0.7)["color"]
     src, dst = tmp_path / "in.exr", tmp_path / "out.exr"
-    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
-                      {c: np.ascontiguousarray(noisy[..., i]) for i, c in enumerate("RGB")}) as f:
-        f.write(str(src))
+    write_rgb_exr(src, noisy)
     env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     proc = subprocess.run([sys.executable, "-m", "mcdenoise", "denoise", "--exr", str(src), "--out", str(dst),
                            f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True, text=True, env=env)
@@ -70,24 +68,13 @@ def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     assert np.isfinite(out).all() and _mse(out, truth) < 0.5 * _mse(noisy, truth)
 
 
-def _cornell_box_exr(path: Path, rfilter: str) -> None:
-    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
-    mi = import_mitsuba("llvm_ad_rgb")
-    d = mi.cornell_box()
-    d["sensor"]["film"].update(width=64, height=64, rfilter={"type": rfilter})
-    img = np.asarray(mi.render(mi.load_dict(d), spp=4, seed=1), np.float32)
-    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
-                      {c: np.ascontiguousarray(img[..., i]) for i, c in enumerate("RGB")}) as f:
-        f.write(str(path))
-
-
 def test_denoise_exr_warns_when_a_wide_reconstruction_filter_correlated_the_noise(tmp_path):
     """Mitsuba's default film filter (gaussian) splats samples over neighbours; OIDN leaves such noise in
     place, so `denoise --exr` says so and how to render instead; a box-filtered render gets no warning."""
     env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     for rfilter, warned in (("gaussian", True), ("box", False)):
         src, dst = tmp_path / f"{rfilter}.exr", tmp_path / f"{rfilter}_out.exr"
-        _cornell_box_exr(src, rfilter)
+        write_rgb_exr(src, cornell_box(rfilter))
         proc = subprocess.run([sys.executable, "-m", "mcdenoise", "denoise", "--exr", str(src), "--out", str(dst),
                                "--spp", "4", f"runs={tmp_path / 'no_runs'}"], cwd=tmp_path, capture_output=True,
                               text=True, env=env)

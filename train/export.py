@@ -127,9 +127,8 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         "| --- | --- | --- | --- | --- | --- |"]
     for h in hist:
         v = h.get("val") or {}
-        psnr, est = v.get("psnr", float("nan")), v.get("estimate_psnr", float("nan"))
-        lines.append(f"| {h['epoch']} | {psnr:.3f} | {est:.3f} | {psnr - est:+.4f} | {v.get('noisy_psnr', float('nan')):.2f} "
-                     f"| {h.get('seconds')} |")
+        lines.append(f"| {h['epoch']} | {v.get('psnr', float('nan')):.3f} | {v.get('estimate_psnr', float('nan')):.3f} "
+                     f"| {_gain_db(v):+.4f} | {v.get('noisy_psnr', float('nan')):.2f} | {h.get('seconds')} |")
     spp = record.get("spp")
     extra = "".join(f" {shlex.quote(o)}" for o in overrides)
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
@@ -145,11 +144,15 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
     return "\n".join(lines)
 
 
+def _gain_db(val: dict) -> float:
+    """Validation PSNR over the first estimate's (nan when either is missing)."""
+    return val.get("psnr", float("nan")) - val.get("estimate_psnr", float("nan"))
+
+
 def _gain(best: dict) -> str:
     v = best.get("val") or {}
-    if "psnr" not in v or "estimate_psnr" not in v:
-        return ""
-    return f": {v['psnr'] - v['estimate_psnr']:+.4f} dB over the first estimate on {v.get('frames', '?')} validation frames"
+    gain = _gain_db(v)
+    return "" if gain != gain else f": {gain:+.4f} dB over the first estimate on {v.get('frames', '?')} validation frames"
 
 
 def _gt_spp(d) -> str:
