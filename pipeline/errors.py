@@ -14,6 +14,8 @@ those still catches it.
   ``StoreError`` too.
 - ``MitsubaSetupError``: Mitsuba or its LLVM backend cannot be used here (``pipeline.mitsuba_env``).
 - ``OIDNUnavailable``: ``pyoidn`` cannot be imported here (``pipeline.oidn``).
+- ``WeightsError``: OIDN's weights cannot be found or read (a ``.tza`` file, the blobs inside
+  pyoidn's library: ``pipeline.tza``, ``pipeline.oidn_weights``).
 - ``TaskFailed``: a task of the executor failed for good (``pipeline.executors``).
 
 Stage-specific errors derive from ``PipelineError`` where they are defined
@@ -55,6 +57,10 @@ class MitsubaSetupError(PipelineError, RuntimeError):
 
 class OIDNUnavailable(PipelineError, ImportError):
     """pyoidn cannot be imported here."""
+
+
+class WeightsError(PipelineError, ValueError):
+    """OIDN weights cannot be found or read; the message names the file looked in and the fix."""
 
 
 class TaskFailed(PipelineError, RuntimeError):

@@ -155,3 +155,15 @@ def write_rgb_exr(path: Path, rgb: np.ndarray) -> None:
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
                       {c: np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("RGB")}) as f:
         f.write(str(path))
+
+
+def cornell_box_aux(width: int = 61, height: int = 45, spp: int = 4, seed: int = 1) -> dict[str, np.ndarray]:
+    """Mitsuba's Cornell box (box filter, path tracer) with its albedo and shading normal, as a frame's buffers."""
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    mi = import_mitsuba("llvm_ad_rgb")
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=width, height=height, rfilter={"type": "box"})
+    d["integrator"] = {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal",
+                       "integrator": {"type": "path", "max_depth": 8}}
+    img = np.asarray(mi.render(mi.load_dict(d), spp=spp, seed=seed), np.float32)
+    return {"color": img[..., :3].copy(), "albedo": img[..., 3:6].copy(), "normal": img[..., 6:9].copy()}

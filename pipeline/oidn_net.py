@@ -1,0 +1,210 @@
+"""OIDN's network in PyTorch: its UNet and its HDR input/output processing, equal to pyoidn's output.
+
+``pipeline.oidn`` runs OIDN itself (the baseline, the first estimate); this twin is what trains.
+Built from a TZA archive's shapes (``pipeline.tza``, ``pipeline.oidn_weights``), so the colour,
++albedo and +albedo+normal networks (3/6/9 input channels) and their ``_small`` variants all load.
+
+The UNet (OIDN's ``training/model.py``, ``UNet``): 3×3 convolutions with padding 1, each followed
+by a ReLU except the last; five encoder levels with 2×2 max pooling after ``enc_conv1`` …
+``enc_conv4``; a decoder of nearest ×2 upsampling, concatenation ``[upsampled, skip]`` (the order
+matters) and two convolutions per level, the last level concatenating the network input itself.
+
+HDR processing (OIDN's core, ``input_process``/``output_process``/``autoexposure``):
+
+- ``autoexposure``: 0.18 / 2^(mean log2 of the mean luminance of ~16×16 bins whose mean is
+  above 1e-8); 1 if none is;
+- input: colour × scale, NaN → 0, clamped ≥ 0, then the PU transfer normalised so that 65504 maps
+  to 1 (``to_pu``); albedo NaN → 0 and clamped to [0, 1]; normal NaN → 0, clamped to [−1, 1],
+  then n·0.5 + 0.5; channels in that order; zero padding at the bottom and right to a multiple of
+  16;
+- output: NaN → 0, clamped ≥ 0, the inverse PU transfer (``from_pu``), divided by the scale.
+
+The network's output space (PU of the exposed radiance) is where OIDN's training kit puts its
+loss, and where ``oidn_ft`` (``train.oidn_ft``) puts ours.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from . import tza
+from .errors import WeightsError
+
+ALIGNMENT = 16            # input sides are padded to a multiple of this (four 2×2 poolings)
+HDR_MAX = 65504.0         # float16's largest value: PU(HDR_MAX) is normalised to 1
+
+# PU2 fit normalised at 100 cd/m² (Aydin et al. 2008), OIDN's core/color.h.
+PU_A, PU_B, PU_C, PU_D = 1.41283765e+03, 1.64593172e+00, 4.31384981e-01, -2.94139609e-03
+PU_E, PU_F, PU_G = 1.92653254e-01, 6.26026094e-03, 9.98620152e-01
+PU_Y0, PU_Y1 = 1.57945760e-06, 3.22087631e-02
+PU_X0, PU_X1 = 2.23151711e-03, 3.70974749e-01
+
+LUMINANCE = (0.212671, 0.715160, 0.072169)
+AUTOEXPOSURE_BIN, AUTOEXPOSURE_KEY, AUTOEXPOSURE_EPS = 16, 0.18, 1e-8
+
+ENCODER = ("enc_conv0", "enc_conv1", "enc_conv2", "enc_conv3", "enc_conv4", "enc_conv5a", "enc_conv5b")
+DECODER = ("dec_conv4a", "dec_conv4b", "dec_conv3a", "dec_conv3b", "dec_conv2a", "dec_conv2b",
+           "dec_conv1a", "dec_conv1b", "dec_conv0")
+LAYERS = ENCODER + DECODER
+# The features the decoder reads: the three pooled skips and the bottleneck (with the input, ``x``).
+SKIPS = ("pool1", "pool2", "pool3")
+
+
+def _pu(y: torch.Tensor) -> torch.Tensor:
+    return torch.where(y <= PU_Y0, PU_A * y,
+                       torch.where(y <= PU_Y1, PU_B * y.clamp(min=PU_Y0) ** PU_C + PU_D,
+                                   PU_E * torch.log(y.clamp(min=PU_Y1) + PU_F) + PU_G))
+
+
+def _pu_inverse(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= PU_X0, x / PU_A,
+                       torch.where(x <= PU_X1, ((x.clamp(min=PU_X0) - PU_D) / PU_B) ** (1.0 / PU_C),
+                                   torch.exp((x.clamp(min=PU_X1) - PU_G) / PU_E) - PU_F))
+
+
+PU_NORM = 1.0 / float(_pu(torch.tensor(HDR_MAX, dtype=torch.float64)))
+
+
+def to_pu(y: torch.Tensor) -> torch.Tensor:
+    """OIDN's HDR transfer: PU(y) / PU(65504), for exposed radiance y ≥ 0 (0 → 0, 65504 → 1)."""
+    return _pu(y) * PU_NORM
+
+
+def from_pu(x: torch.Tensor) -> torch.Tensor:
+    """The inverse of ``to_pu`` (for x ≥ 0)."""
+    return _pu_inverse(x / PU_NORM)
+
+
+def autoexposure(color: np.ndarray) -> float:
+    """OIDN's exposure of an (H, W, 3) HDR image: 0.18 over the geometric mean of its bins' mean luminance."""
+    c = np.nan_to_num(np.asarray(color, np.float32)[..., :3], nan=0.0, posinf=np.finfo(np.float32).max)
+    lum = np.maximum(c, 0.0) @ np.asarray(LUMINANCE, np.float32)
+    H, W = lum.shape
+    nh, nw = -(-H // AUTOEXPOSURE_BIN), -(-W // AUTOEXPOSURE_BIN)
+    hs = [i * H // nh for i in range(nh + 1)]
+    ws = [j * W // nw for j in range(nw + 1)]
+    bins = np.array([[lum[hs[i]:hs[i + 1], ws[j]:ws[j + 1]].mean() for j in range(nw)] for i in range(nh)])
+    bins = bins[bins > AUTOEXPOSURE_EPS]
+    if bins.size == 0:
+        return 1.0
+    return float(np.float32(AUTOEXPOSURE_KEY) / np.exp2(np.log2(bins.astype(np.float32)).mean(dtype=np.float32)))
+
+
+def _chw(image: np.ndarray | torch.Tensor) -> torch.Tensor:
+    t = torch.as_tensor(np.ascontiguousarray(image, dtype=np.float32)) if isinstance(image, np.ndarray) else image
+    return torch.nan_to_num(t.float(), nan=0.0).permute(2, 0, 1)
+
+
+def network_input(color, albedo=None, normal=None, scale: float = 1.0) -> torch.Tensor:
+    """(1, C, H', W') input of OIDN's network from (H, W, 3) images (albedo and normal optional),
+    padded with zeros at the bottom and right to a multiple of ``ALIGNMENT``."""
+    parts = [to_pu(torch.nan_to_num(_chw(color) * scale, nan=0.0).clamp(min=0.0))]
+    if albedo is not None:
+        parts.append(_chw(albedo).clamp(0.0, 1.0))
+    if normal is not None:
+        parts.append(_chw(normal).clamp(-1.0, 1.0) * 0.5 + 0.5)
+    x = torch.cat(parts, 0)[None]
+    H, W = x.shape[-2:]
+    return F.pad(x, (0, -W % ALIGNMENT, 0, -H % ALIGNMENT))
+
+
+def network_output(y: torch.Tensor, scale: float, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """HDR radiance from the network's output (B, 3, H', W'): sanitised, inverse PU, divided by
+    ``scale``; cropped to ``size`` = (H, W) when given."""
+    if size is not None:
+        y = y[..., :size[0], :size[1]]
+    out = from_pu(torch.nan_to_num(y, nan=0.0).clamp(min=0.0))
+    return out * (1.0 / scale if scale != 0 else 0.0)
+
+
+class UNet(nn.Module):
+    """OIDN's UNet with the layer names of its weights; ``widths`` maps a layer to (out, in) channels."""
+
+    def __init__(self, widths: dict[str, tuple[int, int]]):
+        super().__init__()
+        missing = [n for n in LAYERS if n not in widths]
+        if missing:
+            raise WeightsError(f"not OIDN's UNet layout: no {', '.join(missing)} (the _large networks are not supported)")
+        self.widths = {n: tuple(widths[n]) for n in LAYERS}
+        for name in LAYERS:
+            out_c, in_c = self.widths[name]
+            setattr(self, name, nn.Conv2d(in_c, out_c, 3, padding=1))
+        self.in_channels = self.widths["enc_conv0"][1]
+
+    @classmethod
+    def from_tza(cls, tensors: dict[str, tza.Tensor]) -> "UNet":
+        """The network with the archive's weights (float16 in the file, float32 here)."""
+        widths = {}
+        for name in LAYERS:
+            w = tensors.get(f"{name}.weight")
+            if w is None or w.array.ndim != 4:
+                raise WeightsError(f"TZA has no 4-d {name}.weight: not an OIDN UNet (the _large networks are not "
+                                   "supported)")
+            widths[name] = (int(w.array.shape[0]), int(w.array.shape[1]))
+        net = cls(widths)
+        state = {f"{n}.{p}": torch.from_numpy(tensors[f"{n}.{p}"].array.astype(np.float32)) for n in LAYERS
+                 for p in ("weight", "bias")}
+        net.load_state_dict(state)
+        return net
+
+    def to_tza(self) -> dict[str, tza.Tensor]:
+        """The weights as OIDN reads them: float16, ``oihw`` weights and ``x`` biases, in OIDN's order."""
+        out = {}
+        for name in LAYERS:
+            conv = getattr(self, name)
+            out[f"{name}.weight"] = tza.Tensor(conv.weight.detach().cpu().to(torch.float16).numpy(), "oihw")
+            out[f"{name}.bias"] = tza.Tensor(conv.bias.detach().cpu().to(torch.float16).numpy(), "x")
+        return out
+
+    def encode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The features the decoder reads: ``x`` (the input), ``pool1``..``pool3``, ``bottleneck``."""
+        h = F.relu(self.enc_conv0(x))
+        p1 = F.max_pool2d(F.relu(self.enc_conv1(h)), 2)
+        p2 = F.max_pool2d(F.relu(self.enc_conv2(p1)), 2)
+        p3 = F.max_pool2d(F.relu(self.enc_conv3(p2)), 2)
+        b = F.max_pool2d(F.relu(self.enc_conv4(p3)), 2)
+        b = F.relu(self.enc_conv5b(F.relu(self.enc_conv5a(b))))
+        return {"x": x, "pool1": p1, "pool2": p2, "pool3": p3, "bottleneck": b}
+
+    def decode(self, feats: dict[str, torch.Tensor], residuals: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """The output from ``encode``'s features; ``residuals`` (same names and shapes) are added to
+        the skips and the bottleneck first (the Control Module's way in)."""
+        r = residuals or {}
+
+        def feat(name: str) -> torch.Tensor:
+            return feats[name] + r[name] if name in r else feats[name]
+
+        h = feat("bottleneck")
+        for a, b, skip in (("dec_conv4a", "dec_conv4b", "pool3"), ("dec_conv3a", "dec_conv3b", "pool2"),
+                           ("dec_conv2a", "dec_conv2b", "pool1"), ("dec_conv1a", "dec_conv1b", "x")):
+            h = torch.cat([F.interpolate(h, scale_factor=2.0, mode="nearest"), feat(skip)], 1)
+            h = F.relu(getattr(self, b)(F.relu(getattr(self, a)(h))))
+        return self.dec_conv0(h)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.decode(self.encode(x))
+
+
+def load_unet(name: str, tza_file: str | None = None) -> UNet:
+    """OIDN's network ``name`` (``pipeline.oidn_weights``): from ``tza_file``, else from pyoidn's library."""
+    from . import oidn_weights
+    source = str(tza_file) if tza_file else f"{oidn_weights.library_path()}:{name}"
+    return UNet.from_tza(tza.read(oidn_weights.load(name, tza_file), source))
+
+
+@torch.no_grad()
+def denoise(net: UNet, color: np.ndarray, albedo: np.ndarray | None = None, normal: np.ndarray | None = None,
+            device: str | torch.device = "cpu") -> np.ndarray:
+    """(H, W, 3) float32 HDR: what OIDN's filter returns for these images with ``net``'s weights
+    (HDR mode, autoexposure, aux not prefiltered). Albedo/normal are used only if ``net`` reads them."""
+    aux = [albedo, normal][: (net.in_channels - 3) // 3]
+    if any(a is None for a in aux):
+        raise WeightsError(f"this OIDN network reads {net.in_channels} channels: it needs "
+                           f"{'albedo and normal' if net.in_channels == 9 else 'albedo'}")
+    scale = autoexposure(color)
+    x = network_input(color, *aux, scale=scale).to(device)
+    net = net.to(device).eval()
+    out = network_output(net(x), scale, color.shape[:2])
+    return out[0].permute(1, 2, 0).float().cpu().numpy()

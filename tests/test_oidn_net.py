@@ -1,0 +1,150 @@
+"""OIDN's network in PyTorch (pipeline.oidn_net), its weights (pipeline.oidn_weights, pipeline.tza)
+and OIDN running weights we wrote (pipeline.oidn.denoise(weights=...)), against pyoidn itself."""
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.pipeline import oidn, oidn_net, oidn_weights, tza
+from mcdenoise.pipeline.errors import WeightsError
+from tests.helpers import cornell_box_aux
+
+SETS = {"rt_hdr": (), "rt_hdr_alb": ("albedo",), "rt_hdr_alb_nrm": ("albedo", "normal")}
+
+
+def tonemapped_psnr(a: np.ndarray, b: np.ndarray) -> float:
+    ta, tb = np.maximum(a, 0) / (1 + np.maximum(a, 0)), np.maximum(b, 0) / (1 + np.maximum(b, 0))
+    mse = float(np.mean((ta.astype(np.float64) - tb) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(1 / mse)
+
+
+@pytest.fixture(scope="module")
+def frame():
+    """A real 4 spp render of an odd size (61x45: padded to 64x48 inside the network)."""
+    torch.set_num_threads(1)
+    return cornell_box_aux(61, 45, spp=4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(SETS))
+@pytest.mark.parametrize("gain", [1.0, 1e-3])
+def test_twin_equals_pyoidn(frame, name, gain):
+    """Colour, +albedo, +albedo+normal; at the render's exposure and 1000x darker (autoexposure ~1e3)."""
+    buffers = {**frame, "color": frame["color"] * gain}
+    aux = [buffers[k] for k in SETS[name]]
+    if gain != 1.0:
+        assert oidn_net.autoexposure(buffers["color"]) > 100 * oidn_net.autoexposure(frame["color"])
+    ours = oidn_net.denoise(oidn_net.load_unet(name), buffers["color"], *aux)
+    stock = oidn.denoise({"color": buffers["color"], **dict(zip(SETS[name], aux))}, aux=bool(aux))
+    assert ours.shape == stock.shape == frame["color"].shape
+    assert tonemapped_psnr(ours / gain, stock / gain) >= 100
+    # ... and the network is not the identity: it changes the noisy input a lot
+    assert tonemapped_psnr(stock / gain, frame["color"]) < 40
+
+
+def test_every_builtin_blob_round_trips_bit_exactly():
+    table = oidn_weights.blobs(str(oidn_weights.library_path()))
+    assert {"rt_hdr", "rt_hdr_alb", "rt_hdr_alb_nrm", "rt_hdr_small"} <= set(table)
+    for name in table:
+        blob = oidn_weights.load(name)
+        assert tza.write(tza.read(blob, name)) == blob, name
+
+
+def test_unet_shapes_come_from_the_blob():
+    for name, channels in (("rt_hdr", 3), ("rt_hdr_alb", 6), ("rt_hdr_alb_nrm", 9), ("rt_hdr_alb_nrm_small", 9)):
+        net = oidn_net.load_unet(name)
+        assert net.in_channels == channels
+        assert net.widths["dec_conv1a"][1] == net.widths["dec_conv2b"][0] + channels
+    full = oidn_net.load_unet("rt_hdr_alb_nrm")
+    assert sum(p.numel() for p in full.parameters()) == 919_811
+    assert sum(p.numel() for p in oidn_net.load_unet("rt_hdr_alb_nrm_small").parameters()) < 400_000
+    # weights written back are the file's float16 values exactly
+    back = full.to_tza()
+    blob = tza.read(oidn_weights.load("rt_hdr_alb_nrm"))
+    assert all(np.array_equal(back[k].array, blob[k].array) and back[k].layout == blob[k].layout for k in blob)
+
+
+@pytest.mark.slow
+def test_oidn_runs_weights_we_wrote(frame):
+    net = oidn_net.load_unet("rt_hdr_alb_nrm")
+    same = tza.write(net.to_tza())
+    stock = oidn.denoise(frame)
+    np.testing.assert_array_equal(oidn.denoise(frame, weights=same), stock)
+    with torch.no_grad():
+        net.dec_conv0.bias += torch.tensor([0.02, -0.01, 0.01])
+        net.enc_conv2.weight.mul_(1.05)
+    changed = tza.write(net.to_tza())
+    theirs = oidn.denoise(frame, weights=changed)
+    ours = oidn_net.denoise(oidn_net.UNet.from_tza(tza.read(changed)), frame["color"], frame["albedo"],
+                            frame["normal"])
+    assert tonemapped_psnr(theirs, ours) >= 80
+    assert tonemapped_psnr(theirs, stock) < 50
+    # the stock filter is untouched by the custom one
+    np.testing.assert_array_equal(oidn.denoise(frame), stock)
+
+
+@pytest.mark.slow
+def test_oidn_refuses_bad_blobs(frame):
+    net = oidn_net.load_unet("rt_hdr_alb_nrm")
+    as_float32 = {k: tza.Tensor(v.array.astype(np.float32), v.layout) for k, v in net.to_tza().items()}
+    with pytest.raises(WeightsError, match="OIDN refused"):
+        oidn.denoise(frame, weights=tza.write(as_float32))
+    with pytest.raises(WeightsError, match="OIDN refused"):
+        oidn.denoise(frame, weights=b"\x00" * 4096)
+    with pytest.raises(WeightsError, match="OIDN refused"):   # colour-only weights for 9 input channels
+        oidn.denoise(frame, weights=oidn_weights.load("rt_hdr"))
+
+
+def test_pu_transfer_inverts():
+    y = torch.cat([torch.zeros(1), torch.logspace(-9, np.log10(oidn_net.HDR_MAX), 2000, dtype=torch.float64)])
+    x = oidn_net.to_pu(y)
+    assert float(x[0]) == 0 and abs(float(x[-1]) - 1) < 1e-9
+    assert bool(torch.all(x[1:] > x[:-1]))          # strictly increasing
+    back = oidn_net.from_pu(x)
+    assert float(torch.max(torch.abs(back - y) / (y + 1e-12))) < 1e-6
+
+
+def test_autoexposure():
+    # a grey image of luminance L exposes to 0.18 / L
+    assert oidn_net.autoexposure(np.full((40, 50, 3), 2.0, np.float32)) == pytest.approx(0.09, rel=1e-6)
+    # black, NaN and negative values count as 0: nothing above 1e-8 -> 1
+    assert oidn_net.autoexposure(np.zeros((8, 8, 3), np.float32)) == 1.0
+    bad = np.full((8, 8, 3), np.nan, np.float32)
+    bad[:4] = -1
+    assert oidn_net.autoexposure(bad) == 1.0
+    # bins (16x16 here) average before the log: half black, half 1 -> per bin mean 0.5 (2 bins of 16x16 each)
+    img = np.zeros((16, 32, 3), np.float32)
+    img[::2, :16] = 1.0
+    img[:, 16:] = 0.5
+    assert oidn_net.autoexposure(img) == pytest.approx(0.36, rel=1e-6)
+
+
+def test_missing_weights_say_where_and_what_to_do(tmp_path, monkeypatch):
+    with pytest.raises(WeightsError, match=r"nope\.tza: cannot read OIDN weights"):
+        oidn_weights.load("rt_hdr", tmp_path / "nope.tza")
+    with pytest.raises(WeightsError, match=r"no weights named 'rt_unknown' \(it has .*rt_hdr_alb_nrm"):
+        oidn_weights.load("rt_unknown")
+    (tmp_path / "bad.tza").write_bytes(b"not a tza file at all")
+    with pytest.raises(WeightsError, match=r"bad\.tza: not a TZA archive"):
+        oidn_net.load_unet("rt_hdr", tmp_path / "bad.tza")
+    import importlib.util
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(WeightsError, match="pyoidn is not installed.*oidn.weights=FILE.tza") as info:
+        oidn_weights.load("rt_hdr")
+    assert "\n" not in str(info.value)
+
+
+def test_a_tza_file_loads_like_the_builtin(tmp_path):
+    path = tmp_path / "mine.tza"
+    path.write_bytes(oidn_weights.load("rt_hdr_alb"))
+    a, b = oidn_net.load_unet("rt_hdr_alb", path), oidn_net.load_unet("rt_hdr_alb")
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+
+
+def test_tza_reader_rejects_damage():
+    blob = bytearray(oidn_weights.load("rt_hdr_small"))
+    with pytest.raises(WeightsError, match="version"):
+        tza.read(bytes(blob[:2]) + bytes([3]) + bytes(blob[3:]))
+    with pytest.raises(WeightsError, match="past the blob|damaged"):
+        tza.read(bytes(blob[: len(blob) // 2]) + bytes(blob[-200:]))
+    with pytest.raises(WeightsError, match="layout"):
+        tza.write({"w": tza.Tensor(np.zeros((2, 2), np.float16), "x")})
