@@ -12,6 +12,10 @@ Names (``eval.methods``):
 - ``noisy``: the input colour itself.
 - ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
   albedo and normal; ``oidn_color``: colour only.
+- ``oidn_ft``: OIDN's network fine-tuned on the store (``train.oidn_ft``, run
+  ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
+  spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
+  ``oidn_ft.blend``; ``oidn_ft_color``: the colour-only network's run (``oidn_ft_rt_hdr``).
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
@@ -56,10 +60,14 @@ from mcdenoise.pipeline.exr import StoreError
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
 _DIFFUSION = {"ours": False, "base_only": True}
-FAMILIES = ("noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", *_DIFFUSION)
+FAMILIES = ("noisy", "oidn", "oidn_color", "oidn_ft", "oidn_ft_color", "isik", "afgsa", "oidn_isik", *_DIFFUSION)
+# oidn_ft families -> the OIDN network their run fine-tuned
+OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_color": "rt_hdr"}
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
+          "oidn_ft": "OIDN fine-tuned on our data (colour+albedo+normal)",
+          "oidn_ft_color": "OIDN fine-tuned on our data (colour only)",
           "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
@@ -183,6 +191,20 @@ class OIDN(Method):
 
 
 @dataclass
+class OIDNFineTuned(Method):
+    """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob)."""
+    weights: bytes = b""
+    aux: bool = True
+    name: str = "oidn_ft"
+    device: str = "cpu"
+    checkpoint: str = ""
+
+    def denoise(self, buffers):
+        from mcdenoise.pipeline import oidn
+        return oidn.denoise(buffers, aux=self.aux, weights=self.weights)
+
+
+@dataclass
 class CleanNet(Method):
     """A network of ``clean`` (the Isik baseline, AFGSA) on ``frame_inputs``, tiled by ``clean.apply``."""
 
@@ -274,12 +296,34 @@ class Loader:
             return Noisy()
         if spec.family in ("oidn", "oidn_color"):
             return OIDN(name=name, aux=spec.family == "oidn")
+        if spec.family in OIDN_FT:
+            return self._oidn_ft(spec.family)
         if spec.family in ("isik", "afgsa"):
             return self._clean_net(spec.family, spp)
         if spec.family == "oidn_isik":
             isik = self._clean_net("isik", spp)
             return Mean(parts=(OIDN(), isik), name=name, device=isik.device, checkpoint=isik.checkpoint)
         return self._diffusion(name, spec, spp)
+
+    def _oidn_ft(self, family: str) -> Method:
+        from mcdenoise.pipeline import oidn
+        from mcdenoise.pipeline.runs import run_dir
+        from mcdenoise.train.oidn_ft import export_blob, load_run
+
+        folder = run_dir(self.cfg, "oidn_ft", variant=OIDN_FT[family])
+        if not (folder / "model.safetensors").exists():
+            raise MethodUnavailable(f"no oidn_ft run in {folder}: run `make train MODEL=oidn_ft SPP=any"
+                                    + (" oidn_ft.network=rt_hdr`" if family == "oidn_ft_color" else "`"))
+        key = ("oidn_ft", str(folder))
+        if key not in self._models:
+            why = oidn.available()
+            if why:
+                raise MethodUnavailable(why)
+            try:
+                self._models[key] = export_blob(load_run(folder, self.cfg)[0])
+            except (OSError, PipelineError, ValueError, KeyError) as exc:
+                raise MethodUnavailable(f"cannot load the oidn_ft run {folder}: {type(exc).__name__}: {exc}") from None
+        return OIDNFineTuned(weights=self._models[key], aux=family == "oidn_ft", name=family, checkpoint=folder.name)
 
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model

@@ -62,6 +62,10 @@ def cmd_train(args) -> int:
     if args.model == "afgsa":
         from mcdenoise.clean.cli import cmd_train_afgsa
         return cmd_train_afgsa(cfg, args.spp, quiet=args.quiet)
+    if args.model == "oidn_ft":
+        from mcdenoise.train.oidn_ft import train as train_oidn_ft
+        train_oidn_ft(cfg, args.spp, quiet=args.quiet)
+        return 0
     from mcdenoise.train.cli import cmd_train as train_diffusion
     return train_diffusion(cfg, args.spp, quiet=args.quiet)
 
@@ -79,8 +83,14 @@ def cmd_pack(args) -> int:
 def cmd_export(args) -> int:
     from pathlib import Path
 
-    from mcdenoise.train.export import export
-    export(_config(args), args.spp, Path(args.out), quiet=args.quiet, config=args.config,
+    from mcdenoise.train.export import export, export_oidn
+    if args.format == "oidn":
+        export_oidn(_config(args), Path(args.out) if args.out else None, quiet=args.quiet, config=args.config,
+                    overrides=args.overrides)
+        return 0
+    if args.spp is None:
+        raise ConfigError("export --format model needs --spp (the diffusion run: 4, 16, 64 or any)")
+    export(_config(args), args.spp, Path(args.out or "train/shipped"), quiet=args.quiet, config=args.config,
            overrides=args.overrides)
     return 0
 
@@ -94,7 +104,10 @@ def cmd_gpu_prepare(args) -> int:
 
 
 def cmd_denoise(args) -> int:
-    from mcdenoise.train.cli import cmd_denoise as run
+    from mcdenoise.train.cli import cmd_denoise as run, cmd_denoise_oidn
+    if args.method != "ours" or args.oidn_weights:
+        return cmd_denoise_oidn(_config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
+                                spp=args.spp, quiet=args.quiet)
     return run(_config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples)
 
@@ -201,9 +214,11 @@ def _dataset_parsers(sub) -> None:
 
 def _train_parsers(sub) -> None:
     """Subcommands for the denoisers: training, its preparation (pretrain, GPU recipe, packs), export, inference."""
-    p = _with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), isik or afgsa "
-                                                  "(baselines); diffusion runs under torchrun for DDP"))
-    p.add_argument("--model", default="diffusion", choices=["diffusion", "isik", "afgsa"], help="which denoiser")
+    p = _with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), oidn_ft (OIDN "
+                                                  "fine-tuned), isik or afgsa (baselines); diffusion runs under "
+                                                  "torchrun for DDP"))
+    p.add_argument("--model", default="diffusion", choices=["diffusion", "oidn_ft", "isik", "afgsa"],
+                   help="which denoiser")
     p.add_argument("--spp", type=_spp, required=True,
                    help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion or AFGSA model "
                         "for all")
@@ -215,9 +230,14 @@ def _train_parsers(sub) -> None:
     p.set_defaults(fn=cmd_pretrain)
 
     p = _with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
-                                                   "(the shipped model: train/shipped)"))
-    p.add_argument("--spp", type=_spp, required=True, help="the run (diffusion_spp<N> or any)")
-    p.add_argument("--out", default="train/shipped", help="the model folder to write")
+                                                   "(the shipped model: train/shipped), or (--format oidn) an "
+                                                   "oidn_ft run into a .tza file OIDN loads as its weights"))
+    p.add_argument("--format", default="model", choices=["model", "oidn"],
+                   help="model: the diffusion run as a model folder; oidn: the oidn_ft run of oidn_ft.network as "
+                        "float16 OIDN weights (.tza)")
+    p.add_argument("--spp", type=_spp, default=None, help="the diffusion run (diffusion_spp<N> or any); --format model")
+    p.add_argument("--out", default=None, help="the model folder to write (default train/shipped); --format oidn: a "
+                                               ".tza file or a folder (default <runs>/oidn_ft_<network>.tza)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_export)
 
@@ -249,6 +269,11 @@ def _train_parsers(sub) -> None:
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
+    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_ft"],
+                   help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_ft: the oidn_ft run "
+                        "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself")
+    p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
+                   help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(fn=cmd_denoise)
 

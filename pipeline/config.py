@@ -294,6 +294,56 @@ class PretrainConfig:
 
 
 @dataclass
+class OidnConfig:
+    weights: str = doc("Where OIDN's trained weights are read from (the prior of oidn_ft and of the diffusion "
+                       "base): empty: the blobs inside pyoidn's library (Linux); else a .tza file (used for the "
+                       "network being loaded) or a folder of <network>.tza files, as OIDN's public weights "
+                       "repository has them (the way on macOS and Windows). The baseline rows (oidn, oidn_color) "
+                       "always run pyoidn's built-in weights.", "")
+
+
+@dataclass
+class OidnFtConfig:
+    network: str = doc("OIDN network fine-tuned by make train MODEL=oidn_ft: 'rt_hdr_alb_nrm' (colour + albedo + "
+                       "normal: what make eval's oidn row runs), 'rt_hdr_alb' (+ albedo) or 'rt_hdr' (colour only: "
+                       "the oidn_ft_color row); a '_small' variant of each also loads. Its run folder is "
+                       "<runs>/oidn_ft_<network>.", "rt_hdr_alb_nrm")
+    epochs: int = doc("Training epochs (an epoch: crops_per_frame crops of every train frame, at most epoch_steps "
+                      "steps).", 30)
+    batch_size: int = doc("Crops per optimisation step.", 8)
+    crop: int = doc("Side of the random training crops in pixels (a multiple of 16, OIDN's alignment).", 64)
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    epoch_steps: int = doc("At most this many steps per epoch (a random subset of the epoch's crops); 0: every "
+                           "crop.", 0)
+    lr: float = doc("Adam learning rate after the warm-up (then a cosine decay to lr_end over the run).", 5e-5)
+    lr_end: float = doc("Learning rate at the last step of the cosine decay.", 5e-6)
+    warmup_steps: int = doc("Linear learning-rate warm-up steps from 0.", 50)
+    weight_decay: float = doc("Adam(W) decoupled weight decay (toward 0; l2sp pulls toward OIDN instead).", 0.0)
+    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
+    loss: str = doc("Training loss in OIDN's output space (PU of the exposed radiance, as OIDN's training kit): "
+                    "'l1', or 'l1_ssim' (0.16 L1 + 0.84 (1 - SSIM), the kit's mix with single-scale SSIM for "
+                    "small crops).", "l1")
+    l2sp: float = doc("Weight of the L2-SP penalty (Li et al. 2018) that keeps the weights near OIDN's: l2sp x "
+                      "the mean over layers of |w - w_oidn|^2 / |w_oidn|^2; 0: none.", 0.0)
+    distill: float = doc("Fraction of each batch whose target is stock OIDN's own output on a changed input "
+                         "(colours permuted and rescaled, the image at half resolution, noise of another spp), "
+                         "so the network keeps what OIDN does on inputs unlike the training set; 0: none.", 0.0)
+    trainable: str = doc("Which weights train: 'all', 'decoder' (the encoder stays OIDN's) or 'bias' (biases "
+                         "only: 0.5 % of the weights).", "all")
+    augment: bool = doc("OIDN's own augmentation: random colour-channel permutation (colour, albedo and target "
+                        "together), normal-channel permutation, flips and transposes.", True)
+    blend: float = doc("Weight-space blend with OIDN (WiSE-FT, Wortsman et al. 2022) when the run is used or "
+                       "exported: w = w_oidn + blend (w_trained - w_oidn); 1: the trained weights.", 1.0)
+    val_frames: int = doc("Validation frames scored after every epoch (each at every sample count of the run); 0: "
+                          "the whole val split.", 0)
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
+                               "limit); a rerun resumes.", 0.0)
+    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
+                         "an error after this many such steps in a row.", 10)
+    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
+
+
+@dataclass
 class EvalConfig:
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
                         "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
@@ -348,6 +398,9 @@ class Config:
     diffusion: DiffusionConfig = doc("Diffusion denoiser: frozen base + Control Module (make train SPP=4).",
                                      factory=DiffusionConfig)
     pretrain: PretrainConfig = doc("The small stand-in base (make pretrain).", factory=PretrainConfig)
+    oidn: OidnConfig = doc("Where OIDN's weights come from.", factory=OidnConfig)
+    oidn_ft: OidnFtConfig = doc("OIDN fine-tuned on the store (make train MODEL=oidn_ft SPP=any).",
+                                factory=OidnFtConfig)
     eval: EvalConfig = doc("Evaluation (make eval, make stability).", factory=EvalConfig)
 
 
@@ -506,6 +559,7 @@ def validate(cfg: Config, source: str) -> None:
     if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
         bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
     _validate_afgsa(cfg.afgsa, bad)
+    _validate_oidn_ft(cfg.oidn_ft, bad)
     if not cfg.pretrain.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in cfg.pretrain.channels):
         bad("pretrain.channels", f"expected positive multiples of 16 (group norm), got {cfg.pretrain.channels!r}")
     if not all(isinstance(k, int) and k >= 1 for k in cfg.pretrain.scales) or not cfg.pretrain.scales:
@@ -536,6 +590,24 @@ def _validate_afgsa(a: AfgsaConfig, bad) -> None:
         bad("afgsa.channels/heads", f"{a.channels} channels must split into {a.heads} heads of an even size")
     if a.adv_weight < 0 or a.gp_weight < 0:
         bad("afgsa.adv_weight/gp_weight", "must be >= 0")
+
+
+def _validate_oidn_ft(o: OidnFtConfig, bad) -> None:
+    if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?", o.network):
+        bad("oidn_ft.network", f"expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), got {o.network!r}")
+    for key in ("epochs", "batch_size", "crops_per_frame"):
+        if getattr(o, key) < 1:
+            bad(f"oidn_ft.{key}", "must be >= 1")
+    if o.crop < 16 or o.crop % 16:
+        bad("oidn_ft.crop", f"must be a positive multiple of 16 (OIDN's alignment), got {o.crop}")
+    if o.loss not in ("l1", "l1_ssim"):
+        bad("oidn_ft.loss", f"expected 'l1' or 'l1_ssim', got {o.loss!r}")
+    if o.trainable not in ("all", "decoder", "bias"):
+        bad("oidn_ft.trainable", f"expected 'all', 'decoder' or 'bias', got {o.trainable!r}")
+    if not 0 <= o.distill < 1:
+        bad("oidn_ft.distill", f"must be in [0, 1), got {o.distill}")
+    if o.l2sp < 0 or o.lr <= 0 or o.lr_end < 0 or o.warmup_steps < 0 or o.epoch_steps < 0:
+        bad("oidn_ft.l2sp/lr/lr_end/warmup_steps/epoch_steps", "lr must be > 0, the others >= 0")
 
 
 def to_dict(cfg: Any) -> dict:

@@ -7,6 +7,8 @@ One folder per model and sample count (``spp<N>``, or ``sppany`` for one model s
 - ``afgsa``: ``<runs>/afgsa_spp<N>``; trained against another target than gt_clean
   (``afgsa.target``): ``<runs>/afgsa_<target>_spp<N>``;
 - ``base`` (the stand-in diffusion base of ``make pretrain``): ``<runs>/base`` (or ``pretrain.out``);
+- ``oidn_ft`` (OIDN fine-tuned, one model for every spp): ``<runs>/oidn_ft_<network>``
+  (``oidn_ft.network``, or the network given as ``variant``);
 - ``diffusion``: ``<runs>/diffusion_spp<N>``, with ``_<variant>`` (``diffusion.name``, or the
   variant given) and ``_base_only`` (``diffusion.control`` false) appended.
 
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from .config import Config
 
-MODELS = ("cleaner", "isik", "afgsa", "base", "diffusion")
+MODELS = ("cleaner", "isik", "afgsa", "base", "oidn_ft", "diffusion")
 
 
 def spp_tag(spp: int | str) -> str:
@@ -27,8 +29,8 @@ def spp_tag(spp: int | str) -> str:
 
 
 def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str | None = None) -> Path:
-    """The run folder of ``model`` (one of ``MODELS``) at ``spp``; ``variant`` only for diffusion
-    (default: ``diffusion.name``)."""
+    """The run folder of ``model`` (one of ``MODELS``) at ``spp``; ``variant``: for diffusion the run
+    variant (default: ``diffusion.name``), for oidn_ft the network (default: ``oidn_ft.network``)."""
     runs = Path(cfg.runs)
     if model == "cleaner":
         return runs / "cleaner"
@@ -39,6 +41,8 @@ def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str 
     if model == "afgsa":
         target = "" if cfg.afgsa.target == "gt_clean" else f"_{cfg.afgsa.target}"
         return runs / f"afgsa{target}_{spp_tag(spp)}"
+    if model == "oidn_ft":
+        return runs / f"oidn_ft_{variant or cfg.oidn_ft.network}"
     if model == "diffusion":
         variant = cfg.diffusion.name if variant is None else variant
         name = f"diffusion_{spp_tag(spp)}" + (f"_{variant}" if variant else "")

@@ -243,7 +243,7 @@ class TrainCase:
     (``{"history": [...]}``, one entry per epoch); entries' ``seconds`` are ignored.
     """
     model: str
-    spp: int
+    spp: int | str
     folder: str
     overrides: list = field(default_factory=list)
     checkpoint: str = "last.safetensors"
@@ -254,6 +254,9 @@ class TrainCase:
 TRAIN_CASES = [
     pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY + ["clean.epochs=8"]), id="isik"),
     pytest.param(TrainCase("afgsa", 4, "afgsa_spp4", AFGSA_TINY), id="afgsa"),
+    pytest.param(TrainCase("oidn_ft", "any", "oidn_ft_rt_hdr_alb_nrm",
+                           ["oidn_ft.epochs=5", "oidn_ft.crop=16", "oidn_ft.batch_size=2", "oidn_ft.crops_per_frame=2",
+                            "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1", "oidn_ft.device=cpu"]), id="oidn_ft"),
     pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
                            ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
                             "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2",

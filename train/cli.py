@@ -303,6 +303,76 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
 
 
 
+def oidn_weights_for(cfg: Config, network: str) -> tuple[bytes, str]:
+    """(the TZA blob, where it came from) that ``denoise --method oidn_ft`` runs for ``network``: the
+    config's oidn_ft run of that network."""
+    from mcdenoise.pipeline.runs import run_dir as model_dir
+
+    from .oidn_ft import export_blob, load_run
+    folder = model_dir(cfg, "oidn_ft", variant=network)
+    if (folder / "model.safetensors").exists():
+        return export_blob(load_run(folder, cfg)[0]), str(folder)
+    raise TrainError(f"no oidn_ft run for OIDN's {network} network in {folder}: train it with "
+                     f"`make train MODEL=oidn_ft SPP=any oidn_ft.network={network}`, or give --oidn-weights FILE.tza")
+
+
+def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, method: str,
+                     weights_file: str | None, spp: int | None = None, quiet: bool = False) -> int:
+    """Denoise a store frame or an EXR with OIDN itself: its built-in network (``oidn``), an oidn_ft
+    run (``oidn_ft``) or the weights of ``weights_file``, on the layers the input has (colour; +albedo;
+    +albedo+normal), at OIDN's speed."""
+    import time
+
+    from mcdenoise.pipeline import oidn, oidn_weights as ow, tza
+    from mcdenoise.pipeline.oidn_net import UNet
+
+    if (frame is None) == (exr is None):
+        raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
+    buffers, source = _read_input(cfg, frame, exr, spp)
+    layers = [a for a in ("albedo", "normal") if a in buffers]
+    layers = layers if layers and layers[0] == "albedo" else []
+    network = ow.network_for("albedo" in layers, "normal" in layers)
+    blob, origin = None, f"pyoidn built-in {network}"
+    if weights_file:
+        blob, origin = ow.load(network, weights_file), weights_file
+        need = (UNet.from_tza(tza.read(blob, weights_file)).in_channels - 3) // 3
+        if need > len(layers):
+            raise TrainError(f"{weights_file}: these OIDN weights read {3 + 3 * need} channels (colour"
+                             f"{', albedo' if need else ''}{', normal' if need > 1 else ''}), but {source} has only "
+                             f"{', '.join(['colour', *layers])}")
+        layers = layers[:need]
+    elif method == "oidn_ft":
+        blob, origin = oidn_weights_for(cfg, network)
+    t = time.perf_counter()
+    hdr = oidn.denoise({"color": buffers["color"], **{a: buffers[a] for a in layers}}, aux=bool(layers), weights=blob)
+    seconds = time.perf_counter() - t
+    meta = {"image": "denoised", "source": source, "method": method, "weights": origin,
+            "inputs": ["color", *layers], "seconds": round(seconds, 3)}
+    write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta)
+    if not quiet:
+        print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}; {', '.join(['colour', *layers])}) with OIDN "
+              f"({origin}) in {seconds:.2f} s -> {out}", flush=True)
+    return 0
+
+
+def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None) -> tuple[dict, str]:
+    """The buffers of ``--frame SCENE/FRAME`` (at ``spp``) or ``--exr FILE``, and how to name the source."""
+    if exr is not None:
+        from mcdenoise.pipeline.exr import read_layers
+        buffers = read_layers(Path(exr))
+        _warn_if_correlated(exr, buffers["color"])
+        return buffers, exr
+    if spp is None:
+        raise TrainError("--frame needs --spp (which of the store's sample counts to denoise)")
+    store = Store(cfg.store)
+    try:
+        scene, idx = frame.split("/")
+        key = FrameKey(scene, int(idx))
+    except ValueError:
+        raise TrainError(f"--frame {frame!r}: expected SCENE/FRAME, e.g. s00000/000") from None
+    return store.read(key.scene, key.frame, int(spp)), f"{store.root}/{frame}"
+
+
 def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
     """Write the training packs of ``splits`` (``train.pack``) for the configured first estimate."""
     store = Store(cfg.store)

@@ -160,3 +160,40 @@ def _gt_spp(d) -> str:
     if d.gt_target_psnr is None:
         return f"{d.gt_spp} spp"
     return f"to an estimated {d.gt_target_psnr:g} dB in passes of {d.gt_pass_spp} spp (at most {d.gt_max_spp} spp)"
+
+
+def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, config: str | None = None,
+                overrides: list[str] | tuple = ()) -> Path:
+    """The oidn_ft run of ``oidn_ft.network`` (blended by ``oidn_ft.blend``) as a float16 TZA file that
+    OIDN 2.x loads as custom weights (``pipeline.oidn``; a host's filter parameter ``weights``), with a
+    ``.json`` sidecar (network, blend, validation scores, sha256). ``out``: a ``.tza`` path, or a folder
+    that gets ``<network>.tza``; default ``<runs>/oidn_ft_<network>.tza``."""
+    from mcdenoise.pipeline.exr import atomic_write_bytes
+    from mcdenoise.pipeline.runs import run_dir as runs_dir
+
+    from .oidn_ft import export_blob, load_run
+
+    folder = runs_dir(cfg, "oidn_ft")
+    if not (folder / "model.safetensors").exists():
+        raise StoreError(f"{folder}: no oidn_ft run to export (run `make train MODEL=oidn_ft SPP=any` first)")
+    net, record = load_run(folder, cfg)
+    name = record["network"]
+    if out is None:
+        out = folder.parent / f"{folder.name}.tza"
+    elif out.is_dir() or not out.suffix:
+        out = out / f"{name}.tza"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    blob = export_blob(net)
+    atomic_write_bytes(out, lambda tmp: Path(tmp).write_bytes(blob))
+    import hashlib
+    command = f"python -m pipeline export --format oidn --config {config or '<config>'} --out {out}" + "".join(
+        f" {shlex.quote(o)}" for o in overrides)
+    atomic_write_json(out.with_suffix(".json"), {
+        "network": name, "blend": record["blend"], "sha256": hashlib.sha256(blob).hexdigest(), "bytes": len(blob),
+        "prior_sha256": record["prior_sha256"], "epoch": record["epoch"], "metrics": record["metrics"],
+        "spp": record["spp"], "store": record["store"], "settings": record["settings"],
+        "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat(), "command": command}})
+    if not quiet:
+        print(f"exported {folder} (blend {record['blend']:g}) -> {out} ({len(blob) / 2**20:.2f} MiB, float16 TZA; "
+              f"OIDN runs it as its '{name}' network: denoise --oidn-weights {out})", flush=True)
+    return out

@@ -1,0 +1,166 @@
+"""oidn_ft (train/oidn_ft.py): OIDN's network fine-tuned on the store, used by the evaluator, exported
+as OIDN weights and run by OIDN itself."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.pipeline import oidn, oidn_net, oidn_weights
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.errors import PipelineError
+from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn_ft
+from tests.helpers import TINY, cli
+
+FT_TINY = ["oidn_ft.epochs=2", "oidn_ft.crop=16", "oidn_ft.batch_size=2", "oidn_ft.crops_per_frame=2",
+           "oidn_ft.warmup_steps=1", "oidn_ft.lr=1e-3", "oidn_ft.device=cpu"]
+
+
+def tiny(store, runs, *extra):
+    return load_config(TINY, [f"store={store}", f"runs={runs}", *FT_TINY, *extra])
+
+
+@pytest.fixture(scope="module")
+def trained(cleaned, tmp_path_factory):
+    """One small oidn_ft run on the tiny cleaned store (through the command line)."""
+    store, _ = cleaned
+    runs = tmp_path_factory.mktemp("oidn_ft") / "runs"
+    proc = cli("train", "--model", "oidn_ft", "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",
+               *FT_TINY, "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1")
+    return store, runs, proc
+
+
+@pytest.mark.slow
+def test_training_starts_at_oidn_and_moves_away(trained):
+    store, runs, proc = trained
+    folder = runs / "oidn_ft_rt_hdr_alb_nrm"
+    hist = json.loads((folder / "train.json").read_text())["history"]
+    assert [h["epoch"] for h in hist] == [0, 1, 2]
+    # epoch 0 is stock OIDN, scored by the twin: exactly OIDN's own score
+    assert hist[0]["val"]["psnr"] == hist[0]["val"]["oidn_psnr"]
+    assert all(h["val"]["images"] == len(Store(store).frames("val")) * 3 for h in hist)   # 4, 8, 16 spp
+    assert all(h["train_loss"] > 0 and h["terms"]["l2sp"] > 0 for h in hist[1:])
+    last = oidn_ft.load_run(folder, tiny(store, runs))[0]
+    stock = oidn_net.load_unet("rt_hdr_alb_nrm")
+    # the last checkpoint moved away from OIDN (whichever epoch was best)
+    from safetensors.torch import load_file
+    moved = load_file(str(folder / "last.safetensors"))
+    assert not torch.equal(moved["model.dec_conv0.weight"], stock.dec_conv0.weight)
+    record = json.loads((folder / "model.json").read_text())
+    assert record["network"] == "rt_hdr_alb_nrm" and record["spp"] == [4, 8, 16]
+    assert record["prior_sha256"] == __import__("hashlib").sha256(oidn_weights.load("rt_hdr_alb_nrm")).hexdigest()
+    assert last.in_channels == 9
+    assert "already trained" in cli("train", "--model", "oidn_ft", "--spp", "any", "--config", TINY, f"store={store}",
+                                    f"runs={runs}", *FT_TINY, "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1").stdout
+
+
+@pytest.mark.slow
+def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
+    store, runs, _ = trained
+    folder = runs / "oidn_ft_rt_hdr_alb_nrm"
+    # make the best epoch a trained one, so the comparison is not stock against stock
+    shutil.copy(folder / "model.json", tmp_path / "model.json")
+    from safetensors.torch import load_file, save_file
+    save_file({k[6:]: v for k, v in load_file(str(folder / "last.safetensors")).items() if k.startswith("model.")},
+              str(tmp_path / "model.safetensors"))
+    run = tmp_path / "runs" / "oidn_ft_rt_hdr_alb_nrm"
+    run.mkdir(parents=True)
+    for f in ("model.json", "model.safetensors"):
+        shutil.move(tmp_path / f, run / f)
+    cfg = tiny(store, tmp_path / "runs")
+    out = tmp_path / "w" / "mine.tza"
+    cli("export", "--format", "oidn", "--config", TINY, f"store={store}", f"runs={tmp_path / 'runs'}", "--out", out)
+    assert json.loads(out.with_suffix(".json").read_text())["network"] == "rt_hdr_alb_nrm"
+    net = oidn_ft.load_run(run, cfg)[0]
+    buf = Store(store).read(*_first(store), 4)
+    theirs = oidn.denoise(buf, weights=out.read_bytes())
+    ours = oidn_net.denoise(net, buf["color"], buf["albedo"], buf["normal"])
+    stock = oidn.denoise(buf)
+    assert _psnr(theirs, ours) >= 80 and _psnr(theirs, stock) < 70
+    # blend 0 is OIDN's own weights, bit for bit
+    assert oidn_ft.export_blob(oidn_ft.load_run(run, cfg, blend=0.0)[0]) == oidn_weights.load("rt_hdr_alb_nrm")
+    # the command line runs them too, and refuses weights that need layers the input lacks
+    exr = tmp_path / "in.exr"
+    from tests.helpers import write_rgb_exr
+    write_rgb_exr(exr, buf["color"])
+    bad = cli("denoise", "--exr", exr, "--out", tmp_path / "o.exr", "--oidn-weights", out, check=False)
+    assert bad.returncode == 2 and "read 9 channels" in bad.stderr and "has only colour" in bad.stderr
+    ok = cli("denoise", "--exr", exr, "--out", tmp_path / "o.exr", "--method", "oidn")
+    assert "pyoidn built-in rt_hdr" in ok.stdout and (tmp_path / "o.exr").exists()
+
+
+@pytest.mark.slow
+def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained):
+    from mcdenoise.evaluate.methods import Loader, MethodUnavailable
+    store, runs, _ = trained
+    loader = Loader(tiny(store, runs))
+    method = loader.load("oidn_ft", 4)
+    buf = Store(store).read(*_first(store), 4)
+    best = oidn_ft.load_run(runs / "oidn_ft_rt_hdr_alb_nrm", tiny(store, runs))[0]
+    assert _psnr(method.denoise(buf), oidn_net.denoise(best, buf["color"], buf["albedo"], buf["normal"])) >= 80
+    with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):
+        loader.load("oidn_ft_color", 4)
+
+
+def test_trainable_subsets():
+    net = oidn_net.load_unet("rt_hdr_small")
+    n = sum(p.numel() for p in net.parameters())
+    bias = sum(p.numel() for p in oidn_ft.trainable_parameters(net, "bias"))
+    decoder = sum(p.numel() for p in oidn_ft.trainable_parameters(net, "decoder"))
+    assert bias == sum(net.widths[k][0] for k in oidn_net.LAYERS) and bias < 0.01 * n
+    assert 0.3 * n < decoder < n
+    assert sum(p.numel() for p in oidn_ft.trainable_parameters(net, "all")) == n
+
+
+def test_l2sp_is_zero_at_the_prior_and_grows_with_the_change():
+    net = oidn_net.load_unet("rt_hdr_small")
+    oidn_ft.trainable_parameters(net, "all")
+    ref = {k: v.detach().clone() for k, v in net.named_parameters()}
+    assert float(oidn_ft.l2sp_penalty(net, ref).detach()) == 0
+    with torch.no_grad():
+        net.enc_conv0.weight.mul_(1.1)
+    small = float(oidn_ft.l2sp_penalty(net, ref).detach())
+    with torch.no_grad():
+        net.enc_conv0.weight.mul_(1.1)
+    assert 0 < small < float(oidn_ft.l2sp_penalty(net, ref).detach())
+
+
+def test_learning_rate_warms_up_then_decays_to_its_end():
+    lrs = [oidn_ft.lr_at(s, 100, 1e-3, 1e-5, 10) for s in range(100)]
+    assert lrs[0] < lrs[5] < lrs[9] == pytest.approx(1e-3)
+    assert all(a >= b for a, b in zip(lrs[9:], lrs[10:]))
+    assert oidn_ft.lr_at(100, 100, 1e-3, 1e-5, 10) == pytest.approx(1e-5)
+
+
+def test_augmentation_permutes_colour_and_target_together():
+    rng = np.random.default_rng(3)
+    colour = rng.random((8, 6, 3)).astype(np.float32)
+    images = {"color": colour, "albedo": colour * 0.5, "normal": rng.random((8, 6, 3)), "target": colour * 2}
+    for seed in range(8):
+        out = oidn_ft._augment(images, np.random.default_rng(seed))
+        np.testing.assert_allclose(out["albedo"], out["color"] * 0.5)
+        np.testing.assert_allclose(out["target"], out["color"] * 2)
+        assert sorted(out["color"].ravel()) == sorted(colour.ravel())
+        assert out["color"].shape in ((8, 6, 3), (6, 8, 3))
+
+
+def test_wrong_settings_are_named():
+    with pytest.raises(PipelineError, match="oidn_ft.crop"):
+        load_config(None, ["oidn_ft.crop=20"])
+    with pytest.raises(PipelineError, match="oidn_ft.network"):
+        load_config(None, ["oidn_ft.network=rt_ldr"])
+    with pytest.raises(PipelineError, match="oidn_ft.trainable"):
+        load_config(None, ["oidn_ft.trainable=encoder"])
+
+
+def _first(store):
+    k = Store(store).frames("val")[0]
+    return k.scene, k.frame
+
+
+def _psnr(a, b):
+    ta, tb = a / (1 + a), b / (1 + b)
+    mse = float(np.mean((ta.astype(np.float64) - tb) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(1 / mse)
