@@ -175,11 +175,15 @@ PAPER_STEPS = 27
 
 @dataclass
 class DiffusionConfig:
-    base: str = doc("Base model folder in the diffusers layout (config.json, diffusion_pytorch_model.safetensors, "
-                    "prompt_embeds.safetensors); a DeepFloyd IF-II checkpoint's unet/ folder works the same way. "
-                    "Empty: for the paper formulation the small stand-in shipped in train/base_model_paper, for the "
-                    "refine formulation a new base with a zero last layer written into the run folder (it returns "
-                    "the first estimate exactly and must train: diffusion.train_base=true).", "")
+    base: str = doc("The frozen base. 'oidn': OIDN's own network (rt_hdr_alb_nrm, weights from oidn.weights or "
+                    "pyoidn) under a Control Module reading every buffer, in OIDN's output space "
+                    "(train/oidn_refine.py); 'oidn_ft': the same on this config's oidn_ft run; a .tza file: those "
+                    "OIDN weights. Else a base model folder in the diffusers layout (config.json, "
+                    "diffusion_pytorch_model.safetensors, prompt_embeds.safetensors; a DeepFloyd IF-II checkpoint's "
+                    "unet/ folder works the same way). Empty: for the paper formulation the small stand-in shipped "
+                    "in train/base_model_paper, for the refine formulation a new IF-II-layout base with a zero last "
+                    "layer written into the run folder (it returns the first estimate exactly and must train: "
+                    "diffusion.train_base=true).", "")
     tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
                        "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
     epochs: int = doc("Training epochs of the Control Module (an epoch: crops_per_frame crops of every train frame).", 100)
@@ -228,6 +232,12 @@ class DiffusionConfig:
     snr_gamma: float = doc("gamma of the min-SNR loss weighting (Hang et al. 2023).", 5.0)
     snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
                            "step whose output is the one-step estimate).", 1.0)
+    hdr_weight: float = doc("Base oidn: weight of the second loss term, the L1 in OIDN's PU space relative to OIDN's "
+                            "own (highlights keep their relative error there, as HDR-FLIP sees them), beside the "
+                            "tonemapped MSE relative to OIDN's (what PSNR reads).", 0.5)
+    dropout: float = doc("Base oidn: probability that a training crop lacks a buffer group (the variances, the "
+                         "radiance split, the material buffers; each on its own), so one model serves inputs without "
+                         "them.", 0.15)
     loss_norm: str = doc("Refine formulation: 'crop' divides each training crop's loss by its first estimate's "
                          "error, so every crop counts by its relative gain, as a mean of per-frame PSNRs does; "
                          "'none': the plain weighted MSE, which the few hard crops dominate (and what runs from "

@@ -79,6 +79,10 @@ def _validator(store: Store, keys: list[FrameKey], spps: list[int], cfg: Config,
 
 def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     """Train the Control Module for ``spp`` (or 'any') from the store's low-spp stacks to GT_clean."""
+    from . import oidn_refine
+    if oidn_refine.is_oidn_base(cfg):
+        oidn_refine.train(cfg, spp, quiet=quiet)
+        return 0
     f = cfg.diffusion
     store = Store(cfg.store)
     if not store.manifest_path.exists():

@@ -174,7 +174,7 @@ class _DiffusionTask(Task):
         self.nan_limit, self.fingerprint, self.fmt, self.device = job.nan_limit, job.fingerprint, job.fmt, job.device
         self.state, self.validate_initial = job.trainable, job.validate_initial
         self.optimizers = self.opt = make_optimizer(job)
-        self.ema = _make_ema(job)
+        self.ema = make_ema(job.trainable, job.ema)
         self._guard = None
 
     def resume(self, record: dict, extra: dict) -> None:
@@ -226,7 +226,7 @@ class _DiffusionTask(Task):
         return self.job.validate(self.job.model) if self.job.validate is not None else None
 
     def evaluation(self):
-        return _ema_weights(self.ema, self.job.trainable)   # validated and saved: the EMA of the weights, if any
+        return ema_weights(self.ema, self.job.trainable)   # validated and saved: the EMA of the weights, if any
 
     def score(self, entry: dict) -> float:
         return validation_score(entry)
@@ -264,17 +264,17 @@ class _DiffusionTask(Task):
         return {"name": self.name, **({"skipped_steps": self._guard.skipped} if self._guard else {})}
 
 
-def _make_ema(job: Job):
-    """``diffusers``' EMAModel over the trainable weights (with its warm-up: early on the average follows
-    the weights closely), or None."""
-    if job.ema <= 0:
+def make_ema(module: torch.nn.Module, decay: float):
+    """``diffusers``' EMAModel over ``module``'s weights (with its warm-up: early on the average follows
+    the weights closely), or None for ``decay`` 0."""
+    if decay <= 0:
         return None
     from diffusers.training_utils import EMAModel
-    return EMAModel(job.trainable.parameters(), decay=job.ema, use_ema_warmup=True, power=0.75)
+    return EMAModel(module.parameters(), decay=decay, use_ema_warmup=True, power=0.75)
 
 
 @contextlib.contextmanager
-def _ema_weights(ema, module: torch.nn.Module):
+def ema_weights(ema, module: torch.nn.Module):
     """Inside: ``module`` holds the EMA weights; after: its own again."""
     if ema is None:
         yield

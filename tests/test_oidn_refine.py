@@ -1,0 +1,147 @@
+"""The diffusion denoiser on OIDN (train/oidn_control.py, train/oidn_pack.py, train/oidn_refine.py)."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.pipeline import oidn_net
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn_pack, oidn_refine
+from mcdenoise.train.formulation import Formulation
+from mcdenoise.train.oidn_control import ControlledOIDN
+from tests.helpers import TINY, cli
+
+REFINE_TINY = ["diffusion.base=oidn", "diffusion.epochs=2", "diffusion.crop=16", "diffusion.batch_size=2",
+               "diffusion.warmup_steps=1", "diffusion.lr=1e-3", "diffusion.device=cpu", "diffusion.val_frames=1"]
+FORM = Formulation(estimate="oidn", residual_scale=0.02, steps=1)
+
+
+@pytest.fixture(scope="module")
+def base():
+    torch.set_num_threads(1)
+    return oidn_net.load_unet("rt_hdr_alb_nrm")
+
+
+def _random_inputs(n=2, side=32, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 9, side, side, generator=g) * 0.3
+    cond = torch.rand(n, len(oidn_pack.cond_names()), side, side, generator=g)
+    return x, cond
+
+
+def test_the_untrained_controlled_model_is_oidn_exactly(base):
+    model = ControlledOIDN(base, len(oidn_pack.cond_names()))
+    x, cond = _random_inputs()
+    z = torch.randn(2, 3, 32, 32)
+    out, est = model(x, cond, z, torch.tensor([999, 10]))
+    assert torch.equal(out, est)
+    assert torch.equal(est, base(x))
+    # ... and so is every sampler: any steps, samples, start
+    for steps, samples, start in ((1, 1, "estimate"), (3, 2, "estimate"), (2, 1, "noise"), (3, 1, "render")):
+        mean, std, e = oidn_refine.sample(model, x, cond, FORM, steps=steps, start=start, samples=samples, seed=4)
+        assert torch.allclose(mean, e, atol=1e-6) and float(std.max()) < 1e-6
+
+
+def test_the_control_module_gets_a_gradient_and_the_base_none(base):
+    model = ControlledOIDN(base, len(oidn_pack.cond_names()))
+    x, cond = _random_inputs()
+    out, est = model(x, cond, torch.randn(2, 3, 32, 32), torch.tensor([999, 999]))
+    (out - est - 0.01).abs().mean().backward()
+    grads = [p.grad for p in model.trainable_parameters()]
+    assert all(p.grad is None for p in model.base.parameters())
+    assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
+    # after one step away from zero the output depends on the condition and on z_t
+    with torch.no_grad():
+        for p in model.control.zero.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+        model.control.encoder["enc_conv0"].weight.add_(0.01)
+    a = model(x, cond, torch.zeros(2, 3, 32, 32), torch.tensor([999, 999]))[0]
+    b = model(x, cond * 0, torch.zeros(2, 3, 32, 32), torch.tensor([999, 999]))[0]
+    c = model(x, cond, torch.ones(2, 3, 32, 32), torch.tensor([999, 999]))[0]
+    assert not torch.allclose(a, b) and not torch.allclose(a, c)
+
+
+def test_inputs_pad_like_oidn_and_mark_missing_groups():
+    rng = np.random.default_rng(0)
+    buffers = {"color": rng.random((21, 35, 3), dtype=np.float32), "albedo": rng.random((21, 35, 3), dtype=np.float32),
+               "normal": rng.random((21, 35, 3), dtype=np.float32)}
+    x, cond, scale = oidn_pack.inputs(buffers, 4)
+    assert x.shape == (9, 32, 48) and cond.shape == (len(oidn_pack.cond_names()), 32, 48)
+    ref = oidn_net.network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
+    np.testing.assert_array_equal(x, ref)
+    names = oidn_pack.cond_names()
+    for g in oidn_pack.GROUPS:
+        assert float(cond[names.index(f"has.{g}")].max()) == 0.0
+    assert float(cond[names.index("spp"), 0, 0]) == pytest.approx(2 / 6)
+    buffers["color.variance"] = np.ones((21, 35, 3), np.float32)   # a partial group counts as missing
+    _, cond2, _ = oidn_pack.inputs(buffers, 4)
+    np.testing.assert_array_equal(cond, cond2)
+    with pytest.raises(Exception, match="needs normal"):
+        oidn_pack.inputs({"color": buffers["color"], "albedo": buffers["albedo"]}, 4)
+
+
+@pytest.fixture(scope="module")
+def trained(cleaned, tmp_path_factory):
+    store, runs = cleaned
+    out = tmp_path_factory.mktemp("refine") / "runs"
+    proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={out}",
+               *REFINE_TINY)
+    return store, out, proc
+
+
+@pytest.mark.slow
+def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path):
+    store, runs, proc = trained
+    folder = runs / "diffusion_sppany"
+    hist = json.loads((folder / "train.json").read_text())["history"]
+    assert [h["epoch"] for h in hist] == [0, 1, 2]
+    assert hist[0]["val"]["psnr"] == hist[0]["val"]["estimate_psnr"]
+    assert all(np.isfinite(h["train_loss"]) for h in hist[1:])
+    model, meta = oidn_refine.load(folder)
+    assert meta["base_network"] == "rt_hdr_alb_nrm" and (folder / "base.tza").stat().st_size == 1841160
+    # the evaluator's method and the denoise command run it
+    from mcdenoise.evaluate.methods import Loader
+    cfg = load_config(TINY, [f"store={store}", f"runs={runs}", *REFINE_TINY])
+    method = Loader(cfg).load("ours_s3_k2", 4)
+    key = Store(store).frames("val")[0]
+    buf = Store(store).read(key.scene, key.frame, 4)
+    hdr = method.denoise(buf)
+    assert hdr.shape == buf["color"].shape and np.isfinite(hdr).all()
+    assert method.uncertainty().shape == hdr.shape
+    # a changed base is refused
+    blob = bytearray((folder / "base.tza").read_bytes())
+    blob[-1000] ^= 1
+    (folder / "base.tza").write_bytes(bytes(blob))
+    with pytest.raises(CheckpointError, match="base changed"):
+        oidn_refine.load(folder)
+
+
+@pytest.mark.slow
+def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
+    store, _ = cleaned
+    s = Store(store)
+    keys = s.frames("train")[:1]
+    pack = oidn_pack.load_pack(oidn_pack.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
+    plain = oidn_pack.Crops(pack, 16, 4, 0, augment=False, dropout=0.0)
+    aug = oidn_pack.Crops(pack, 16, 4, 0, augment=True, dropout=0.0)
+    names = ["x.%d" % i for i in range(9)] + oidn_pack.cond_names()
+    for i in range(4):
+        a, b = plain[i], aug[i]
+        full_a, full_b = torch.cat([a["x"], a["cond"]]), torch.cat([b["x"], b["cond"]])
+        # same pixels, moved: the per-channel sums are a permutation within the colour triples
+        assert torch.allclose(full_a.sum((1, 2)).sort().values, full_b.sum((1, 2)).sort().values, rtol=1e-4)
+        # the target's colours moved as the input colour's and the albedo's did (the same crop, permuted)
+        ta, tb = a["target"].double().sum((1, 2)), b["target"].double().sum((1, 2))
+        perm = [int(torch.argmin((ta - v).abs())) for v in tb]
+        assert sorted(perm) == [0, 1, 2] and torch.allclose(ta[perm], tb, rtol=1e-6)
+        for key in ("color", "albedo", "diffuse_direct"):
+            rgb = [names.index(f"{key}.{c}") for c in "RGB"]
+            assert torch.allclose(full_a[rgb].double().sum((1, 2))[perm], full_b[rgb].double().sum((1, 2)), rtol=1e-5)
+    dropped = oidn_pack.Crops(pack, 16, 4, 0, augment=False, dropout=1.0)[0]
+    names_c = oidn_pack.cond_names()
+    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in oidn_pack.GROUPS)
+    assert float(dropped["cond"][names_c.index("color.variance")].abs().max()) == 0
+    assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0

@@ -1,0 +1,130 @@
+"""The diffusion denoiser on a real prior: OIDN's network, frozen, with a Control Module (paper Fig. 1).
+
+The base is OIDN's UNet (``pipeline.oidn_net``) with OIDN's weights, or an ``oidn_ft`` run's;
+it never trains. It reads what OIDN reads (colour, albedo, normal in OIDN's input space) and its
+output, decoded without help, is OIDN's own output: the first estimate.
+
+The Control Module is a trainable copy of the base's encoder (``enc_conv0`` … ``enc_conv5b``,
+initialised from the base's weights, as ControlNet copies its base), whose first convolution
+reads OIDN's input plus the condition (every other buffer of the frame, the spp, which buffer
+groups are present) and the diffusion state z_t, and whose levels get the timestep embedding
+as a per-channel bias. Its features enter the base's decoder through zero-initialised 1×1
+convolutions at every skip the decoder reads (the input, ``pool1`` … ``pool3``, the bottleneck)
+and at its output:
+
+    feats = base.encode(x)                          x: OIDN's input (frozen base, no gradient)
+    x_est = base.decode(feats)                      the first estimate, OIDN's output
+    r     = zero_conv(control(x ⊕ cond ⊕ z_t, t))   residuals per skip, and for the output
+    x̂₀    = base.decode(feats, r) + r_output
+
+Every zero convolution, the weights of the first convolution's extra input channels and the
+timestep projections start at zero, so at initialisation x̂₀ = x_est exactly (tested): training
+can only start at OIDN.
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from mcdenoise.pipeline import oidn_net
+
+# The decoder skips the Control Module adds to, with the encoder layer whose output feeds each.
+SKIP_SOURCES = {"x": "enc_conv1", "pool1": "enc_conv1", "pool2": "enc_conv2", "pool3": "enc_conv3",
+                "bottleneck": "enc_conv5b"}
+EMBED = 64   # sinusoidal timestep features
+
+
+def timestep_features(t: torch.Tensor, dim: int = EMBED) -> torch.Tensor:
+    """Sinusoidal features (B, dim) of diffusion timesteps 0 … 999 (as diffusers' ``Timesteps``)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
+    args = t.float()[:, None] * freqs[None]
+    return torch.cat([torch.sin(args), torch.cos(args)], 1)
+
+
+class ControlModule(nn.Module):
+    """A copy of ``base``'s encoder reading ``extra`` more input channels, with a timestep bias per level
+    and zero 1×1 convolutions to the decoder's skips and output."""
+
+    def __init__(self, base: oidn_net.UNet, extra: int):
+        super().__init__()
+        self.extra = int(extra)
+        self.encoder = nn.ModuleDict({n: copy.deepcopy(getattr(base, n)) for n in oidn_net.ENCODER})
+        first = self.encoder["enc_conv0"]
+        wide = nn.Conv2d(first.in_channels + self.extra, first.out_channels, 3, padding=1)
+        with torch.no_grad():
+            wide.weight.zero_()
+            wide.weight[:, :first.in_channels] = first.weight
+            wide.bias.copy_(first.bias)
+        self.encoder["enc_conv0"] = wide
+        self.embed = nn.Sequential(nn.Linear(EMBED, 128), nn.SiLU())
+        self.time_bias = nn.ModuleDict({n: _zero(nn.Linear(128, getattr(base, n).out_channels))
+                                        for n in oidn_net.ENCODER})
+        width = {n: getattr(base, src).out_channels for n, src in SKIP_SOURCES.items()}
+        self.zero = nn.ModuleDict({n: _zero(nn.Conv2d(width[n], base.in_channels if n == "x" else width[n], 1))
+                                   for n in SKIP_SOURCES})
+        self.zero["output"] = _zero(nn.Conv2d(width["x"], base.widths["dec_conv0"][0], 1))
+
+    def _conv(self, name: str, h: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        return F.relu(self.encoder[name](h) + self.time_bias[name](emb)[:, :, None, None])
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Residuals for ``UNet.decode`` (``x``, ``pool1`` … ``bottleneck``) and ``output``."""
+        emb = self.embed(timestep_features(t))
+        full = self._conv("enc_conv1", self._conv("enc_conv0", x, emb), emb)
+        p1 = F.max_pool2d(full, 2)
+        p2 = F.max_pool2d(self._conv("enc_conv2", p1, emb), 2)
+        p3 = F.max_pool2d(self._conv("enc_conv3", p2, emb), 2)
+        b = F.max_pool2d(self._conv("enc_conv4", p3, emb), 2)
+        b = self._conv("enc_conv5b", self._conv("enc_conv5a", b, emb), emb)
+        feats = {"x": full, "pool1": p1, "pool2": p2, "pool3": p3, "bottleneck": b, "output": full}
+        return {n: conv(feats[n]) for n, conv in self.zero.items()}
+
+
+def _zero(m: nn.Module) -> nn.Module:
+    for p in m.parameters():
+        nn.init.zeros_(p)
+    return m
+
+
+class ControlledOIDN(nn.Module):
+    """Frozen OIDN base + Control Module: ``forward(x, cond, z, t) -> (x̂₀, x_est)`` in OIDN's output space.
+
+    ``x``: OIDN's input (B, 3/6/9, H, W), ``cond``: the condition (B, C, H, W), ``z``: z_t (B, 3, H, W),
+    ``t``: timesteps (B,); sides a multiple of 16. ``control=None``: the base alone (x̂₀ = x_est)."""
+
+    multiple = oidn_net.ALIGNMENT
+
+    def __init__(self, base: oidn_net.UNet, cond_channels: int, control: bool = True):
+        super().__init__()
+        self.base = base.requires_grad_(False).eval()
+        self.cond_channels = int(cond_channels)
+        self.control = ControlModule(base, self.cond_channels + 3) if control else None
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.base.eval()      # frozen, whatever the caller does
+        return self
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.control.parameters()) if self.control is not None else []
+
+    def estimate(self, x: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """(the base's encoder features, its output: the first estimate); no gradient."""
+        with torch.no_grad():
+            feats = self.base.encode(x)
+            return feats, self.base.decode(feats)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor, z: torch.Tensor, t: torch.Tensor,
+                base: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``base``: ``estimate(x)`` when the caller has it already (a sampler's later steps)."""
+        feats, est = base if base is not None else self.estimate(x)
+        if self.control is None:
+            return est, est
+        r = self.control(torch.cat([x, cond, z], 1), t.expand(x.shape[0]))
+        out = self.base.decode(feats, {k: v for k, v in r.items() if k != "output"}) + r["output"]
+        return out, est

@@ -1,0 +1,240 @@
+"""What the OIDN-based diffusion denoiser reads, and its training pack.
+
+**Inputs** (``inputs``, the one place every caller encodes a frame): OIDN's own network input
+``x`` (``pipeline.oidn_net.network_input``: colour × OIDN's autoexposure in PU, albedo, normal) and
+the condition ``cond``: ``pipeline.features``' table in OIDN's space (each radiance buffer as
+PU(radiance × the same exposure), normals as stored, depth relative, the material features, one
+relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer
+group saying whether the input had it (``GROUPS``). A group an input lacks (an EXR from another
+renderer has no variances, no radiance split, no material buffers) is its background value, 0,
+with its presence map 0: the network is trained with such inputs (``DROPOUT``), so it serves
+them rather than falling back.
+
+**Pack** (``ensure_pack``): the store decoded once, as ``train.pack`` does for the stand-in: per
+frame and (spp, variant) of ``train.pack.PACK_VARIANTS`` (disjoint stack subsets), ``x`` and
+``cond`` in float16 with the exposure, and GT_clean per frame in float32 HDR. ``Crops`` draws
+training items from it: a random crop, OIDN's augmentation (flips, transposes, one permutation
+of the colour channels for every colour-like channel and the target, one of the normal axes) and
+the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from mcdenoise.pipeline import features, oidn_net, schema
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import FrameKey, Store, combine_stacks, stack_name
+
+from .pack import PACK_VARIANTS, fit_variants, variant_stacks
+
+FORMAT = "mcdenoise-oidn-pack"
+# Buffer groups an input may lack, each with a presence map in the condition.
+GROUPS = {
+    "variance": tuple(schema.variance_name(b.name) for b in schema.BUFFERS),
+    "components": schema.RADIANCE_COMPONENTS,
+    "materials": ("depth", "roughness", "metallic", "transmission"),
+}
+DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
+_COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
+
+
+def _pu(x: np.ndarray, scale: float) -> np.ndarray:
+    return oidn_net.to_pu(torch.from_numpy(np.maximum(np.nan_to_num(x, nan=0.0), 0.0) * scale)).numpy()
+
+
+def _encoding(scale: float) -> features.Encoding:
+    return features.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
+
+
+def cond_names() -> list[str]:
+    """One name per condition channel: the feature table, ``spp``, then ``has.<group>``."""
+    return features.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
+
+
+def present(buffers: dict) -> dict[str, bool]:
+    """Which of ``GROUPS`` an input has (all of a group's buffers)."""
+    return {g: all(k in buffers for k in keys) for g, keys in GROUPS.items()}
+
+
+def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal")
+           ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
+    at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole."""
+    have = present(buffers)
+    keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
+    scale = oidn_net.autoexposure(keep["color"])
+    missing = [a for a in aux if a not in keep]
+    if missing:
+        raise StoreError(f"the OIDN-based denoiser needs {', '.join(missing)} (OIDN's network for these inputs "
+                         "reads them)")
+    x = oidn_net.network_input(keep["color"], *(keep[a] for a in aux), scale=scale)[0].numpy()
+    cond = features.encode(keep, _encoding(scale), spp)
+    flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
+                            (len(GROUPS), *cond.shape[1:]))
+    cond = np.concatenate([cond, flags], 0)
+    H, W = cond.shape[1:]
+    cond = np.pad(cond, ((0, 0), (0, -H % oidn_net.ALIGNMENT), (0, -W % oidn_net.ALIGNMENT)))
+    return x, cond.astype(np.float32), scale
+
+
+# ---- the pack ----------------------------------------------------------------------------------
+
+
+def pack_path(runs: str | Path, split: str) -> Path:
+    return Path(runs) / "pack" / f"{split}_oidn.safetensors"
+
+
+def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False) -> Path:
+    """Decode ``keys`` once into the pack at ``path`` (written atomically)."""
+    xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
+    for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
+        sm = store.scene_manifest(key.scene)
+        n, total = int(sm["stack_spp"]), int(sm["stacks"])
+        variants = fit_variants(PACK_VARIANTS, n, total)
+        need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
+        images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
+        for spp, count in sorted(variants.items()):
+            for v in range(count):
+                x, cond, scale = inputs(combine_stacks([images[s] for s in variant_stacks(spp, n, v, total)], n), spp)
+                xs.append(x.astype(np.float16))
+                conds.append(cond.astype(np.float16))
+                scales.append(scale)
+                spps.append(spp)
+                frames.append(i)
+        gt = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+        targets.append(np.pad(np.moveaxis(gt, 2, 0), ((0, 0), (0, xs[-1].shape[1] - gt.shape[0]),
+                                                       (0, xs[-1].shape[2] - gt.shape[1]))).astype(np.float32))
+    sizes = {x.shape for x in xs}
+    if len(sizes) != 1:
+        raise StoreError(f"{store.root}: frames of several sizes ({sorted(sizes)}); the pack needs one size")
+    tensors = {"x": torch.from_numpy(np.stack(xs)), "cond": torch.from_numpy(np.stack(conds)),
+               "scale": torch.tensor(scales, dtype=torch.float32), "spp": torch.tensor(spps, dtype=torch.int32),
+               "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(np.stack(targets))}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
+            "cond": json.dumps(cond_names()), "sizes": json.dumps([list(s) for s in sizes])}
+    save_safetensors(path, tensors, meta)
+    return path
+
+
+def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False) -> Path:
+    """The pack of ``keys`` at ``path``, built if missing or made from other frames or another layout."""
+    if path.exists():
+        from safetensors import safe_open
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+        if (meta.get("format") == FORMAT and json.loads(meta.get("cond", "[]")) == cond_names()
+                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]):
+            return path
+    return build_pack(store, keys, path, quiet)
+
+
+def load_pack(path: Path) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+    return load_file(str(path))
+
+
+# ---- training items ----------------------------------------------------------------------------
+
+
+def _channel_groups(aux: int) -> tuple[list[list[int]], list[list[int]]]:
+    """(RGB triples of colour-like channels, XYZ triples of normals) as indices into x ⊕ cond."""
+    names = [f"x.{i}" for i in range(3 + 3 * aux)] + cond_names()
+    colours = [[0, 1, 2]] + ([[3, 4, 5]] if aux >= 1 else [])
+    normals = [[6, 7, 8]] if aux >= 2 else []
+    for key in _COLOURS:
+        colours.append([names.index(f"{key}.{c}") for c in "RGB"])
+    normals.append([names.index(f"normal.{c}") for c in "XYZ"])
+    return colours, normals
+
+
+class Crops(Dataset):
+    """Random crops of a pack, augmented; item ``index`` of an epoch from ``default_rng([seed, epoch, index])``.
+
+    Items: ``x`` (OIDN's input), ``cond``, ``target`` (PU of GT_clean at the item's exposure), ``scale``, ``spp``."""
+
+    def __init__(self, pack: dict[str, torch.Tensor], crop: int, per_frame: int, seed: int, spps: list[int] | None = None,
+                 augment: bool = True, dropout: float = DROPOUT):
+        self.pack, self.crop, self.per_frame, self.seed = pack, int(crop), int(per_frame), int(seed)
+        self.augment, self.dropout, self.epoch = augment, float(dropout), 0
+        keep = torch.ones(len(pack["spp"]), dtype=torch.bool) if not spps else torch.isin(pack["spp"], torch.tensor(spps))
+        self.items = torch.nonzero(keep).flatten().tolist()
+        self.frames = sorted({int(pack["frame"][i]) for i in self.items})
+        self.by_frame = {f: [i for i in self.items if int(pack["frame"][i]) == f] for f in self.frames}
+        aux = (pack["x"].shape[1] - 3) // 3
+        self.colours, self.normals = _channel_groups(aux)
+        names = cond_names()
+        nx = pack["x"].shape[1]
+        self.groups = {g: [nx + names.index(f"has.{g}")] + [nx + j for j, n in enumerate(names)
+                                                            if n.split(".")[0] in GROUPS[g] or n in GROUPS[g]]
+                       for g in GROUPS}
+        H, W = pack["x"].shape[-2:]
+        if self.crop > min(H, W) or self.crop % oidn_net.ALIGNMENT:
+            raise StoreError(f"crop {self.crop}: must be a multiple of {oidn_net.ALIGNMENT} up to the frames' {min(H, W)}")
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.frames) * self.per_frame
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        rng = np.random.default_rng([self.seed, self.epoch, index])
+        options = self.by_frame[self.frames[index // self.per_frame]]
+        i = options[int(rng.integers(len(options)))]
+        p = self.pack
+        H, W = p["x"].shape[-2:]
+        c = self.crop
+        y, x0 = int(rng.integers(0, H - c + 1)), int(rng.integers(0, W - c + 1))
+        win = (slice(None), slice(y, y + c), slice(x0, x0 + c))
+        full = torch.cat([p["x"][i][win], p["cond"][i][win]]).float()
+        target = p["target"][int(p["frame"][i])][win].float()
+        if self.augment:
+            full, target = self._augment(full, target, rng)
+        for g, idx in self.groups.items():
+            if rng.random() < self.dropout:
+                full[idx] = 0.0
+        nx = p["x"].shape[1]
+        scale = float(p["scale"][i])
+        return {"x": full[:nx].contiguous(), "cond": full[nx:].contiguous(),
+                "target": oidn_net.to_pu(target * scale), "scale": torch.tensor(scale), "spp": p["spp"][i].long()}
+
+    def _augment(self, full: torch.Tensor, target: torch.Tensor, rng: np.random.Generator):
+        colour, axes = rng.permutation(3).tolist(), rng.permutation(3).tolist()
+        src = list(range(full.shape[0]))
+        for g in self.colours:
+            for k in range(3):
+                src[g[k]] = g[colour[k]]
+        for g in self.normals:
+            for k in range(3):
+                src[g[k]] = g[axes[k]]
+        full, target = full[src], target[colour]
+        if rng.integers(2):
+            full, target = full.flip(-1), target.flip(-1)
+        if rng.integers(2):
+            full, target = full.flip(-2), target.flip(-2)
+        if rng.integers(2):
+            full, target = full.transpose(-1, -2), target.transpose(-1, -2)
+        return full.contiguous(), target.contiguous()
+
+
+def residual_std(pack: dict[str, torch.Tensor], estimate, frames: int = 16) -> float:
+    """The standard deviation of PU(GT) − PU(estimate) over the first ``frames`` frames' items (to size
+    ``diffusion.residual_scale``); ``estimate``: x → the first estimate in PU."""
+    sel = [i for i in range(len(pack["spp"])) if int(pack["frame"][i]) < frames]
+    vals = []
+    with torch.no_grad():
+        for i in sel:
+            scale = float(pack["scale"][i])
+            gt = oidn_net.to_pu(pack["target"][int(pack["frame"][i])] * scale)
+            vals.append(float(((gt - estimate(pack["x"][i][None].float())[0]) ** 2).mean()))
+    return math.sqrt(float(np.mean(vals))) if vals else float("nan")

@@ -1,0 +1,425 @@
+"""The diffusion denoiser on OIDN (``diffusion.base: oidn``): training run, sampler and denoiser.
+
+    make train SPP=any diffusion.base=oidn          → runs/<...>/diffusion_sppany[_<name>]/
+
+The model is ``train.oidn_control.ControlledOIDN`` (OIDN frozen, a Control Module reading every
+buffer); the formulation is the refine one (``train.formulation``): the diffused signal is the
+residual around OIDN's output in OIDN's output space (PU of the exposed radiance),
+
+    y = (PU(x · s) − x_est) / residual_scale,      x_est = the base's own output,
+
+with x₀-prediction over IF's cosine schedule rescaled to zero terminal SNR, so one DDIM step from
+t = T is the network's direct estimate, more steps and several samples are there for the
+uncertainty. Training (``RefineTask``, reading top to bottom: model, data, optimiser; the step;
+validation) draws t with ``t_focus`` on the sampler's steps, and the loss lives where the metrics
+are read, each crop by its gain over OIDN:
+
+    L = w(t) · [ MSE_R(x̂₀, x) / MSE_R(x_est, x) + hdr_weight · L1_PU(x̂₀, x) / L1_PU(x_est, x) ]
+
+(R: the x/(1+x) tonemap PSNR is read on; PU: OIDN's HDR space, where highlights keep their
+relative error, as HDR-FLIP sees them; each ratio has a small floor). Crops come from the pack
+(``train.oidn_pack``) with OIDN's augmentation and buffer-group dropout. AdamW on the Control
+Module only, warm-up and cosine decay, an EMA of its weights (validated and saved), DDP under
+torchrun as ``train.train``. The run folder: ``control.safetensors`` (the Control Module, EMA),
+``base.tza`` (the frozen base's float16 weights, so the run is self-contained), ``model.json``,
+``last.safetensors``, ``train.json``, ``loss.png``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from mcdenoise.pipeline import oidn_net, oidn_weights, tza
+from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves, save_safetensors
+from mcdenoise.pipeline.color import reinhard
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import CheckpointError, TrainError
+from mcdenoise.pipeline.exr import atomic_write_bytes, atomic_write_json, read_json
+from mcdenoise.pipeline.fit import Task, apply_update, fit
+from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
+from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.runs import pick_device, run_dir
+from mcdenoise.pipeline.store import FrameKey, Store
+
+from .formulation import Formulation, snr_weight
+from .oidn_control import ControlledOIDN
+from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path
+from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
+
+FORMAT = "mcdenoise-oidn-control"
+NETWORK = "rt_hdr_alb_nrm"      # the base reads colour, albedo and normal
+FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tonemap, L1 in PU)
+
+
+# ---- the base ----------------------------------------------------------------------------------
+
+
+def base_blob(cfg: Config) -> tuple[bytes, str]:
+    """(the base's float16 TZA blob, what it is): ``diffusion.base`` 'oidn' (OIDN's weights, from
+    ``oidn.weights`` or pyoidn), 'oidn_ft' (this config's oidn_ft run of rt_hdr_alb_nrm, as exported)
+    or a .tza file."""
+    base = cfg.diffusion.base
+    if base == "oidn":
+        return oidn_weights.load(NETWORK, oidn_weights.source(NETWORK, cfg.oidn.weights)), f"OIDN {NETWORK}"
+    if base == "oidn_ft":
+        from .oidn_ft import export_blob, load_run
+        folder = run_dir(cfg, "oidn_ft", variant=NETWORK)
+        return export_blob(load_run(folder, cfg)[0]), f"oidn_ft run {folder} (blend {cfg.oidn_ft.blend:g})"
+    return oidn_weights.load(NETWORK, base), str(base)
+
+
+def is_oidn_base(cfg: Config) -> bool:
+    return cfg.diffusion.base in ("oidn", "oidn_ft") or cfg.diffusion.base.endswith(".tza")
+
+
+# ---- the loss ----------------------------------------------------------------------------------
+
+
+def hdr_of(pu: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """HDR radiance of OIDN-space images (B, 3, h, w) at exposures ``scale`` (B,)."""
+    return oidn_net.from_pu(pu.clamp(min=0.0)) / scale[:, None, None, None]
+
+
+def relative_loss(out: torch.Tensor, est: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,
+                  hdr_weight: float) -> tuple[torch.Tensor, dict]:
+    """Per crop (B,): the tonemapped MSE over OIDN's, plus ``hdr_weight`` × the PU L1 over OIDN's."""
+    def mse_r(a):
+        return ((reinhard(hdr_of(a, scale)) - reinhard(hdr_of(target, scale))) ** 2).flatten(1).mean(1)
+
+    def l1(a):
+        return (a - target).abs().flatten(1).mean(1)
+
+    with torch.no_grad():
+        ref_r, ref_pu = mse_r(est) + FLOOR_R, l1(est) + FLOOR_PU
+    r, h = mse_r(out) / ref_r, l1(out) / ref_pu
+    return r + hdr_weight * h, {"tonemap": r.detach().mean(), "pu": h.detach().mean()}
+
+
+# ---- sampling ----------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def sample(model: ControlledOIDN, x: torch.Tensor, cond: torch.Tensor, f: Formulation, steps: int | None = None,
+           skip: int | None = None, start: str | None = None, seed: int = 0, samples: int = 1
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(mean, per-pixel std, x_est) in OIDN's space for inputs padded to a multiple of 16: ``samples``
+    DDIM runs (seeds seed, seed + 1, …) of ``steps`` trailing steps, the first ``skip`` not run,
+    starting from pure noise (``noise``) or the q-sampled estimate (``estimate``) or render (``render``)."""
+    steps, skip, start = f.steps if steps is None else int(steps), f.skip if skip is None else int(skip), start or f.start
+    if not 1 <= steps <= 1000 or not 0 <= skip < steps or (start == "noise" and skip):
+        raise ValueError(f"need 1 <= steps <= 1000, 0 <= skip < steps (0 from noise), got {steps}, {skip}, {start}")
+    base = model.estimate(x)
+    est = base[1]
+    sched = f.scheduler("ddim")
+    sched.set_timesteps(steps)
+    ts = sched.timesteps[skip:]
+    s = f.residual_scale
+    outs = []
+    for k in range(samples):
+        gen = torch.Generator().manual_seed(int(seed) + k)
+        noise = torch.randn(est.shape, generator=gen).to(est.device)
+        y = (x[:, :3] - est) / s if start == "render" else torch.zeros_like(est)
+        z = noise if start == "noise" else sched.add_noise(y, noise, ts[:1])
+        for t in ts:
+            out, _ = model(x, cond, z, t.expand(x.shape[0]).to(x.device), base=base)
+            z = sched.step((out - est) / s, t, z).prev_sample
+        outs.append(est + s * z)
+    outs = torch.stack(outs)
+    return outs.mean(0), outs.std(0, unbiased=False), est
+
+
+# ---- the training run --------------------------------------------------------------------------
+
+
+def _frames(store: Store, split: str) -> list[FrameKey]:
+    if split not in store.manifest().get("splits", {}):
+        return []
+    return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
+
+
+class RefineTask(Task):
+    """The Control Module on OIDN, trained on the store's train split (see the module docstring)."""
+
+    minimize = False          # validation PSNR
+    validate_initial = True   # epoch 0 is OIDN exactly: the run must beat it to keep anything
+
+    def __init__(self, cfg: Config, spp="any", quiet: bool = False):
+        d = self.d = cfg.diffusion
+        self.cfg, self.quiet, self.store = cfg, quiet, Store(cfg.store)
+        if not self.store.manifest_path.exists():
+            raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
+        self.train_keys, self.val_keys = _frames(self.store, "train"), _frames(self.store, "val")
+        if not self.train_keys:
+            raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
+        self.spps = self.store.spp_choices(spp)
+        self.rank, self.world = dist_info()
+        self.folder = run_dir(cfg, "diffusion", spp)
+        self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, d.epochs, d.time_budget_s, d.nan_limit
+        self.device = pick_device(d.device)
+        self.autocast = autocast_dtype(d.precision, self.device)
+        self.form = dataclasses.replace(Formulation.from_config(d), estimate="oidn", residual=True)
+        if self.form.paper or self.form.prediction != "sample":
+            raise TrainError("diffusion.base=oidn trains the refine formulation with x0 prediction "
+                             "(diffusion.prediction=sample)")
+
+        # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module.
+        self.blob, self.base_what = base_blob(cfg)
+        torch.manual_seed(cfg.seed)
+        base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
+        self.model = ControlledOIDN(base, len(cond_names()), control=d.control).to(self.device)
+        if self.model.control is None:
+            raise TrainError("diffusion.control=false with diffusion.base=oidn is OIDN itself: nothing to train")
+        self.state = self.model.control
+        self.params = self.model.trainable_parameters()
+        self.optimizers = torch.optim.AdamW(self.params, lr=d.lr, weight_decay=d.weight_decay)
+        self.ema = make_ema(self.state, d.ema)
+        self.fmt = FORMAT
+        self.fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": hashlib.sha256(self.blob).hexdigest(),
+                            "formulation": self.form.record(), "train_steps": list(d.train_steps),
+                            **{k: getattr(d, k) for k in ("crop", "batch_size", "crops_per_frame", "epoch_steps", "lr",
+                                                           "weight_decay", "warmup_steps", "grad_clip", "ema", "epochs",
+                                                           "hdr_weight", "dropout")}}
+        self.output = str(self.folder / "control.safetensors")
+
+    # ---- data
+    def prepare(self) -> None:
+        t = time.perf_counter()
+        path = ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), self.quiet or self.rank > 0)
+        pack = load_pack(path)
+        self.crops = Crops(pack, self.d.crop, self.d.crops_per_frame, self.cfg.seed, self.spps, dropout=self.d.dropout)
+        self.per_rank = len(self.crops) // self.world
+        self.steps_per_epoch = max(1, self.per_rank // self.d.batch_size)
+        if self.d.epoch_steps:
+            self.steps_per_epoch = min(self.steps_per_epoch, self.d.epoch_steps)
+            self.per_rank = min(self.per_rank, self.steps_per_epoch * self.d.batch_size)
+        self.total_steps = self.steps_per_epoch * self.d.epochs
+        self.focus = self.form.train_timesteps(list(self.d.train_steps))
+        self.noise_sched = self.form.scheduler("ddpm")
+        self.val = self._validation_items() if self.rank == 0 else []
+        self.net = self.model
+        if self.world > 1:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+            self.net = DDP(self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+        self._guard = NanGuard(self.name, self.nan_limit, TrainError)
+        if not self.quiet and self.rank == 0:
+            print(f"{self.name}: OIDN base ({self.base_what}), {len(self.crops.frames)} train frames at {self.spps} "
+                  f"spp, {len(self.val)} validation images, {self.steps_per_epoch} steps per epoch; ready in "
+                  f"{time.perf_counter() - t:.1f} s", flush=True)
+
+    def _validation_items(self) -> list[dict]:
+        items = []
+        for key in self.val_keys[: self.d.val_frames]:
+            ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+            for spp in sorted({self.spps[0], self.spps[len(self.spps) // 2], self.spps[-1]}):
+                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp)
+                items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
+                              "ref": ref, "spp": spp})
+        return items
+
+    def guard(self) -> NanGuard:
+        return self._guard
+
+    def batches(self, epoch: int):
+        self.crops.set_epoch(epoch)
+        order = np.random.default_rng([self.cfg.seed, epoch]).permutation(len(self.crops))
+        mine = order[self.rank::self.world][: self.per_rank].tolist()
+        self.model.train()
+        return DataLoader(self.crops, batch_size=self.d.batch_size, sampler=mine, drop_last=True, num_workers=0)
+
+    # ---- the step
+    def step(self, batch: dict, epoch: int, index: int) -> tuple[dict, bool]:
+        gen = torch.Generator().manual_seed(int(np.random.default_rng([self.cfg.seed, epoch, index, self.rank])
+                                                .integers(2 ** 62)))
+        for g in self.optimizers.param_groups:
+            g["lr"] = self.d.lr * lr_factor(epoch * self.steps_per_epoch + index, self.total_steps, self.d.warmup_steps)
+        x, cond, target, scale = batch["x"], batch["cond"], batch["target"], batch["scale"]
+        feats, est = self.model.estimate(x)
+        y = (target - est) / self.form.residual_scale
+        t = self.form.draw_t(x.shape[0], self.focus, gen).to(self.device)
+        z = self.noise_sched.add_noise(y, torch.randn(y.shape, generator=gen).to(self.device), t)
+        with torch.autocast(self.device.type, dtype=self.autocast, enabled=self.autocast is not None):
+            out, _ = self.net(x, cond, z, t, base=(feats, est))
+        per_crop, terms = relative_loss(out.float(), est, target, scale, self.d.hdr_weight)
+        w = snr_weight(self.noise_sched, t, "sample", self.form.snr_gamma, self.form.snr_floor).to(self.device)
+        loss = (w * per_crop).mean()
+        ok = apply_update(loss, self.optimizers, self.params, self.d.grad_clip)
+        if ok and self.ema is not None:
+            self.ema.step(self.state.parameters())
+        return {"loss": float(loss.detach()), **{k: float(v) for k, v in terms.items()}}, ok
+
+    def entry(self, epoch: int, kept: list[dict], skipped: int) -> dict:
+        mean = {k: float(np.mean([t[k] for t in kept])) for k in (kept[0] if kept else {})}
+        return {"epoch": epoch + 1, "train_loss": mean.pop("loss", None), "terms": mean, "skipped_steps": skipped,
+                "lr": self.optimizers.param_groups[0]["lr"]}
+
+    def initial_entry(self) -> dict:
+        return {"epoch": 0, "train_loss": None, "terms": {}, "skipped_steps": 0, "lr": 0.0}
+
+    # ---- validation and files
+    def validate(self) -> dict | None:
+        if not self.val:
+            return None
+        self.model.eval()
+        rows = []
+        for it in self.val:
+            x, cond = it["x"].to(self.device), it["cond"].to(self.device)
+            mean, _, est = sample(self.model, x, cond, self.form, seed=self.cfg.seed)
+            H, W = it["ref"].shape[:2]
+            out = oidn_net.network_output(mean, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            stock = oidn_net.network_output(est, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            rows.append((it["spp"], min(psnr(out, it["ref"]), PSNR_CEILING), min(psnr(stock, it["ref"]), PSNR_CEILING)))
+        self.model.train()
+        out = {"psnr": float(np.mean([r[1] for r in rows])), "estimate_psnr": float(np.mean([r[2] for r in rows])),
+               "images": len(rows), "steps": self.form.steps}
+        for spp in sorted({r[0] for r in rows}):
+            out[f"gain_spp{spp}"] = float(np.mean([r[1] - r[2] for r in rows if r[0] == spp]))
+        return out
+
+    def evaluation(self):
+        return ema_weights(self.ema, self.state)
+
+    def score(self, entry: dict) -> float | None:
+        return entry["val"]["psnr"] if entry["val"] else None
+
+    def save_best(self, entry: dict) -> None:
+        save(self.folder, self.model, self.blob, self.base_what, self.form, self.spps,
+             {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
+              "store": str(self.cfg.store), "settings": self.fingerprint})
+
+    def write_history(self, history: list, best: dict | None) -> None:
+        atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,
+                                                       "machine": run_machine(self.device, self.world)})
+        curves = {"train loss": [(h["epoch"], h["train_loss"]) for h in history if h["train_loss"] is not None]}
+        gain = {"val PSNR - OIDN (dB)": [(h["epoch"], h["val"]["psnr"] - h["val"]["estimate_psnr"])
+                                        for h in history if h.get("val")]}
+        plot_curves(self.folder / "loss.png", curves, f"Control Module on OIDN ({self.cfg.store})", right=gain,
+                    right_label="dB")
+
+    def resume(self, record: dict, extra: dict) -> None:
+        if self.ema is not None:
+            self.ema.shadow_params = [extra[f"ema.{i}"].to(self.device) for i in range(len(self.ema.shadow_params))]
+            self.ema.optimization_step = int(record["ema_step"])
+
+    def checkpoint(self) -> tuple[dict, dict | None]:
+        if self.ema is None:
+            return {}, None
+        return {"ema_step": self.ema.optimization_step}, {f"ema.{i}": p for i, p in enumerate(self.ema.shadow_params)}
+
+    def when_done(self, history: list, best: dict | None) -> None:
+        if history:
+            self.write_history(history, best)
+
+    def epoch_line(self, entry: dict) -> str:
+        v, loss = entry["val"], entry["train_loss"]
+        line = f"{self.name} epoch {entry['epoch']}: loss " + ("n/a" if loss is None else f"{loss:.4f}")
+        line += "".join(f", {k} {x:.4f}" for k, x in entry.get("terms", {}).items())
+        if v:
+            gains = " ".join(f"{k[8:]} {v[k]:+.3f}" for k in v if k.startswith("gain_spp"))
+            line += f"; val PSNR {v['psnr']:.3f} dB (OIDN {v['estimate_psnr']:.3f}; gain by spp: {gains})"
+        return line
+
+    def best_text(self, best: dict) -> str:
+        v = best["val"]
+        return (f"best epoch {best['epoch']}" + (f": val PSNR {v['psnr']:.3f} dB, {v['psnr'] - v['estimate_psnr']:+.3f} "
+                                                 "dB over OIDN" if v else ""))
+
+
+# ---- saving and loading a run ------------------------------------------------------------------
+
+
+def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, form: Formulation, spps: list[int],
+         record: dict) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
+        atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
+    save_safetensors(folder / "control.safetensors", model.control.state_dict(), {"format": FORMAT})
+    atomic_write_json(folder / "model.json", {
+        "format": FORMAT, "base": "base.tza", "base_network": NETWORK, "base_what": what,
+        "base_sha256": hashlib.sha256(blob).hexdigest(), "cond_channels": cond_names(), "spp": spps,
+        "formulation": form.record(), **record})
+
+
+def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
+    """(the controlled model in eval mode, model.json) of a run or an exported model folder."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    meta = read_json(folder / "model.json", "model record")
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{folder / 'model.json'}: not a {FORMAT} record")
+    blob = (folder / meta["base"]).read_bytes()
+    if hashlib.sha256(blob).hexdigest() != meta["base_sha256"]:
+        raise CheckpointError(f"{folder / meta['base']}: the base changed since the run trained (SHA-256 differs)")
+    if meta["cond_channels"] != cond_names():
+        raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
+                              f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names())}); retrain")
+    model = ControlledOIDN(oidn_net.UNet.from_tza(tza.read(blob, str(folder / meta["base"]))), len(cond_names()))
+    model.control.load_state_dict({k: v.float() for k, v in load_file(str(folder / "control.safetensors")).items()})
+    return model.to(device).eval(), meta
+
+
+class OIDNRefiner:
+    """A trained run as the evaluator and ``denoise`` use it (the interface of ``train.infer.Denoiser``)."""
+
+    def __init__(self, model: ControlledOIDN, meta: dict, device, base_only: bool = False):
+        self.model, self.meta, self.device = model, meta, device
+        self.formulation = Formulation.from_record(meta["formulation"])
+        if base_only:
+            self.model.control = None
+        self.name = "base_only" if base_only else "ours"
+        self.last_repaired = self.last_clamped = 0
+        self.last_black = self.last_estimate_only = False
+        self.last_seconds = 0.0
+
+    def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
+                rotation=None, variance=None, steps: int | None = None, start: str | None = None, samples: int = 1,
+                with_std: bool = False):
+        """HDR (H, W, 3) float32 (and the per-pixel std of ``samples`` samples with ``with_std``)."""
+        t0 = time.perf_counter()
+        buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
+        self.last_repaired = sum(repair_nonfinite(buffers).values())
+        color = buffers["color"]
+        self.last_black = not np.any(color)
+        self.last_estimate_only = not all(a in buffers for a in ("albedo", "normal"))
+        if self.last_black:
+            hdr = std = np.zeros_like(color)
+        elif self.last_estimate_only:   # the base reads albedo and normal: OIDN on what there is
+            from mcdenoise.pipeline import oidn
+            hdr, std = oidn.denoise(buffers), np.zeros_like(color)
+        else:
+            hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples)
+        self.last_seconds = time.perf_counter() - t0
+        return (hdr, std) if with_std else hdr
+
+    def _sample(self, buffers, spp, skip, seed, steps, start, samples):
+        x, cond, scale = inputs(buffers, int(spp))
+        H, W = buffers["color"].shape[:2]
+        mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
+                              torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start, seed,
+                              samples)
+        hdr = oidn_net.network_output(mean, scale, (H, W))
+        # the std in HDR units: times the local slope of the inverse transfer
+        slope = (oidn_net.network_output(mean + 1e-4, scale, (H, W)) - hdr) / 1e-4
+        std_hdr = (slope.abs() * std[..., :H, :W])
+        as_image = lambda t: np.ascontiguousarray(t[0].permute(1, 2, 0).float().cpu().numpy())  # noqa: E731
+        return as_image(hdr), as_image(std_hdr)
+
+
+def load_refiner(folder: str | Path, device: str = "auto", base_only: bool = False) -> OIDNRefiner:
+    dev = pick_device(device)
+    model, meta = load(folder, dev)
+    return OIDNRefiner(model, meta, dev, base_only)
+
+
+def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
+    """Train (or resume) the Control Module on OIDN; ``pipeline.fit``'s summary."""
+    try:
+        return fit(RefineTask(cfg, spp, quiet), quiet=quiet)
+    finally:
+        dist_shutdown()
