@@ -1,8 +1,8 @@
 # mcdenoise: Monte Carlo denoising dataset -> GT cleaner -> diffusion denoiser -> evaluation.
 #
 #   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik
-#                             baseline (SPP=any) and the diffusion denoiser at SPP=4, evaluation at
-#                             4, 16 and 64 spp (sets itself up)
+#                             baseline and OIDN fine-tuned (SPP=any), evaluation of every method with
+#                             the shipped diffusion denoiser at 4, 16 and 64 spp (sets itself up)
 #   make test                 lint (ruff: pycodestyle errors, pyflakes, import order) and the
 #                             test suite (sets itself up)
 #   make dataset [CONFIG=...] [key=value ...]
@@ -59,6 +59,7 @@ demo: setup
 	$(MAKE) dataset CONFIG=$(CONFIG)
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
 	$(RUN) train --model isik --spp any --config $(CONFIG) $(OVERRIDES)
+	$(RUN) train --model oidn_ft --spp any --config $(CONFIG) $(OVERRIDES)
 	$(RUN) clean-report --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
 	$(RUN) eval --config $(CONFIG) $(OVERRIDES)
 
@@ -78,7 +79,7 @@ clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
 # `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline;
-# MODEL=afgsa: AFGSA). SPP=any trains one model for every sample count (diffusion_sppany, isik_sppany,
+# MODEL=afgsa: AFGSA; MODEL=oidn_ft SPP=any: OIDN's network fine-tuned from its own weights). SPP=any trains one model for every sample count (diffusion_sppany, isik_sppany,
 # afgsa_sppany; make eval uses them at every spp without a run of their own). Several GPUs/nodes: run the same
 # command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup

@@ -39,8 +39,9 @@ from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 EXTERNAL = "external"
 STRESS = "stress"
-CROP_METHODS = ("noisy", "oidn", "isik", "ours")
-CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "isik": "Isik", "ours": "ours", "gt_clean": "GT_clean", "gt1": "GT1"}
+CROP_METHODS = ("noisy", "oidn", "oidn_ft", "isik", "ours")
+CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "oidn_ft": "OIDN fine-tuned", "isik": "Isik", "ours": "ours",
+               "gt_clean": "GT_clean", "gt1": "GT1"}
 
 
 def report_dir(cfg: Config, out: str | None = None) -> Path:

@@ -160,8 +160,10 @@ def cmd_config(args) -> int:
 
 
 def cmd_bench_denoise(args) -> int:
-    from mcdenoise.train.bench import run
-    run(_config(args), spp=args.spp, side=args.side, out=args.out)
+    from mcdenoise.train.bench import run, run_oidn
+    cfg = _config(args)
+    run(cfg, spp=args.spp, side=args.side, out=args.out)
+    run_oidn(cfg, out=args.out)
     return 0
 
 
@@ -333,7 +335,8 @@ def _tool_parsers(sub) -> None:
     p.add_argument("--out", default="reports/bench", help="folder for bench results (JSON, Markdown)")
     p.set_defaults(fn=cmd_bench)
 
-    p = _with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP"))
+    p = _with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP; OIDN "
+                                                              "(built-in, exported weights, PyTorch twin) per 128² and 1080p"))
     p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
     p.add_argument("--side", type=int, default=128, help="frame side of the per-frame timing")
     p.add_argument("--out", default="reports/bench")

@@ -355,15 +355,16 @@ class OidnFtConfig:
 
 @dataclass
 class EvalConfig:
-    methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, isik, "
+    methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, oidn_ft "
+                        "and oidn_ft_color (OIDN fine-tuned on the store: make train MODEL=oidn_ft), isik, "
                         "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
                         "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
                         "steps), skipN, kN (mean of N samples), small (paper formulation: fixed posterior variance), "
                         "noise/render/estimate (start), e.g. ours_s3_k4 or ours_paper_skip24 (run "
                         "diffusion_spp<N>_paper; see evaluate/methods.py). A method whose model is missing is listed "
                         "as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "isik", "afgsa", "oidn_isik", "ours",
-                                         "ours_s3_k4", "base_only"])
+                        factory=lambda: ["noisy", "oidn", "oidn_color", "oidn_ft", "oidn_ft_color", "isik", "afgsa",
+                                         "oidn_isik", "ours", "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",

@@ -101,3 +101,64 @@ def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str =
     (Path(out) / "denoise.md").write_text(md)
     print(md, end="")
     return result
+
+
+def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((128, 128), (1080, 1920))) -> dict:
+    """OIDN three ways, per 128² and per 1080p frame: pyoidn with its built-in weights, pyoidn with
+    weights we wrote (the oidn_ft run when there is one, else OIDN's own re-exported), and the PyTorch
+    twin (``pipeline.oidn_net``) that trains; and the diffusion denoiser on OIDN (``diffusion.base=oidn``)
+    at 1 and 3 steps when the config has such a run."""
+    import torch
+
+    from mcdenoise.pipeline import oidn, oidn_net
+    from mcdenoise.pipeline.runs import run_dir as model_dir
+
+    from .oidn_ft import export_blob, load_run
+    from .oidn_refine import FORMAT as REFINE, OIDNRefiner, load as load_refine
+
+    folder = model_dir(cfg, "oidn_ft", variant="rt_hdr_alb_nrm")
+    if (folder / "model.safetensors").exists():
+        net, what = load_run(folder, cfg)[0], str(folder)
+    else:
+        net, what = oidn_net.load_unet("rt_hdr_alb_nrm"), "OIDN's own weights, re-exported"
+    blob = export_blob(net)
+    refiner = None
+    try:
+        run = find_run(cfg, "any")
+        from mcdenoise.pipeline.exr import read_json
+        if read_json(run / "model.json", "model record").get("format") == REFINE:
+            refiner = OIDNRefiner(*load_refine(run), torch.device("cpu"))
+    except StoreError:
+        pass
+    rows = []
+    warm = _frame(32, 4)
+    oidn.denoise(warm), oidn.denoise(warm, weights=blob), oidn_net.denoise(net, warm["color"], warm["albedo"],
+                                                                           warm["normal"])
+    if refiner is not None:
+        refiner.denoise(warm, spp=4)
+    for h, w in sizes:
+        buf = _frame(max(h, w), 3)
+        buf = {k: np.ascontiguousarray(v[:h, :w]) for k, v in buf.items()}
+        row = {"size": f"{w}x{h}",
+               "pyoidn_builtin_s": best_time(lambda: oidn.denoise(buf), repeats),
+               "pyoidn_exported_s": best_time(lambda: oidn.denoise(buf, weights=blob), repeats),
+               "torch_twin_s": best_time(lambda: oidn_net.denoise(net, buf["color"], buf["albedo"], buf["normal"]),
+                                         repeats)}
+        if refiner is not None:
+            for steps in (1, 3):
+                row[f"ours_{steps}step_s"] = best_time(lambda: refiner.denoise(buf, spp=4, steps=steps), 1)
+        rows.append({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()})
+    mach = machine()
+    result = {"weights": what, "refine_run": str(run) if refiner is not None else None, "machine": mach,
+              "torch_threads": torch.get_num_threads(), "rows": rows}
+    cols = [k for k in rows[0] if k != "size"]
+    lines = [f"OIDN and the denoisers on it, seconds per frame (weights: {what}; {mach.get('processor', '?')}, "
+             f"{mach.get('cpus', '?')} CPUs, {torch.get_num_threads()} torch threads; best of {repeats})", "",
+             "| frame | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
+    lines += ["| " + r["size"] + " | " + " | ".join(f"{r[c]:.3f}" for c in cols) + " |" for r in rows]
+    md = "\n".join(lines) + "\n"
+    Path(out).mkdir(parents=True, exist_ok=True)
+    atomic_write_json(Path(out) / "oidn.json", result)
+    (Path(out) / "oidn.md").write_text(md)
+    print(md, end="")
+    return result
