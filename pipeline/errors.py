@@ -19,7 +19,7 @@ those still catches it.
 - ``TaskFailed``: a task of the executor failed for good (``pipeline.executors``).
 
 Stage-specific errors derive from ``PipelineError`` where they are defined
-(``render.external.ExternalSceneError``, ``train.formulation.FormulationError`` via
+(``render.frame.ExternalSceneError``, ``train.formulation.FormulationError`` via
 ``ConfigError``, ``evaluate.methods.MethodUnavailable``).
 """
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 The scene's own integrator and film are ignored: every image goes through our split-buffer
 integrator with a box-filtered film (``render.buffers.make_sensor``), at our sample counts, so a
-production scene lands in the store exactly like a test frame of the random dataset.
+production scene lands in the store exactly like a test frame of the random dataset. The frame
+worker loads the XML and builds that camera (``render.frame.load_external_scene``,
+``external_sensor``; a scene it cannot use raises ``render.frame.ExternalSceneError``).
 
 ``render_scene`` (``python -m pipeline render-scene SCENE.xml --store STORE``) puts a user's scene
 into the split ``external`` of the store (created if needed) as one frame with the same images as
@@ -15,50 +17,11 @@ import re
 import shutil
 from pathlib import Path
 
-import numpy as np
-
 from mcdenoise.pipeline.config import Config, ConfigError
-from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.executors import run_tasks
 from mcdenoise.pipeline.exr import StoreError, atomic_write_bytes
 from mcdenoise.pipeline.store import STORE_FORMAT, STORE_VERSION, Store, image_names, image_seed
 from mcdenoise.pipeline.versions import package_versions
-
-
-class ExternalSceneError(PipelineError, RuntimeError):
-    """A Mitsuba scene file from the user cannot be rendered; the message names the file or what is missing."""
-
-
-def load_external_scene(mi, xml: str):
-    path = Path(xml)
-    if not path.is_file():
-        raise ExternalSceneError(f"{xml}: scene file not found")
-    try:
-        # Mitsuba resolves relative asset paths against the XML's folder.
-        return mi.load_file(str(path.resolve()), parallel=False, optimize=False)  # fixed order: see render.scene
-    except Exception as exc:  # Mitsuba raises RuntimeError with the parser's message
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}") from None
-
-
-def external_sensor(mi, scene, width: int | None, height: int | None):
-    """A perspective sensor with the scene's first camera pose and field of view, our film."""
-    from mcdenoise.render.buffers import make_sensor
-
-    sensors = scene.sensors()
-    if not sensors:
-        raise ExternalSceneError("the scene has no sensor (camera) to render from")
-    sensor = sensors[0]
-    params = mi.traverse(sensor)
-    if "x_fov" not in params:
-        raise ExternalSceneError(f"the scene's camera is a {type(sensor).__name__}; only perspective cameras are supported")
-    size = sensor.film().size()
-    w = width or int(size[0])
-    h = height or int(size[1])
-    matrix = np.asarray(params["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
-    to_world = mi.ScalarTransform4f(matrix)
-    return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
-
 
 EXTERNAL_SPLIT = "external"
 # External scenes take seeds from a range no random scene reaches (scene index >= 2^20).

@@ -5,6 +5,10 @@ kept while consecutive tasks belong to the same scene, so only the camera change
 frames; drjit reuses its compiled kernel as long as the previous scene was freed first,
 hence the explicit ``del`` + ``gc.collect()`` before building another one.
 
+A frame's scene is a random scene's description (built by ``render.scene``) or a user's Mitsuba
+XML (``{"xml": path}``, from ``render.external``): ``load_external_scene`` loads it as it is and
+``external_sensor`` puts our film on its first camera.
+
 Images already on disk are kept (writes are atomic, so an existing file is complete): a frame
 interrupted half-way resumes at the first missing image, and the same seeds make the resumed
 frame identical to an uninterrupted one.
@@ -14,10 +18,12 @@ from __future__ import annotations
 import gc
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from mcdenoise.pipeline import metrics, schema
+from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 from mcdenoise.pipeline.store import GT_IMAGES, Store, image_names, sha256
@@ -40,6 +46,41 @@ class FrameTask:
     gt_pass_spp: int = 0                 # spp per pass of a progressive GT (gt_spp is then its cap)
 
 
+class ExternalSceneError(PipelineError, RuntimeError):
+    """A Mitsuba scene file from the user cannot be rendered; the message names the file or what is missing."""
+
+
+def load_external_scene(mi, xml: str):
+    path = Path(xml)
+    if not path.is_file():
+        raise ExternalSceneError(f"{xml}: scene file not found")
+    try:
+        # Mitsuba resolves relative asset paths against the XML's folder.
+        return mi.load_file(str(path.resolve()), parallel=False, optimize=False)  # fixed order: see render.scene
+    except Exception as exc:  # Mitsuba raises RuntimeError with the parser's message
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}") from None
+
+
+def external_sensor(mi, scene, width: int | None, height: int | None):
+    """A perspective sensor with the scene's first camera pose and field of view, our film."""
+    from mcdenoise.render.buffers import make_sensor
+
+    sensors = scene.sensors()
+    if not sensors:
+        raise ExternalSceneError("the scene has no sensor (camera) to render from")
+    sensor = sensors[0]
+    params = mi.traverse(sensor)
+    if "x_fov" not in params:
+        raise ExternalSceneError(f"the scene's camera is a {type(sensor).__name__}; only perspective cameras are supported")
+    size = sensor.film().size()
+    w = width or int(size[0])
+    h = height or int(size[1])
+    matrix = np.asarray(params["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
+    to_world = mi.ScalarTransform4f(matrix)
+    return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
+
+
 _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}}
 
 
@@ -53,7 +94,6 @@ def _scene(mi, task: FrameTask):
     gc.collect()
     t0 = time.perf_counter()
     if "xml" in task.desc:
-        from mcdenoise.render.external import load_external_scene
         scene = load_external_scene(mi, task.desc["xml"])
     else:
         from mcdenoise.render.scene import build_scene
@@ -69,7 +109,6 @@ def _scene(mi, task: FrameTask):
 def _sensor(mi, task: FrameTask, scene):
     w, h = task.resolution or (None, None)
     if "xml" in task.desc:
-        from mcdenoise.render.external import external_sensor
         return external_sensor(mi, scene, w, h)
     from mcdenoise.render.scene import build_sensor
     return build_sensor(mi, task.desc, task.frame, w, h)

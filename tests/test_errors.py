@@ -15,7 +15,7 @@ from mcdenoise.pipeline.errors import (
     TaskFailed,
     TrainError,
 )
-from mcdenoise.render.external import ExternalSceneError
+from mcdenoise.render.frame import ExternalSceneError
 from mcdenoise.train.formulation import FormulationError
 
 BUILTIN_BASES = {ConfigError: ValueError, StoreError: RuntimeError, StoreWriteError: OSError,
