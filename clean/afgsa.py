@@ -46,8 +46,7 @@ from torch import nn
 
 from mcdenoise.pipeline import schema
 
-from .data import CHANNELS, RADIANCE
-from .model import INPUT_CLAMP
+from .data import CHANNELS, INPUT_CLAMP, RADIANCE
 
 # Output clamp in log1p space: expm1(25) ≈ 7e10 is far above any radiance we render (1e5 in the
 # stability suite) and keeps the HDR output finite whatever the weights predict.

@@ -39,6 +39,10 @@ RADIANCE = "color"
 CACHE_BYTES = 1 << 30
 
 ENCODING = features.Encoding()   # log1p radiance, normals as stored, no spp channel
+# The encoded inputs lie in roughly [-20, 20]; the networks on them (clean.model, clean.afgsa) clamp
+# them to +-INPUT_CLAMP first, which only guards against pathological finite inputs (1e30 would
+# otherwise overflow the convolutions to inf).
+INPUT_CLAMP = 1e3
 # (key, channels, kind) of every input channel group, in order.
 CHANNELS: tuple[tuple[str, int, str], ...] = features.TABLE
 IN_CHANNELS: int = sum(n for _, n, _ in CHANNELS)

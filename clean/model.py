@@ -17,8 +17,8 @@ The kernels filter the **HDR radiance** itself: the output is a convex combinati
 radiances (weights are positive and normalized), so it stays HDR, non-negative for non-negative
 input, energy is neither invented nor lost, and it is finite whenever the input radiance is
 finite, whatever the network predicts. Only the network's inputs are range-compressed (by
-``clean.data``; ``forward`` additionally clamps them to ±``INPUT_CLAMP`` so that any finite input
-gives finite activations).
+``clean.data``; ``forward`` additionally clamps them to ±``clean.data.INPUT_CLAMP`` so that any
+finite input gives finite activations).
 
 Numerics (``apply_affinity_kernel``): the weights are computed as a softmax over the kernel's
 log-weights ``−a‖f_p − f_q‖²`` and ``log c_p``. Softmax subtracts the maximum log-weight, so the
@@ -39,11 +39,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .data import decode_variance
+from .afgsa import FORMAT as AFGSA_FORMAT, AFGSANet
+from .data import INPUT_CLAMP, decode_variance
 
-# Inputs are range-compressed by clean.data to roughly [-20, 20]; this clamp only guards against
-# pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
-INPUT_CLAMP = 1e3
 # Added to the denominator of the range distance (radiance² units): two exactly noise-free pixels
 # (background, v = 0) then compare on their difference alone, far above any noise.
 RANGE_EPS = 1e-10
@@ -285,8 +283,7 @@ class AffinityDenoiser(nn.Module):
 
 def _network_class(fmt: str | None) -> type[nn.Module]:
     """The class a sidecar's ``format`` names: the affinity network, or AFGSA (``clean.afgsa``)."""
-    if fmt == "mcdenoise-afgsa":
-        from .afgsa import AFGSANet
+    if fmt == AFGSA_FORMAT:
         return AFGSANet
     return AffinityDenoiser
 
