@@ -12,6 +12,10 @@
   The checks below name modules without the ``mcdenoise.`` prefix.
 - Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
   never by importing another test module (its module-scoped fixtures would run once more there).
+- No import cycle between project modules, counting the imports inside functions: a function-level
+  import only defers the cycle to the first call, and two modules that need each other are one
+  idea cut in two (move what both need to where it belongs). ``from package import module`` is an
+  edge to that module; any other import an edge to the module it names.
 """
 from __future__ import annotations
 
@@ -137,6 +141,56 @@ def test_test_modules_do_not_import_each_other():
     assert not found, "test modules importing other test modules:\n" + "\n".join(found)
 
 
+def import_graph(mods: dict[str, Path]) -> dict[str, dict[str, int]]:
+    """module -> {project module it imports: line of the first such import}, imports in functions too."""
+    graph: dict[str, dict[str, int]] = {}
+    for module, path in mods.items():
+        row = graph.setdefault(module, {})
+        for src, name, line in imports(module, path):
+            target = f"{src}.{name}" if name and f"{src}.{name}" in mods else src
+            if target in mods and target != module:
+                row.setdefault(target, line)
+    return graph
+
+
+def import_cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted; sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(found)
+
+
+def test_no_import_cycle_between_modules():
+    graph = import_graph(MODULES)
+    lines = []
+    for cycle in import_cycles(graph):
+        lines.append(" <-> ".join(cycle) + ": " + "; ".join(
+            f"{MODULES[a].relative_to(ROOT)}:{graph[a][b]} imports {b}" for a in cycle for b in cycle if b in graph[a]))
+    assert not lines, "import cycles between modules:\n" + "\n".join(lines)
+
+
 def test_the_checker_sees_what_it_forbids(tmp_path):
     """The checks above must be able to fail: a core module importing a stage inside a function,
     and a private name used through a module alias, are found."""
@@ -153,6 +207,19 @@ def test_the_checker_sees_what_it_forbids(tmp_path):
         assert unprefixed_imports(main) == ["__main__.py:2: train.model", "__main__.py:3: relative import in a __main__"]
     finally:
         ROOT = old
+
+
+def test_the_cycle_check_sees_imports_inside_functions(tmp_path):
+    """A cycle closed by an import inside a function is found (and only the modules on it); a chain is not a cycle."""
+    (tmp_path / "a.py").write_text("from . import b\nfrom .c import X\n")
+    (tmp_path / "b.py").write_text("def f():\n    from mcdenoise.clean.a import Y\n    return Y\n")
+    (tmp_path / "c.py").write_text("import numpy\nX = 1\n")
+    mods = {f"clean.{n}": tmp_path / f"{n}.py" for n in "abc"}
+    graph = import_graph(mods)
+    assert graph == {"clean.a": {"clean.b": 1, "clean.c": 2}, "clean.b": {"clean.a": 2}, "clean.c": {}}
+    assert import_cycles(graph) == [["clean.a", "clean.b"]]
+    (tmp_path / "b.py").write_text("def f():\n    from .c import X\n    return X\n")
+    assert import_cycles(import_graph(mods)) == []
 
 
 def package_graph() -> dict[str, dict[str, int]]:
