@@ -56,7 +56,11 @@ def reinhard(x):
 
 
 def inverse_reinhard(y):
-    """``y / (1 - y)`` for y clamped to [0, 1): the HDR radiance whose Reinhard value is y."""
+    """``y / (1 - y)`` for y clamped to [0, 1): the HDR radiance whose Reinhard value is y.
+
+    No stage calls it: Reinhard is a tonemap of the losses and metrics, and every such transform has
+    its inverse here with the round trip tested (tests/test_color_metrics.py); the metric tests build
+    HDR inputs of a chosen tonemapped value with it."""
     y = clamp(_asarray(y), 0.0, _REINHARD_MAX)
     return y / (1.0 - y)
 

@@ -48,8 +48,6 @@ ENCODER = ("enc_conv0", "enc_conv1", "enc_conv2", "enc_conv3", "enc_conv4", "enc
 DECODER = ("dec_conv4a", "dec_conv4b", "dec_conv3a", "dec_conv3b", "dec_conv2a", "dec_conv2b",
            "dec_conv1a", "dec_conv1b", "dec_conv0")
 LAYERS = ENCODER + DECODER
-# The features the decoder reads: the three pooled skips and the bottleneck (with the input, ``x``).
-SKIPS = ("pool1", "pool2", "pool3")
 
 
 def _pu(y: torch.Tensor) -> torch.Tensor:

@@ -77,7 +77,6 @@ BUFFERS: tuple[Buffer, ...] = (
 BY_NAME: dict[str, Buffer] = {b.name: b for b in BUFFERS}
 RADIANCE_COMPONENTS: tuple[str, ...] = ("emission", "diffuse_direct", "specular_direct",
                                         "diffuse_indirect", "specular_indirect")
-FEATURES: tuple[str, ...] = tuple(b.name for b in BUFFERS if b.name != "color")
 # Features the integrator can skip when the scene's materials cannot produce them.
 OPTIONAL_FEATURES: tuple[str, ...] = ("emission", "roughness", "metallic", "transmission")
 
@@ -85,14 +84,6 @@ OPTIONAL_FEATURES: tuple[str, ...] = ("emission", "roughness", "metallic", "tran
 def variance_name(name: str) -> str:
     """Key under which the variance of buffer ``name`` appears in a buffer dictionary."""
     return f"{name}.variance"
-
-
-def all_keys() -> list[str]:
-    """Every array key of a complete image: each buffer and its variance."""
-    keys = []
-    for b in BUFFERS:
-        keys += [b.name, variance_name(b.name)]
-    return keys
 
 
 def exr_channel_map() -> dict[str, tuple[str, int, bool]]:

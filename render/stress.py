@@ -17,7 +17,6 @@ from mcdenoise.render.layout import ground, place_objects, rect, room_walls
 
 GREY = {"family": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
 WHITE = {"family": "diffuse", "reflectance": [0.75, 0.75, 0.75]}
-BLACK = {"family": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
 GLASS = {"family": "dielectric", "int_ior": 1.5, "ext_ior": 1.000277}
 MIRROR = {"family": "conductor", "material": "Ag"}
 

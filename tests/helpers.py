@@ -23,6 +23,11 @@ CLEAN_TINY = ["clean.epochs=5", "clean.batch_size=4", "clean.crop=16", "clean.cr
               "clean.kernel_size=3", "clean.dilations=[1, 2]", "clean.device=cpu"]
 
 
+def all_keys() -> list[str]:
+    """Every array key of a complete image: each buffer of the schema and its variance."""
+    return [k for b in schema.BUFFERS for k in (b.name, schema.variance_name(b.name))]
+
+
 def cli(*args, check=True, timeout=600):
     proc = subprocess.run([sys.executable, "-m", "pipeline", *map(str, args)], cwd=ROOT, capture_output=True,
                           text=True, timeout=timeout)

@@ -18,7 +18,7 @@ from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.exr import read_image
 from mcdenoise.pipeline.inspect import _format_gt
 from mcdenoise.pipeline.store import Store, image_names
-from tests.helpers import ROOT, TINY, assert_same_store, cli
+from tests.helpers import ROOT, TINY, all_keys, assert_same_store, cli
 
 
 def test_tiny_dataset_layout(tiny_store):
@@ -48,7 +48,7 @@ def test_every_buffer_is_restored_and_finite(tiny_store):
     store = Store(root)
     key = store.frames()[0]
     img, rec = store.read_image(key.scene, key.frame, "gt1")
-    assert set(img) == set(schema.all_keys())
+    assert set(img) == set(all_keys())
     for k, v in img.items():
         assert v.dtype == np.float32 and np.all(np.isfinite(v)), k
         assert v.shape == (24, 32, v.shape[2])

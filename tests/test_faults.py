@@ -39,7 +39,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from mcdenoise.pipeline.verify import verify_store
-from tests.helpers import CLEAN_TINY, TIMING_KEYS, TINY, assert_same_store, cli, exr_payload
+from tests.helpers import CLEAN_TINY, TIMING_KEYS, TINY, all_keys, assert_same_store, cli, exr_payload
 
 ROOT = Path(__file__).resolve().parents[1]
 KILL_SEED = 20261122
@@ -376,7 +376,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     _fail_mid_write(monkeypatch)
     monkeypatch.setattr(checkpoint, "atomic_write_bytes", exr.atomic_write_bytes)
-    arrays = {k: np.ones((4, 5, schema.BY_NAME[k.removesuffix(".variance")].size), np.float32) for k in schema.all_keys()}
+    arrays = {k: np.ones((4, 5, schema.BY_NAME[k.removesuffix(".variance")].size), np.float32) for k in all_keys()}
     target = {"image": tmp_path / "store/scenes/s0/000/gt1.exr", "manifest": store.manifest_path,
               "checkpoint": tmp_path / "runs/last.safetensors"}[what]
     with pytest.raises(exr.StoreWriteError, match=rf"{target.name}: writing failed, nothing was written "

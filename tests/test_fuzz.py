@@ -29,6 +29,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.exr import ENCODINGS, VOLATILE_KEYS, StoreError, read_image, write_image
 from mcdenoise.pipeline.store import Store
+from tests.helpers import all_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE_TIMEOUT_S = 30
@@ -340,7 +341,7 @@ def _good_store(root: Path) -> Store:
                                       "stacks": 1, "images": ["s00"]})
     rng = np.random.default_rng(0)
     arrays = {k: rng.random((12, 20, schema.BY_NAME[k.removesuffix(".variance")].size)).astype(np.float32)
-              for k in schema.all_keys()}
+              for k in all_keys()}
     rec = store.write_image("s0", 0, "s00", arrays)
     store.write_frame_record("s0", 0, {"images": {"s00": rec}})
     return store

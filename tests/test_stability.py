@@ -12,7 +12,7 @@ from mcdenoise.evaluate.harness import repaired_inputs, run_method
 from mcdenoise.evaluate.stability import CASES, LARGE, run_stability, synthetic_buffers
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.config import load_config
-from tests.helpers import save_untrained_isik
+from tests.helpers import all_keys, save_untrained_isik
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -20,7 +20,7 @@ TINY = ROOT / "configs" / "tiny.yaml"
 
 def test_synthetic_buffers_have_every_schema_channel():
     b = synthetic_buffers(17, 33, seed=0)
-    assert sorted(b) == sorted(schema.all_keys())
+    assert sorted(b) == sorted(all_keys())
     for buf in schema.BUFFERS:
         assert b[buf.name].shape == (17, 33, buf.size) and b[buf.name].dtype == np.float32
         assert b[schema.variance_name(buf.name)].shape == (17, 33, buf.size)

@@ -29,14 +29,12 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from mcdenoise.pipeline import color, features, schema
+from mcdenoise.pipeline import color, features
 from mcdenoise.pipeline.store import FrameKey, Store
 
 from .estimate import Estimator, extra_names
 
 CLAMP = 6.0
-RADIANCE_BUFFERS = tuple(b.name for b in schema.BUFFERS if b.radiance)
-FEATURE_BUFFERS = tuple(b.name for b in schema.BUFFERS if not b.radiance)
 
 
 # ---- radiance ↔ model space ------------------------------------------------------------------
