@@ -1,6 +1,7 @@
 """Training of this package's networks, one loop for three recipes: the GT cleaner (GT1 ↔ GT2,
 paper eq. 1), the Isik baseline (low-spp buffers at ``spp`` → GT_clean) and AFGSA (low-spp → GT_clean,
-or GT1 for the experiment of issue 14; L1 in log space + WGAN-GP adversarial loss).
+or GT1 for the GT_clean-vs-GT1 experiment of ``clean.afgsa_report``; L1 in log space + WGAN-GP
+adversarial loss).
 
     train(cfg, mode="cleaner")          → runs/<...>/cleaner/
     train(cfg, mode="baseline", spp=4)  → runs/<...>/isik_spp4/
@@ -90,7 +91,8 @@ def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
 
 
 def trained_spps(folder: Path) -> list[int]:
-    """Sample counts a baseline run trained on (its model.json; older runs name one spp)."""
+    """Sample counts a baseline run trained on: its model.json's ``spp_choices``, or the one ``spp`` of a
+    record without them."""
     record = json.loads((folder / "model.json").read_text())
     return [int(s) for s in record.get("spp_choices") or [record["spp"]]]
 

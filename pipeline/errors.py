@@ -1,15 +1,16 @@
 """The errors a user can act on, under one base class.
 
 ``python -m pipeline`` catches ``PipelineError`` in one place: it prints ``error: <message>`` as
-one line on stderr and exits with status 2. Each class also keeps the built-in base it had
-before (``ValueError``, ``RuntimeError``, ``OSError``, ``ImportError``), so code that catches
-those still catches it.
+one line on stderr and exits with status 2. Each class also derives from the built-in exception
+that fits it (``ValueError``, ``RuntimeError``, ``OSError``, ``ImportError``), so code that catches
+those catches it too.
 
 - ``ConfigError``: a config file or override is malformed (``pipeline.config``).
 - ``StoreError``: something in the store is missing, corrupt or not what the schema expects
   (``pipeline.exr``); ``StoreWriteError``: writing into the store failed.
 - ``CheckpointError``: a checkpoint or trained-run folder cannot be used (another trainer's, other
-  settings, another model, not safetensors). A ``StoreError``, as it was before it had a class.
+  settings, another model, not safetensors). A ``StoreError``: a run folder is files on disk, and
+  callers that handle an unusable store handle it too.
 - ``TrainError``: a training run cannot proceed (no data, bad arguments, diverged ranks); a
   ``StoreError`` too.
 - ``MitsubaSetupError``: Mitsuba or its LLVM backend cannot be used here (``pipeline.mitsuba_env``).

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mcdenoise.render import camera as cam, lights as lt
+from mcdenoise.render.buffers import make_sensor
 from mcdenoise.render.geometry import list_mesh_files, mesh_arrays
 from mcdenoise.render.layout import ground, place_objects, room_walls, surface_material
 from mcdenoise.render.materials import TextureCache, bsdf_dict
@@ -154,8 +155,6 @@ def build_scene(mi, desc: dict, max_depth: int = 8):
 
 def build_sensor(mi, desc: dict, frame: int, width: int, height: int):
     """The perspective sensor (box filter, see render.buffers) of frame ``frame`` of the camera move."""
-    from mcdenoise.render.buffers import make_sensor  # local: render.buffers is written separately
-
     poses = desc["camera"]["frames"]
     if not 0 <= frame < len(poses):
         raise IndexError(f"frame {frame} out of range: the scene has {len(poses)} frames")

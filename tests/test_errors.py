@@ -1,5 +1,5 @@
-"""One error base class: every error a user can act on is a ``PipelineError``, keeps the built-in
-base it had, and the command line turns any of them into one line on stderr and exit status 2."""
+"""One error base class: every error a user can act on is a ``PipelineError``, derives from the
+built-in exception that fits it, and the command line turns any of them into one line on stderr and exit status 2."""
 import pytest
 
 import mcdenoise.pipeline.__main__ as cli_main
@@ -29,8 +29,8 @@ def test_every_error_is_a_pipeline_error_and_keeps_its_builtin_base(cls):
     assert issubclass(cls, PipelineError) and issubclass(cls, BUILTIN_BASES[cls])
 
 
-def test_checkpoint_and_train_errors_are_still_store_errors():
-    # Callers written before these had their own classes catch StoreError.
+def test_checkpoint_and_train_errors_are_store_errors():
+    # A run folder is files on disk: callers that handle an unusable store (StoreError) handle these too.
     assert issubclass(CheckpointError, StoreError) and issubclass(TrainError, StoreError)
 
 

@@ -453,8 +453,9 @@ def test_read_only_store_is_a_clear_error_naming_the_path(tiny_store, tmp_path):
 # ---- the training history after a kill at the last epoch's commit point ------------------------------
 
 def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_path):
-    """Regression: train.json and loss.png were written after last.safetensors, so a kill between
-    them on the last epoch left a history one epoch short that no rerun repaired."""
+    """train.json and loss.png one epoch behind last.safetensors (what a kill between the two writes
+    would leave if the history were written second) are rewritten by the rerun, which has no epoch
+    left to train."""
     from mcdenoise.clean.train import run_dir, train
     from tests.helpers import make_clean_store, tiny_cfg
 
@@ -464,7 +465,7 @@ def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_pa
     folder = run_dir(cfg, "cleaner")
     full = json.loads((folder / "train.json").read_text())
     assert len(full["history"]) == 2
-    # What the old order left behind after such a kill: the checkpoint says 2 epochs, the history 1.
+    # The checkpoint says 2 epochs, the history 1.
     (folder / "train.json").write_text(json.dumps({**full, "history": full["history"][:1]}))
     summary = train(cfg, "cleaner", quiet=True)
     assert summary["trained_epochs"] == 0
