@@ -3,9 +3,22 @@
     python -m pipeline eval [--spp 4 ...] [--scene a.xml ...]    (make eval)
     python -m pipeline stability                                  (make stability)
 
-Modules: ``methods`` (the denoisers behind one interface), ``harness`` (input repair, timing,
-output checks), ``scoring`` (metric columns over ``pipeline.metrics``), ``timing`` (render-time
-model, equal-time spp, spp equivalent), ``montecarlo`` (MC convergence and equal-time images),
-``run`` (the evaluation loop), ``report`` (tables, plots, crops), ``stability`` (edge cases).
+- ``evaluate.methods``: the denoisers behind one interface (noisy, OIDN, oidn_ft, Isik, AFGSA,
+  ours and its variants), each loaded lazily, or not available with the reason.
+- ``evaluate.harness``: one method on one frame: input repair, timing, output checks.
+- ``evaluate.scoring``: the metric columns, over ``pipeline.metrics``.
+- ``evaluate.stats``: confidence intervals: Student-t for means, paired bootstrap for
+  differences, which lead is significant.
+- ``evaluate.compare``: the statistics of one table from its per-frame scores (intervals,
+  differences to the reference rows, leads).
+- ``evaluate.headline``: the paragraph on top of ``eval.md``, generated from the leads.
+- ``evaluate.timing``: the render-time model, equal-time spp, the spp a method is worth.
+- ``evaluate.montecarlo``: plain MC as a method: convergence per frame, equal-time images.
+- ``evaluate.uncertainty``: how well a denoiser's own per-pixel spread (``ours_kN``) predicts its
+  error: rank correlation and calibration.
+- ``evaluate.run``: the evaluation loop (``make eval``).
+- ``evaluate.report``: tables (Markdown, CSV, JSON), the error-vs-time plot, the crop grids.
+- ``evaluate.stability``: every method on synthetic inputs that break denoisers (``make stability``).
+
 See docs/evaluation.md.
 """

@@ -1,4 +1,4 @@
-"""Checkpoints and training curves shared by every trainer (cleaner, Isik baseline, diffusion).
+"""Checkpoints and training curves shared by every trainer (cleaner, Isik baseline, AFGSA, diffusion, oidn_ft).
 
 Everything is safetensors or JSON; nothing is pickled, so a checkpoint from elsewhere cannot run
 code when it is loaded.

@@ -1,4 +1,22 @@
-"""Stage 1: scene randomizer, split-buffer Mitsuba integrator, the frame renderer, and the dataset
-stage around them: ``render.dataset`` (plan scenes and frames, run the missing ones, write the
-manifests), ``render.external`` (a user's Mitsuba scene into the store), ``render.plan`` (what a
-dataset costs) and ``render.bench`` (``make bench``). ``python -m pipeline`` dispatches to them."""
+"""Stage 1: the dataset: random scenes, rendered by a split-buffer Mitsuba integrator into the store.
+``python -m pipeline`` dispatches here for ``dataset``, ``render-scene``, ``plan`` and ``bench``.
+
+- ``render.scene``: the scene randomizer (a scene as a JSON description; ``build_scene`` and
+  ``build_sensor`` make it a Mitsuba scene and camera).
+- ``render.geometry``, ``render.materials``, ``render.textures``, ``render.lights``,
+  ``render.camera``: its parts: random shapes as meshes, BSDFs, procedural textures, lights set
+  by target irradiance, a smooth camera move over the frames.
+- ``render.layout``: object placement, the ground and a room's walls, shared with the stress presets.
+- ``render.stress``: named extreme scenes in the same description format (``dataset.stress``).
+- ``render.integrator``: the split-buffer path tracer: every buffer of ``pipeline.schema`` in one pass.
+- ``render.buffers``: one image rendered into per-buffer means and variances of the mean; the
+  box-filtered camera every buffer uses.
+- ``render.progressive``: a ground truth rendered in passes up to a target PSNR.
+- ``render.frame``: one frame (the unit of work, in a worker or a Ray task) into the store: GT1,
+  GT2 and the low-spp stacks, from a random scene or a user's XML.
+- ``render.dataset``: the dataset stage (``make dataset``): plan scenes and frames, run the
+  missing ones, write the manifests.
+- ``render.external``: a user's Mitsuba scene into the store's ``external`` split (``render-scene``).
+- ``render.plan``: what a config costs before anything runs (``plan``).
+- ``render.bench``: the dataset stage's performance claims, measured (``make bench``).
+"""

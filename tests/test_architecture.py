@@ -12,6 +12,7 @@
   The checks below name modules without the ``mcdenoise.`` prefix.
 - Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
   never by importing another test module (its module-scoped fixtures would run once more there).
+- Each package's docstring names every module of the package.
 - No import cycle between project modules, counting the imports inside functions: a function-level
   import only defers the cycle to the first call, and two modules that need each other are one
   idea cut in two (move what both need to where it belongs). ``from package import module`` is an
@@ -189,6 +190,14 @@ def test_no_import_cycle_between_modules():
         lines.append(" <-> ".join(cycle) + ": " + "; ".join(
             f"{MODULES[a].relative_to(ROOT)}:{graph[a][b]} imports {b}" for a in cycle for b in cycle if b in graph[a]))
     assert not lines, "import cycles between modules:\n" + "\n".join(lines)
+
+
+@pytest.mark.parametrize("package", [CORE, *STAGES])
+def test_every_package_docstring_names_each_of_its_modules(package):
+    """A package's docstring is its table of contents: each module appears as ````package.module````."""
+    doc = ast.get_docstring(ast.parse((ROOT / package / "__init__.py").read_text())) or ""
+    missing = [m for m in sorted(MODULES) if m.split(".")[0] == package and m != package and f"``{m}``" not in doc]
+    assert not missing, f"{package}/__init__.py does not name: " + ", ".join(missing)
 
 
 def test_the_checker_sees_what_it_forbids(tmp_path):

@@ -1,5 +1,6 @@
-"""Stage 3: the diffusion denoiser, a pixel-space diffusion base (DeepFloyd IF stage II's layout)
-with a trainable Control Module (paper Fig. 1).
+"""Stage 3: the diffusion denoiser, a pixel-space diffusion base (DeepFloyd IF stage II's layout, or
+OIDN's network) with a trainable Control Module (paper Fig. 1); and ``oidn_ft``, OIDN's own network
+fine-tuned on the store.
 
 - ``train.base``: the base UNet (load, build, the stand-in in ``train/base_model_paper``);
   ``train.pretrain``: trains a stand-in base (``make pretrain``).
@@ -7,8 +8,18 @@ with a trainable Control Module (paper Fig. 1).
 - ``train.diffusion`` / ``train.formulation``: the diffusion process, what is diffused and
   predicted, the loss weighting; ``train.sampler``: the reverse diffusion.
 - ``train.data``, ``train.pack``, ``train.estimate``: model inputs, training packs, first estimates.
-- ``train.train``: the training loop (``fit``); ``train.model``: assemble, save and load a run.
+- ``train.train``: a ``Job`` (model, data, settings: the diffusion run's or the stand-in base's)
+  run as a ``pipeline.fit`` task; the optimiser, the step (loss, clipping, EMA), DDP helpers.
+- ``train.model``: assemble, save and load a run.
 - ``train.infer``: denoise a frame with a trained run; ``train.export``: a self-contained model folder.
+- ``train.oidn_ft``: OIDN's network fine-tuned from its pretrained weights (augmentation, L2-SP,
+  distillation, trainable subsets, WiSE-FT blend), resumable, exported for OIDN itself.
+- ``train.oidn_control``: the diffusion denoiser on OIDN's frozen network, with a Control Module
+  copied from its encoder (``ControlledOIDN``: at initialisation exactly OIDN's output).
+- ``train.oidn_pack``: what the OIDN-based denoiser reads (every buffer in OIDN's space, with
+  buffer-group dropout) and its training pack of augmented crops.
+- ``train.oidn_refine``: the OIDN-based denoiser's training run (``RefineTask``, loss relative to
+  OIDN), sampler and denoiser (``diffusion.base: oidn``).
 - ``train.cli``, ``train.bench``, ``train.gpu_recipe``: ``python -m pipeline`` entry points,
   inference timing, the GPU recipe.
 """
