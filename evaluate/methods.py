@@ -258,6 +258,8 @@ class Diffusion(Method):
         if getattr(den, "last_black", False):
             return "input black everywhere: returned black"
         if getattr(den, "last_estimate_only", False):
+            if getattr(den, "fallback", ""):
+                return f"no albedo/normal in the input: returned {den.fallback} on the colour"
             return "no renderer variance/albedo/normal in the input: returned the first estimate (OIDN)"
         n = getattr(den, "last_clamped", 0)
         if not n:

@@ -253,8 +253,13 @@ def uncertainty_lines(entry: dict) -> list[str]:
         return []
     lines = ["Uncertainty (the standard deviation of the samples against the actual error per pixel; "
              "evaluate/uncertainty.py):", ""]
-    lines += markdown_table(["method", "Spearman ρ (mean over frames)", "frames"],
-                    [[f"`{n}`", fmt("ssim", u["spearman_mean"]), str(u["frames"])] for n, u in rows])
+    def pct(u, key):
+        v = u.get(key)
+        return "–" if v is None or v != v else f"{100 * v:.1f} %"
+    lines += markdown_table(["method", "Spearman ρ (mean over frames)", "error within 1σ (68.3 %)",
+                             "within 2σ (95.4 %)", "frames"],
+                            [[f"`{n}`", fmt("ssim", u["spearman_mean"]), pct(u, "within_1sigma"),
+                              pct(u, "within_2sigma"), str(u["frames"])] for n, u in rows])
     if entry.get("uncertainty_plot"):
         lines += ["", f"Calibration plot: {entry['uncertainty_plot']}"]
     return lines + [""]

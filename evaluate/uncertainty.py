@@ -9,7 +9,9 @@ over R, G, B):
   nothing about e;
 - **calibration**: pixels pooled over frames and binned by s (equal-count bins); per bin the mean s
   and the root-mean-square error. A calibrated σ lies on the diagonal; above it the denoiser is
-  over-confident. A method whose samples all agree (σ = 0 everywhere) has no curve.
+  over-confident. A method whose samples all agree (σ = 0 everywhere) has no curve;
+- **coverage**: the fraction of pooled pixels whose error is within 1σ and within 2σ (a Gaussian
+  error with standard deviation σ: 68.3 % and 95.4 %).
 """
 from __future__ import annotations
 
@@ -45,10 +47,16 @@ def calibration(s: np.ndarray, e: np.ndarray, bins: int = 10) -> list[dict]:
     return out
 
 
+def coverage(s: np.ndarray, e: np.ndarray, k: float) -> float:
+    """Fraction of pixels whose error is at most ``k`` σ."""
+    return float(np.mean(e <= k * s)) if len(s) else float("nan")
+
+
 def summarize(per_frame: list[dict], pooled: tuple[np.ndarray, np.ndarray]) -> dict:
     rhos = [r["spearman"] for r in per_frame if r["spearman"] is not None]
     return {"spearman_mean": float(np.mean(rhos)) if rhos else None, "frames": len(per_frame),
-            "calibration": calibration(*pooled)}
+            "calibration": calibration(*pooled), "within_1sigma": coverage(*pooled, 1.0),
+            "within_2sigma": coverage(*pooled, 2.0)}
 
 
 def plot(rows: dict[str, dict], path: Path, title: str) -> str | None:

@@ -331,13 +331,17 @@ class OidnFtConfig:
     weight_decay: float = doc("Adam(W) decoupled weight decay (toward 0; l2sp pulls toward OIDN instead).", 0.0)
     grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
     loss: str = doc("Training loss in OIDN's output space (PU of the exposed radiance, as OIDN's training kit): "
-                    "'l1', or 'l1_ssim' (0.16 L1 + 0.84 (1 - SSIM), the kit's mix with single-scale SSIM for "
-                    "small crops).", "l1")
+                    "'l1'; 'l1_relative' (each crop's L1 divided by stock OIDN's on it: every crop counts by its "
+                    "gain over OIDN); or 'l1_ssim' (0.16 L1 + 0.84 (1 - SSIM), the kit's mix with single-scale SSIM "
+                    "for small crops).", "l1")
     l2sp: float = doc("Weight of the L2-SP penalty (Li et al. 2018) that keeps the weights near OIDN's: l2sp x "
                       "the mean over layers of |w - w_oidn|^2 / |w_oidn|^2; 0: none.", 0.0)
     distill: float = doc("Fraction of each batch whose target is stock OIDN's own output on a changed input "
                          "(colours permuted and rescaled, the image at half resolution, noise of another spp), "
                          "so the network keeps what OIDN does on inputs unlike the training set; 0: none.", 0.0)
+    diversify: float = doc("Probability that a training crop (with its GT) comes from a changed frame: the light "
+                           "tinted (per-channel gains on colour and target alike) and, half the time, the frame at "
+                           "half resolution: colours and scales the training scenes lack.", 0.0)
     trainable: str = doc("Which weights train: 'all', 'decoder' (the encoder stays OIDN's) or 'bias' (biases "
                          "only: 0.5 % of the weights).", "all")
     augment: bool = doc("OIDN's own augmentation: random colour-channel permutation (colour, albedo and target "
@@ -611,12 +615,13 @@ def _validate_oidn_ft(o: OidnFtConfig, bad) -> None:
             bad(f"oidn_ft.{key}", "must be >= 1")
     if o.crop < 16 or o.crop % 16:
         bad("oidn_ft.crop", f"must be a positive multiple of 16 (OIDN's alignment), got {o.crop}")
-    if o.loss not in ("l1", "l1_ssim"):
-        bad("oidn_ft.loss", f"expected 'l1' or 'l1_ssim', got {o.loss!r}")
+    if o.loss not in ("l1", "l1_relative", "l1_ssim"):
+        bad("oidn_ft.loss", f"expected 'l1', 'l1_relative' or 'l1_ssim', got {o.loss!r}")
     if o.trainable not in ("all", "decoder", "bias"):
         bad("oidn_ft.trainable", f"expected 'all', 'decoder' or 'bias', got {o.trainable!r}")
-    if not 0 <= o.distill < 1:
-        bad("oidn_ft.distill", f"must be in [0, 1), got {o.distill}")
+    if not 0 <= o.distill < 1 or not 0 <= o.diversify <= 1:
+        bad("oidn_ft.distill/diversify", f"probabilities: distill in [0, 1), diversify in [0, 1]; got {o.distill}, "
+            f"{o.diversify}")
     if o.l2sp < 0 or o.lr <= 0 or o.lr_end < 0 or o.warmup_steps < 0 or o.epoch_steps < 0:
         bad("oidn_ft.l2sp/lr/lr_end/warmup_steps/epoch_steps", "lr must be > 0, the others >= 0")
 

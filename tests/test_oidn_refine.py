@@ -111,6 +111,20 @@ def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path
     hdr = method.denoise(buf)
     assert hdr.shape == buf["color"].shape and np.isfinite(hdr).all()
     assert method.uncertainty().shape == hdr.shape
+    # σ's scale was fitted on the validation frames after training (no pixel has σ > 0 when the best
+    # epoch is OIDN itself: then the scale stays 1)
+    assert meta["sigma"]["steps"] == 3 and meta["sigma"]["samples"] == 4 and meta["sigma"]["scale"] > 0
+    # the exported model folder is self-contained and gives the run's output (float16 weights)
+    out = tmp_path / "shipped"
+    cli("export", "--config", TINY, f"store={store}", f"runs={runs}", *REFINE_TINY, "--spp", "any", "--out", out)
+    assert {p.name for p in out.iterdir()} == {"README.md", "base.tza", "control.safetensors", "model.json"}
+    exported = oidn_refine.load_refiner(out, "cpu")
+    run = oidn_refine.load_refiner(folder, "cpu")
+    a, b = exported.denoise(buf, spp=4), run.denoise(buf, spp=4)
+    assert np.abs(a - b).max() < 1e-2 * max(1.0, float(b.max()))
+    # an input without albedo and normal gets OIDN on its colour, said so, not a crash
+    rgb = exported.denoise({"color": buf["color"]}, spp=4)
+    assert exported.last_estimate_only and exported.fallback == "OIDN rt_hdr" and rgb.shape == buf["color"].shape
     # a changed base is refused
     blob = bytearray((folder / "base.tza").read_bytes())
     blob[-1000] ^= 1
@@ -145,3 +159,32 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
     assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in oidn_pack.GROUPS)
     assert float(dropped["cond"][names_c.index("color.variance")].abs().max()) == 0
     assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0
+
+
+def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base):
+    """A model whose samples differ: after the fit, the scaled σ covers the median error exactly."""
+    torch.manual_seed(0)
+    model = ControlledOIDN(base, len(oidn_pack.cond_names()))
+    with torch.no_grad():
+        for p in model.control.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    meta = {"formulation": FORM.record()}
+    refiner = oidn_refine.OIDNRefiner(model, meta, torch.device("cpu"))
+    rng = np.random.default_rng(1)
+    items = []
+    for i in range(2):
+        buf = {"color": rng.gamma(1.0, 0.4, (32, 32, 3)).astype(np.float32),
+               "albedo": rng.random((32, 32, 3)).astype(np.float32), "normal": rng.random((32, 32, 3)).astype(np.float32)}
+        x, cond, scale = oidn_pack.inputs(buf, 4)
+        items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
+                      "ref": buf["color"] * 0.5 + 0.1})
+    fit = oidn_refine.calibrate(refiner, items)
+    assert fit["pixels"] > 1000 and fit["scale"] > 0
+    refiner.sigma_scale = fit["scale"]
+    ratios = []
+    for it in items:
+        mean, std, _ = oidn_refine.sample(model, it["x"], it["cond"], FORM, 3, 0, None, 0, 4)
+        hdr, s = refiner.to_hdr(mean, std, it["scale"], 32, 32)
+        e, s = np.abs(hdr - it["ref"]).mean(2).ravel(), s.mean(2).ravel() * fit["scale"]
+        ratios.append(e[s > 0] / s[s > 0])
+    assert np.median(np.concatenate(ratios)) == pytest.approx(0.6745, rel=1e-3)

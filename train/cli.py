@@ -296,13 +296,16 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "skip": den.meta.get("skip") if skip is None else skip, "steps": steps, "samples": samples,
             "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
-            "estimate_only": den.last_estimate_only, "seconds": round(den.last_seconds, 3)}
+            "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
+            "seconds": round(den.last_seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:
+        fallback = getattr(den, "fallback", "")
+        alone = (f"; no albedo/normal layers: {fallback} on the colour{' and albedo' if 'albedo' in buffers else ''}"
+                 if fallback else "; no variance/albedo/normal layers: the first estimate (OIDN) alone")
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}) in {den.last_seconds:.1f} s"
               f" -> {out}" + (f"; {den.last_repaired} non-finite input values replaced by 0" if den.last_repaired
-                              else "") + ("; no variance/albedo/normal layers: the first estimate (OIDN) alone"
-                                          if den.last_estimate_only else ""), flush=True)
+                              else "") + (alone if den.last_estimate_only else ""), flush=True)
     return 0
 
 

@@ -42,6 +42,9 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
     if not meta_path.exists():
         raise StoreError(f"{folder}: no trained run to export (run `make train SPP={spp}` first)")
     meta = read_json(meta_path, "model record")
+    from .oidn_refine import FORMAT as REFINE
+    if meta.get("format") == REFINE:
+        return export_refine(cfg, folder, meta, out, quiet, config, overrides)
     state = load_file(str(folder / "control.safetensors"))
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -197,3 +200,93 @@ def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, confi
         print(f"exported {folder} (blend {record['blend']:g}) -> {out} ({len(blob) / 2**20:.2f} MiB, float16 TZA; "
               f"OIDN runs it as its '{name}' network: denoise --oidn-weights {out})", flush=True)
     return out
+
+
+def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool = False, config: str | None = None,
+                  overrides: list[str] | tuple = ()) -> Path:
+    """A run of the diffusion denoiser on OIDN (``diffusion.base: oidn``) as a model folder: model.json,
+    control.safetensors (float16), base.tza (the frozen OIDN weights), README.md; an ``oidn_ft/`` folder
+    already in ``out`` (OIDN fine-tuned for inputs without albedo or normal) is kept."""
+    from safetensors.torch import load_file
+
+    tmp = out.parent / (out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    if (out / "oidn_ft").is_dir():
+        shutil.copytree(out / "oidn_ft", tmp / "oidn_ft")
+    shutil.copy(folder / "base.tza", tmp / "base.tza")
+    state = load_file(str(folder / "control.safetensors"))
+    save_safetensors(tmp / "control.safetensors", {k: _half(v) for k, v in state.items()}, {"format": meta["format"]})
+    record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
+    atomic_write_json(tmp / "model.json", record)
+    (tmp / "README.md").write_text(refine_card(cfg, record, folder, config or "<config>", out, overrides))
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    if not quiet:
+        size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+        print(f"exported {folder} -> {out} ({size / 2**20:.1f} MiB)", flush=True)
+    return out
+
+
+def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
+    """The model card of an exported OIDN-based denoiser: what it is, its data, training, validation, commands."""
+    train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
+    hist, best, m = train.get("history", []), train.get("best") or {}, train.get("machine") or {}
+    f, d, st = record.get("formulation", {}), cfg.dataset, record.get("settings", {})
+    sig = record.get("sigma") or {}
+    gain_keys = sorted((k for k in (hist[-1].get("val") or {} if hist else {}) if k.startswith("gain_spp")),
+                       key=lambda k: int(k[8:]))
+    extra = "".join(f" {shlex.quote(o)}" for o in overrides)
+    v = best.get("val") or {}
+    lines = [
+        "# The shipped denoiser: a Control Module on OIDN's network", "",
+        f"Exported from `{run}` on {record['exported']['date']}; loaded by `python -m pipeline denoise --exr IN.exr "
+        "--out OUT.exr` and `make eval`'s `ours` rows wherever a config has no trained run of its own "
+        "(`diffusion.shipped`).", "",
+        "## What it is", "",
+        f"- Base: OIDN's `{record.get('base_network')}` network ({record.get('base_what')}), frozen, in `base.tza` "
+        "(OIDN's own float16 format; sha256 in model.json).",
+        "- Control Module (`control.safetensors`, float16): a copy of OIDN's encoder reading OIDN's input, every other "
+        f"buffer ({len(record.get('cond_channels', []))} condition channels, model.json `cond_channels`), z_t and t, "
+        "into OIDN's decoder through zero-initialised 1x1 convolutions (train/oidn_control.py).",
+        f"- Refine formulation around OIDN's output in OIDN's space: x0-prediction, `{f.get('schedule')}` schedule, "
+        f"residual scale {f.get('residual_scale')}, default sampler {f.get('sampler')} with {f.get('steps')} step(s) "
+        f"from `{f.get('start')}` (train/oidn_refine.py).",
+        f"- Sample counts: {record.get('spp')} (the spp map is an input). Inputs without variances, the radiance split "
+        "or the material buffers are served (trained with buffer-group dropout); without albedo and normal OIDN runs "
+        "instead (`oidn_ft/` networks when present).",
+        f"- σ (`--samples K`, the `std` layer): scaled by {sig.get('scale', 1.0):.3g}, fitted on "
+        f"{sig.get('pixels', '?')} validation pixels at {sig.get('steps', '?')} steps and {sig.get('samples', '?')} "
+        "samples (median |error| / σ = 0.6745).", "",
+        "## Data", "",
+        f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
+        f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
+        f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
+        "configs/default.yaml's scenes (another seed).", "",
+        "## Training", "",
+        f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; lr "
+        f"{st.get('lr')}, batch {st.get('batch_size')}, crop {st.get('crop')}, EMA {st.get('ema')}, buffer-group "
+        f"dropout {st.get('dropout')}, loss: tonemapped MSE over OIDN's + {st.get('hdr_weight')} x PU L1 over OIDN's, "
+        f"per crop; t_focus {f.get('t_focus')} on {st.get('train_steps')}-step samplers. Best epoch "
+        f"{best.get('epoch')} by validation PSNR: {v.get('psnr', float('nan')):.3f} dB against OIDN's "
+        f"{v.get('estimate_psnr', float('nan')):.3f} dB (epoch 0 is OIDN itself).", "",
+        f"Machine: {m.get('cuda') or m.get('processor', '?')}, {m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, "
+        f"{m.get('torch_threads', '?')} torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, "
+        f"device {m.get('device', '?')}.", "",
+        "| epoch | val PSNR dB | OIDN dB | gain dB | " + " | ".join(f"gain {k[8:]} spp" for k in gain_keys)
+        + " | seconds |", "| --- | --- | --- | --- |" + " --- |" * len(gain_keys) + " --- |"]
+    for h in hist:
+        hv = h.get("val") or {}
+        gains = [f"{hv[k]:+.3f}" if k in hv else "" for k in gain_keys]
+        lines.append(f"| {h['epoch']} | {hv.get('psnr', float('nan')):.3f} | {hv.get('estimate_psnr', float('nan')):.3f} "
+                     f"| {hv.get('psnr', 0) - hv.get('estimate_psnr', 0):+.4f} | " + " | ".join(gains)
+                     + f" | {h.get('seconds')} |")
+    spp = record.get("spp")
+    spp = "any" if isinstance(spp, list) and len(spp) > 1 else spp
+    lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
+              *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
+              f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
+              f"python -m pipeline export --config {config} --spp {spp} --out {out}{extra}", "```", "",
+              "Evaluation against OIDN, oidn_ft, Isik and the noisy input on the default test set: "
+              "docs/example_report/eval.md; the ablation: docs/diffusion.md.", ""]
+    return "\n".join(lines)

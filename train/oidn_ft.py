@@ -91,13 +91,16 @@ def _augment(images: dict[str, np.ndarray], rng: np.random.Generator) -> dict[st
 
 
 def _unlike(images: dict[str, np.ndarray], rng: np.random.Generator, min_side: int) -> dict[str, np.ndarray]:
-    """An input unlike the training set's (for ``distill``): per-channel colour gains (the same for
-    colour and albedo, albedo kept in [0, 1]) and, half the time, the frame at half resolution (when
-    that is still at least ``min_side`` pixels: objects half as large, noise averaged 2×2)."""
+    """A frame unlike the training set's: per-channel gains on the light (colour and ``target``, when there is
+    one, alike; albedo is reflectance and stays) and, half the time, the frame at half resolution when that
+    is still at least ``min_side`` pixels (objects half as large, the noise averaged 2×2). With the teacher's
+    output as the target (``distill``) the gains also tint the albedo, kept in [0, 1]."""
     gains = np.exp(rng.normal(0.0, 0.6, 3)).astype(np.float32)
     out = dict(images)
-    out["color"] = images["color"] * gains
-    if "albedo" in images:
+    for name in ("color", "target"):
+        if name in images:
+            out[name] = images[name] * gains
+    if "albedo" in images and "target" not in images:
         out["albedo"] = np.clip(images["albedo"] * gains / gains.max(), 0, 1)
     H, W = images["color"].shape[:2]
     if min(H, W) // 2 >= min_side and rng.random() < 0.5:
@@ -116,9 +119,10 @@ class FrameCrops(Dataset):
     the items are changed inputs (``_unlike``) flagged for the teacher's target."""
 
     def __init__(self, frames: list[Frame], spps: list[int], crop: int, crops_per_frame: int, seed: int,
-                 aux: tuple[str, ...], augment: bool, distill: float):
+                 aux: tuple[str, ...], augment: bool, distill: float, diversify: float = 0.0):
         self.frames, self.spps, self.crop, self.per_frame = frames, spps, crop, crops_per_frame
         self.seed, self.aux, self.augment, self.distill, self.epoch = seed, aux, augment, distill, 0
+        self.diversify = diversify
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -132,10 +136,14 @@ class FrameCrops(Dataset):
         spp = self.spps[int(rng.integers(len(self.spps)))]
         k = spp // frame.stack_spp
         images = frame.pooled(sorted(rng.choice(len(frame.color), size=k, replace=False).tolist()))
-        images["target"] = frame.target
         teacher = bool(rng.random() < self.distill)
         if teacher:
             images = _unlike(images, rng, self.crop)
+            images["target"] = np.zeros_like(images["color"])     # replaced by the teacher's output
+        else:
+            images["target"] = frame.target
+            if rng.random() < self.diversify:
+                images = _unlike(images, rng, self.crop)
         scale = oidn_net.autoexposure(images["color"])
         H, W = images["color"].shape[:2]
         c = self.crop
@@ -158,6 +166,23 @@ def ssim_loss(a: torch.Tensor, b: torch.Tensor, window: int = 7) -> torch.Tensor
     cov = F.avg_pool2d(a * b, window, 1) - mu_a * mu_b
     s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
     return 1.0 - s.mean()
+
+
+RELATIVE_FLOOR = 1e-4   # PU-space L1 added to each crop's normaliser (stock OIDN's error is ~4e-3 on average)
+
+
+def relative_l1(out: torch.Tensor, target: torch.Tensor, stock: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
+    """Mean over crops of L1(out, target) / (L1(stock OIDN, target) + floor): each crop counts by its gain
+    over OIDN, so the few crops OIDN gets badly wrong cannot outweigh the many it gets right (where a
+    change costs as much). Distillation crops (``teacher``), whose target is OIDN's own output, are
+    divided by the mean normaliser of the others."""
+    err = (out - target).abs().flatten(1).mean(1)
+    with torch.no_grad():
+        norm = (stock - target).abs().flatten(1).mean(1) + RELATIVE_FLOOR
+        own = ~teacher
+        typical = norm[own].mean() if bool(own.any()) else torch.tensor(4e-3, device=norm.device)
+        norm = torch.where(teacher, typical, norm)
+    return (err / norm).mean()
 
 
 def l2sp_penalty(model: torch.nn.Module, reference: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -234,7 +259,7 @@ class OIDNFineTune(Task):
         self.fingerprint = {"network": o.network, "prior_sha256": self.prior_sha, "spp": str(spp), "seed": cfg.seed,
                             **{k: getattr(o, k) for k in ("batch_size", "crop", "crops_per_frame", "epoch_steps",
                                                            "lr", "lr_end", "warmup_steps", "weight_decay", "grad_clip",
-                                                           "loss", "l2sp", "distill", "trainable", "augment",
+                                                           "loss", "l2sp", "distill", "diversify", "trainable", "augment",
                                                            "epochs")}}
         self.output = str(self.folder / "model.safetensors")
         self.crops = self.val = None
@@ -248,7 +273,7 @@ class OIDNFineTune(Task):
         t = time.perf_counter()
         frames = [Frame(self.store, k, self.aux) for k in self.train_keys]
         self.crops = FrameCrops(frames, self.spps, self.o.crop, self.o.crops_per_frame, self.cfg.seed, self.aux,
-                                self.o.augment, self.o.distill)
+                                self.o.augment, self.o.distill, self.o.diversify)
         self.val = self._validation_items()
         print(f"{self.name}: {len(frames)} train frames at {self.spps} spp, {len(self.val)} validation images, "
               f"read in {time.perf_counter() - t:.1f} s", flush=True)
@@ -279,11 +304,16 @@ class OIDNFineTune(Task):
         for group in self.optimizers.param_groups:
             group["lr"] = lr
         x, target, teacher = batch["input"], batch["target"], batch["teacher"]
-        if bool(teacher.any()):
+        stock = None
+        if bool(teacher.any()) or self.o.loss == "l1_relative":
             with torch.no_grad():
-                target = torch.where(teacher[:, None, None, None], self.teacher(x), target)
+                stock = self.teacher(x)
+            target = torch.where(teacher[:, None, None, None], stock, target)
         out = self.net(x)
-        loss = F.l1_loss(out, target)
+        if self.o.loss == "l1_relative":
+            loss = relative_l1(out, target, stock, teacher)
+        else:
+            loss = F.l1_loss(out, target)
         if self.o.loss == "l1_ssim":
             loss = 0.16 * loss + 0.84 * ssim_loss(out, target)
         terms = {"data": float(loss.detach())}

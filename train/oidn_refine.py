@@ -315,6 +315,17 @@ class RefineTask(Task):
         if history:
             self.write_history(history, best)
 
+    def finish(self) -> None:
+        """σ calibrated on the validation frames with the best weights (``calibrate``), into model.json."""
+        if self.rank == 0 and self.val and (self.folder / "model.json").exists():
+            record = read_json(self.folder / "model.json", "model record")
+            record["sigma"] = calibrate(load_refiner(self.folder, str(self.device)), self.val, self.cfg.seed)
+            atomic_write_json(self.folder / "model.json", record)
+            if not self.quiet:
+                sg = record["sigma"]
+                print(f"{self.name}: σ scale {sg['scale']:.3g} fitted on {sg['pixels']} validation pixels "
+                      f"({sg['steps']} steps, {sg['samples']} samples)", flush=True)
+
     def epoch_line(self, entry: dict) -> str:
         v, loss = entry["val"], entry["train_loss"]
         line = f"{self.name} epoch {entry['epoch']}: loss " + ("n/a" if loss is None else f"{loss:.4f}")
@@ -328,6 +339,30 @@ class RefineTask(Task):
         v = best["val"]
         return (f"best epoch {best['epoch']}" + (f": val PSNR {v['psnr']:.3f} dB, {v['psnr'] - v['estimate_psnr']:+.3f} "
                                                  "dB over OIDN" if v else ""))
+
+
+# ---- uncertainty -------------------------------------------------------------------------------
+
+SIGMA_STEPS, SIGMA_SAMPLES = 3, 4     # the sampling the evaluator's uncertainty row uses (ours_s3_k4)
+
+
+def calibrate(refiner: "OIDNRefiner", items: list[dict], seed: int = 0) -> dict:
+    """One scale for the samples' per-pixel standard deviation, fitted on validation images: the
+    median of |error| / σ over the pixels with σ > 0, divided by 0.6745 (the median of |N(0, 1)|), so a
+    Gaussian error with the scaled σ has half its pixels within 0.6745 σ. Robust to the heavy tails of
+    rendering errors, unlike a least-squares fit."""
+    ratios = []
+    for it in items:
+        H, W = it["ref"].shape[:2]
+        mean, std, _ = sample(refiner.model, it["x"].to(refiner.device), it["cond"].to(refiner.device),
+                              refiner.formulation, SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES)
+        hdr, s = refiner.to_hdr(mean, std, it["scale"], H, W)
+        e = np.abs(hdr - it["ref"]).mean(2).ravel()
+        s = s.mean(2).ravel()
+        ratios.append(e[s > 0] / s[s > 0])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    scale = float(np.median(r) / 0.6745) if r.size else 1.0
+    return {"scale": scale, "steps": SIGMA_STEPS, "samples": SIGMA_SAMPLES, "pixels": int(r.size)}
 
 
 # ---- saving and loading a run ------------------------------------------------------------------
@@ -367,15 +402,17 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
 class OIDNRefiner:
     """A trained run as the evaluator and ``denoise`` use it (the interface of ``train.infer.Denoiser``)."""
 
-    def __init__(self, model: ControlledOIDN, meta: dict, device, base_only: bool = False):
-        self.model, self.meta, self.device = model, meta, device
+    def __init__(self, model: ControlledOIDN, meta: dict, device, base_only: bool = False, folder: Path | None = None):
+        self.model, self.meta, self.device, self.folder = model, meta, device, folder
         self.formulation = Formulation.from_record(meta["formulation"])
+        self.sigma_scale = float((meta.get("sigma") or {}).get("scale", 1.0))
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
         self.last_repaired = self.last_clamped = 0
         self.last_black = self.last_estimate_only = False
         self.last_seconds = 0.0
+        self.fallback = ""
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 rotation=None, variance=None, steps: int | None = None, start: str | None = None, samples: int = 1,
@@ -390,12 +427,21 @@ class OIDNRefiner:
         if self.last_black:
             hdr = std = np.zeros_like(color)
         elif self.last_estimate_only:   # the base reads albedo and normal: OIDN on what there is
-            from mcdenoise.pipeline import oidn
-            hdr, std = oidn.denoise(buffers), np.zeros_like(color)
+            hdr, std = self._oidn_only(buffers), np.zeros_like(color)
         else:
             hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples)
         self.last_seconds = time.perf_counter() - t0
         return (hdr, std) if with_std else hdr
+
+    def _oidn_only(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
+        """OIDN on the layers there are: with the model folder's fine-tuned weights for them
+        (``oidn_ft/<network>.tza``, OIDN fine-tuned on our data) when it has them, else OIDN's own."""
+        from mcdenoise.pipeline import oidn
+        network = oidn_weights.network_for("albedo" in buffers, False)
+        blob_path = self.folder / "oidn_ft" / f"{network}.tza" if self.folder is not None else None
+        self.fallback = str(blob_path) if blob_path is not None and blob_path.exists() else f"OIDN {network}"
+        blob = blob_path.read_bytes() if blob_path is not None and blob_path.exists() else None
+        return oidn.denoise({k: v for k, v in buffers.items() if k in ("color", "albedo")}, weights=blob)
 
     def _sample(self, buffers, spp, skip, seed, steps, start, samples):
         x, cond, scale = inputs(buffers, int(spp))
@@ -403,18 +449,22 @@ class OIDNRefiner:
         mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
                               torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start, seed,
                               samples)
+        hdr, std_hdr = self.to_hdr(mean, std, scale, H, W)
+        return hdr, std_hdr * self.sigma_scale
+
+    @staticmethod
+    def to_hdr(mean: torch.Tensor, std: torch.Tensor, scale: float, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) HDR of an OIDN-space mean and its std (times the local slope of the inverse transfer)."""
         hdr = oidn_net.network_output(mean, scale, (H, W))
-        # the std in HDR units: times the local slope of the inverse transfer
         slope = (oidn_net.network_output(mean + 1e-4, scale, (H, W)) - hdr) / 1e-4
-        std_hdr = (slope.abs() * std[..., :H, :W])
         as_image = lambda t: np.ascontiguousarray(t[0].permute(1, 2, 0).float().cpu().numpy())  # noqa: E731
-        return as_image(hdr), as_image(std_hdr)
+        return as_image(hdr), as_image(slope.abs() * std[..., :H, :W])
 
 
 def load_refiner(folder: str | Path, device: str = "auto", base_only: bool = False) -> OIDNRefiner:
     dev = pick_device(device)
     model, meta = load(folder, dev)
-    return OIDNRefiner(model, meta, dev, base_only)
+    return OIDNRefiner(model, meta, dev, base_only, Path(folder))
 
 
 def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
