@@ -274,3 +274,33 @@ def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
     assert [b["steps"] for b in result["bench"]] == [1, 4, 9, 27] and all(b["seconds"] > 0 for b in result["bench"])
     assert result["epochs"] >= 1 and result["history"][0]["epoch"] == 0 and result["train_images_per_s"] > 0
     assert {"base_fp16.safetensors", "control_fp16.safetensors", "report.md"} <= {f.name for f in files}
+
+
+def test_gpu_recipe_dry_run_of_the_oidn_based_model(cleaned, tmp_path):
+    """The recipe for a model on OIDN's network: OIDN crop packs, further training of the exported model from
+    its own base.tza (no pyoidn needed), the bench at 1 and 3 steps, an output that fits the device tool."""
+    from mcdenoise.pipeline.store import Store
+    from mcdenoise.train.gpu_recipe import main
+    from mcdenoise.train.oidn_pack import crop_pack, ensure_pack, load_pack
+
+    store, _ = cleaned
+    keys = [f"store={store}", f"runs={tmp_path / 'runs'}", "diffusion.base=oidn", "diffusion.epochs=1",
+            "diffusion.crop=16", "diffusion.batch_size=2", "diffusion.val_frames=1", "diffusion.device=cpu"]
+    run("train", "--model", "diffusion", "--spp", "any", *keys)
+    run("export", "--spp", "any", "--out", tmp_path / "model", *keys)
+    s = Store(store)
+    for split, n in (("train", 6), ("val", 2)):
+        pack = load_pack(ensure_pack(s, s.frames(split), tmp_path / f"{split}_pack.safetensors", quiet=True))
+        crop_pack(pack, tmp_path / f"{split}.safetensors", n, 16, seed=1 if split == "val" else 0)
+    out = tmp_path / "out"
+    assert main(["--model", str(tmp_path / "model"), "--oidn-train", str(tmp_path / "train.safetensors"),
+                 "--oidn-val", str(tmp_path / "val.safetensors"), "--out", str(out), "--minutes", "0.02",
+                 "--device", "cpu", "--batch", "2", "--sizes", "32x24"]) == 0
+    files = list(out.iterdir())
+    assert len(files) <= 8 and all(f.stat().st_size < 16 * 2**20 for f in files)
+    result = json.loads((out / "result.json").read_text())
+    assert [b["steps"] for b in result["bench"]] == [1, 3] and all(b["seconds"] > 0 for b in result["bench"])
+    assert result["epochs"] >= 1 and result["train_images_per_s"] > 0
+    # epoch 0 of the continued run is the exported model itself
+    assert result["history"][0]["epoch"] == 0
+    assert {"control_fp16.safetensors", "model.json", "report.md"} <= {f.name for f in files}

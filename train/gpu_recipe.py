@@ -15,6 +15,12 @@ against the crops' first estimate on the carried validation crops, times the net
 ``base_fp16.safetensors``, ``control_fp16.safetensors`` (the trained weights, float16 for the
 trip), ``model.json``, ``report.md``, ``result.json``, ``loss.png``. ``--device cpu --minutes
 0.2`` is the dry run the tests do.
+
+A shipped model on OIDN's network (``diffusion.base: oidn``, ``train.oidn_refine``) takes the same
+command: ``gpu-prepare`` then cuts crops of the config's OIDN packs (``oidn_{train,val}_crops``),
+OIDN's weights travel as the model's own ``base.tza`` (pyoidn stays behind), and ``run_refine``
+continues its Control Module with ``RefineTask`` on those crops (the run ``make train`` does) and
+times 1 and 3 steps.
 """
 from __future__ import annotations
 
@@ -84,6 +90,68 @@ def bench(model, form, device, autocast, aux_channels: int, sizes: dict | None =
     return rows
 
 
+def run_refine(args, sizes: dict) -> int:
+    """The recipe for a model on OIDN's network (``diffusion.base: oidn``): its own training run
+    (``train.oidn_refine.RefineTask``, the shipped model's settings) on the carried OIDN crop packs, from
+    the shipped base and Control Module; the trained Control Module and the timings into ``--out``."""
+    from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.fit import fit as fit_task
+
+    from . import oidn_refine
+
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = json.loads((Path(args.model) / "model.json").read_text())
+    st = meta.get("settings", {})
+    side = int(oidn_refine.load_pack(Path(args.oidn_train))["x"].shape[-1])
+    keys = ("weight_decay", "grad_clip", "ema", "hdr_weight", "dropout")
+    cfg = load_config(None, [f"diffusion.{k}={st[k]}" for k in keys if k in st] + [
+        "diffusion.base=oidn", f"diffusion.crop={side}", f"diffusion.batch_size={args.batch}",
+        f"diffusion.lr={args.lr}", "diffusion.epochs=10000", "diffusion.warmup_steps=20", "diffusion.crops_per_frame=1",
+        f"diffusion.time_budget_s={args.minutes * 60}", f"diffusion.device={args.device}",
+        f"diffusion.residual_scale={meta['formulation']['residual_scale']}",
+        f"diffusion.train_steps={st.get('train_steps', [1])}", f"diffusion.t_focus={meta['formulation']['t_focus']}"])
+    work = Path(tempfile.mkdtemp(prefix="gpu_recipe_")) / "diffusion_gpu"
+    task = oidn_refine.RefineTask(cfg, "any", quiet=True, folder=work, init=Path(args.model),
+                                  source=oidn_refine.PackSource(Path(args.oidn_train), Path(args.oidn_val)))
+    summary = fit_task(task, quiet=True)
+    hist = json.loads((work / "train.json").read_text())["history"]
+    trained = [h for h in hist if h["epoch"] > 0]
+    seconds = hist[-1]["seconds"] if trained else 0.0
+    images = len(trained) * task.steps_per_epoch * args.batch
+    model = task.model.eval()
+    save_safetensors(out / "control_fp16.safetensors", {k: v.half().contiguous().cpu()
+                                                        for k, v in model.control.state_dict().items()},
+                     {"format": oidn_refine.FORMAT})
+    (out / "model.json").write_text(json.dumps(meta, indent=1))
+    if (work / "loss.png").exists():
+        (out / "loss.png").write_bytes((work / "loss.png").read_bytes())
+    rows = []
+    for name, (h, w) in sizes.items():
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(1, 9, h + (-h % 16), w + (-w % 16), generator=g).to(task.device)
+        cond = torch.rand(1, model.cond_channels, *x.shape[-2:], generator=g).to(task.device)
+        for steps in (1, 3):
+            def go():
+                oidn_refine.sample(model, x, cond, task.form, steps=steps)
+                if task.device.type == "cuda":
+                    torch.cuda.synchronize()
+            go()
+            rows.append({"size": name, "steps": steps, "seconds": round(best_time(go, 2), 4)})
+    result = {"device": str(task.device), "gpu": torch.cuda.get_device_name(0) if task.device.type == "cuda" else None,
+              "platform": platform.platform(), "torch": torch.__version__, "minutes": args.minutes,
+              "epochs": len(trained), "train_seconds": seconds, "train_images": images,
+              "train_images_per_s": round(images / seconds, 1) if seconds else None,
+              "history": [{**h, "val": {"psnr": h["val"]["psnr"], "estimate_psnr": h["val"]["estimate_psnr"]}}
+                          for h in hist if h.get("val")], "bench": rows, "summary": summary["line"],
+              "wall_seconds": round(time.perf_counter() - t0, 1)}
+    (out / "result.json").write_text(json.dumps(result, indent=1, default=str))
+    (out / "report.md").write_text(report(result))
+    print(report(result), flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default=str(SHIPPED_MODEL))
@@ -97,8 +165,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loss-norm", default="crop", choices=LOSS_NORMS,
                     help="diffusion.loss_norm of the training (train/formulation.py)")
     ap.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
+    ap.add_argument("--oidn-train", default=".gpu/oidn_train_crops.safetensors",
+                    help="a model on OIDN's network: its training crops (gpu-prepare writes them)")
+    ap.add_argument("--oidn-val", default=".gpu/oidn_val_crops.safetensors")
     args = ap.parse_args(argv)
     sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
+    from .oidn_refine import FORMAT as REFINE
+    if json.loads((Path(args.model) / "model.json").read_text()).get("format") == REFINE:
+        return run_refine(args, sizes)
     t0 = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -145,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def report(r: dict) -> str:
     first, last = r["history"][0]["val"], r["history"][-1]["val"]
+    first.setdefault("estimate_psnr", first.get("psnr"))
     lines = [f"# GPU recipe: {r['gpu'] or r['device']}", "",
              f"{r['epochs']} epochs in {r['train_seconds']} s, {r['train_images_per_s']} training crops/s; "
              f"validation (1 step): {first['psnr']:.2f} dB before, {last['psnr']:.2f} dB after "
@@ -193,12 +268,16 @@ def crop_pack(src: Path, dest: Path, count: int, side: int, seed: int = 0) -> in
 def prepare(cfg, out: Path = Path(".gpu"), train_crops: int = 48, val_crops: int = 12, side: int = 48,
             wheels: bool = True, python: str = "3.12") -> None:
     """Write ``out``: crop packs from the config's training packs and the wheels the GPU machine lacks."""
-    import subprocess
-    import sys
 
     from .model import estimator
+    from .oidn_refine import is_oidn_base
     from .pack import pack_path
 
+    if is_oidn_base(cfg):
+        _prepare_oidn(cfg, out, train_crops, val_crops, side)
+        if wheels:
+            _wheels(out, python)
+        return
     kind = estimator(cfg).kind
     for split, count in (("train", train_crops), ("val", val_crops)):
         src = pack_path(cfg.runs, split, kind)
@@ -207,7 +286,30 @@ def prepare(cfg, out: Path = Path(".gpu"), train_crops: int = 48, val_crops: int
         size = crop_pack(src, out / f"{split}_crops.safetensors", count, side, seed=1 if split == "val" else 0)
         print(f"{out / f'{split}_crops.safetensors'}: {count} crops of {side}², {size / 2**20:.1f} MiB", flush=True)
     if wheels:
-        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", python,
-               "--platform", "manylinux2014_x86_64", "--platform", "manylinux_2_17_x86_64", "--platform",
-               "manylinux_2_28_x86_64", "-d", str(out / "wheels"), *WHEELS]
-        subprocess.run(cmd, check=True)
+        _wheels(out, python)
+
+
+def _wheels(out: Path, python: str) -> None:
+    import subprocess
+    import sys
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", python,
+           "--platform", "manylinux2014_x86_64", "--platform", "manylinux_2_17_x86_64", "--platform",
+           "manylinux_2_28_x86_64", "-d", str(out / "wheels"), *WHEELS]
+    subprocess.run(cmd, check=True)
+
+
+def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int) -> None:
+    """Crops of the config's OIDN packs (train and val splits; built if missing) for the OIDN-based model."""
+    from mcdenoise.pipeline.store import Store
+
+    from .oidn_pack import crop_pack, ensure_pack, load_pack, pack_path
+    from .oidn_refine import StoreSource
+
+    src = StoreSource(cfg)
+    store = Store(cfg.store)
+    for split, keys, count in (("train", src.train_keys, train_crops), ("val", src.val_keys, val_crops)):
+        pack = load_pack(ensure_pack(store, keys, pack_path(cfg.runs, split)))
+        dest = out / f"oidn_{split}_crops.safetensors"
+        out.mkdir(parents=True, exist_ok=True)
+        size = crop_pack(pack, dest, count, side, seed=1 if split == "val" else 0)
+        print(f"{dest}: {count} crops of {side}², {size / 2**20:.1f} MiB", flush=True)

@@ -90,7 +90,8 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
 
 
 def pack_path(runs: str | Path, split: str) -> Path:
-    return Path(runs) / "pack" / f"{split}_oidn.safetensors"
+    """``<runs>/pack/<split>_oidn_base.safetensors`` (beside ``train.pack``'s packs of the stand-in model)."""
+    return Path(runs) / "pack" / f"{split}_oidn_base.safetensors"
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False) -> Path:
@@ -238,3 +239,22 @@ def residual_std(pack: dict[str, torch.Tensor], estimate, frames: int = 16) -> f
             gt = oidn_net.to_pu(pack["target"][int(pack["frame"][i])] * scale)
             vals.append(float(((gt - estimate(pack["x"][i][None].float())[0]) ** 2).mean()))
     return math.sqrt(float(np.mean(vals))) if vals else float("nan")
+
+
+def crop_pack(pack: dict[str, torch.Tensor], dest: Path, count: int, side: int, seed: int = 0) -> int:
+    """``count`` random ``side``² crops of a pack's items as a pack of their own (each crop its own frame and
+    target; what a GPU run carries, ``train.gpu_recipe``); returns the bytes written."""
+    rng = np.random.default_rng(seed)
+    n, H, W = pack["x"].shape[0], pack["x"].shape[-2], pack["x"].shape[-1]
+    if side > min(H, W) or side % oidn_net.ALIGNMENT:
+        raise StoreError(f"crop side {side}: a multiple of {oidn_net.ALIGNMENT} up to the frames' {min(H, W)}")
+    picks = [(int(rng.integers(n)), int(rng.integers(H - side + 1)), int(rng.integers(W - side + 1)))
+             for _ in range(count)]
+    cut = lambda a, i, y, x: a[i, :, y:y + side, x:x + side]  # noqa: E731
+    out = {k: torch.stack([cut(pack[k], i, y, x) for i, y, x in picks]).contiguous() for k in ("x", "cond")}
+    out["target"] = torch.stack([cut(pack["target"], int(pack["frame"][i]), y, x) for i, y, x in picks]).contiguous()
+    out["scale"] = torch.stack([pack["scale"][i] for i, _, _ in picks])
+    out["spp"] = torch.stack([pack["spp"][i] for i, _, _ in picks])
+    out["frame"] = torch.arange(count, dtype=torch.int32)
+    save_safetensors(dest, out, {"format": FORMAT, "cond": json.dumps(cond_names()), "crops": str(count)})
+    return dest.stat().st_size

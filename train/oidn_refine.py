@@ -143,23 +143,72 @@ def _frames(store: Store, split: str) -> list[FrameKey]:
     return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
 
 
+class StoreSource:
+    """The data of a config's store: the train split as the pack (``train.oidn_pack``), the first
+    ``val_frames`` val frames whole, each at the run's smallest, middle and largest sample count."""
+
+    def __init__(self, cfg: Config):
+        self.cfg, self.store = cfg, Store(cfg.store)
+        if not self.store.manifest_path.exists():
+            raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
+        self.train_keys, self.val_keys = _frames(self.store, "train"), _frames(self.store, "val")
+        if not self.train_keys:
+            raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
+
+    def spps(self, spp) -> list[int]:
+        return self.store.spp_choices(spp)
+
+    def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
+        return load_pack(ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), quiet))
+
+    def val_items(self, spps: list[int], frames: int) -> list[dict]:
+        items = []
+        for key in self.val_keys[:frames]:
+            ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+            for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
+                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp)
+                items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
+                              "ref": ref, "spp": spp})
+        return items
+
+
+class PackSource:
+    """Data carried as packs (the GPU recipe: crops of a store's pack, each crop its own frame): every
+    item of ``train`` trains, every item of ``val`` validates against its target."""
+
+    def __init__(self, train: Path, val: Path):
+        self.train, self.val = load_pack(train), load_pack(val)
+
+    def spps(self, spp) -> list[int]:
+        return sorted({int(s) for s in self.train["spp"]})
+
+    def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
+        return self.train
+
+    def val_items(self, spps: list[int], frames: int) -> list[dict]:
+        v = self.val
+        return [{"x": v["x"][i][None].float(), "cond": v["cond"][i][None].float(), "scale": float(v["scale"][i]),
+                 "ref": v["target"][int(v["frame"][i])].permute(1, 2, 0).numpy(), "spp": int(v["spp"][i])}
+                for i in range(len(v["spp"]))]
+
+
 class RefineTask(Task):
     """The Control Module on OIDN, trained on the store's train split (see the module docstring)."""
 
     minimize = False          # validation PSNR
     validate_initial = True   # epoch 0 is OIDN exactly: the run must beat it to keep anything
 
-    def __init__(self, cfg: Config, spp="any", quiet: bool = False):
+    def __init__(self, cfg: Config, spp="any", quiet: bool = False, source=None, folder: Path | None = None,
+                 init: Path | None = None):
+        """``source``: where the data come from (``StoreSource(cfg)``: the config's store; the GPU recipe passes
+        carried crop packs); ``folder``: the run folder (default ``<runs>/diffusion_spp<N>[_name]``); ``init``: a
+        trained model folder whose base and Control Module the run starts from (else OIDN and a new one)."""
         d = self.d = cfg.diffusion
-        self.cfg, self.quiet, self.store = cfg, quiet, Store(cfg.store)
-        if not self.store.manifest_path.exists():
-            raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
-        self.train_keys, self.val_keys = _frames(self.store, "train"), _frames(self.store, "val")
-        if not self.train_keys:
-            raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
-        self.spps = self.store.spp_choices(spp)
+        self.cfg, self.quiet = cfg, quiet
+        self.source = source or StoreSource(cfg)
+        self.spps = self.source.spps(spp)
         self.rank, self.world = dist_info()
-        self.folder = run_dir(cfg, "diffusion", spp)
+        self.folder = folder or run_dir(cfg, "diffusion", spp)
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, d.epochs, d.time_budget_s, d.nan_limit
         self.device = pick_device(d.device)
         self.autocast = autocast_dtype(d.precision, self.device)
@@ -169,12 +218,17 @@ class RefineTask(Task):
                              "(diffusion.prediction=sample)")
 
         # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module.
-        self.blob, self.base_what = base_blob(cfg)
+        if init is not None:
+            self.blob, self.base_what = (Path(init) / "base.tza").read_bytes(), f"{init}/base.tza"
+        else:
+            self.blob, self.base_what = base_blob(cfg)
         torch.manual_seed(cfg.seed)
         base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
         self.model = ControlledOIDN(base, len(cond_names()), control=d.control).to(self.device)
         if self.model.control is None:
             raise TrainError("diffusion.control=false with diffusion.base=oidn is OIDN itself: nothing to train")
+        if init is not None:
+            self.model.control.load_state_dict(load(init, self.device)[0].control.state_dict())
         self.state = self.model.control
         self.params = self.model.trainable_parameters()
         self.optimizers = torch.optim.AdamW(self.params, lr=d.lr, weight_decay=d.weight_decay)
@@ -190,8 +244,7 @@ class RefineTask(Task):
     # ---- data
     def prepare(self) -> None:
         t = time.perf_counter()
-        path = ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), self.quiet or self.rank > 0)
-        pack = load_pack(path)
+        pack = self.source.train_pack(self.quiet or self.rank > 0)
         self.crops = Crops(pack, self.d.crop, self.d.crops_per_frame, self.cfg.seed, self.spps, dropout=self.d.dropout)
         self.per_rank = len(self.crops) // self.world
         self.steps_per_epoch = max(1, self.per_rank // self.d.batch_size)
@@ -201,7 +254,7 @@ class RefineTask(Task):
         self.total_steps = self.steps_per_epoch * self.d.epochs
         self.focus = self.form.train_timesteps(list(self.d.train_steps))
         self.noise_sched = self.form.scheduler("ddpm")
-        self.val = self._validation_items() if self.rank == 0 else []
+        self.val = self.source.val_items(self.spps, self.d.val_frames) if self.rank == 0 else []
         self.net = self.model
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel as DDP
@@ -211,16 +264,6 @@ class RefineTask(Task):
             print(f"{self.name}: OIDN base ({self.base_what}), {len(self.crops.frames)} train frames at {self.spps} "
                   f"spp, {len(self.val)} validation images, {self.steps_per_epoch} steps per epoch; ready in "
                   f"{time.perf_counter() - t:.1f} s", flush=True)
-
-    def _validation_items(self) -> list[dict]:
-        items = []
-        for key in self.val_keys[: self.d.val_frames]:
-            ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
-            for spp in sorted({self.spps[0], self.spps[len(self.spps) // 2], self.spps[-1]}):
-                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp)
-                items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
-                              "ref": ref, "spp": spp})
-        return items
 
     def guard(self) -> NanGuard:
         return self._guard
