@@ -164,3 +164,37 @@ def _psnr(a, b):
     ta, tb = a / (1 + a), b / (1 + b)
     mse = float(np.mean((ta.astype(np.float64) - tb) ** 2))
     return float("inf") if mse == 0 else 10 * np.log10(1 / mse)
+
+
+def test_relative_l1_counts_each_crop_by_its_gain_over_oidn():
+    target = torch.zeros(2, 3, 8, 8)
+    stock = torch.stack([torch.full((3, 8, 8), 0.01), torch.full((3, 8, 8), 0.3)])   # an easy and a hard crop
+    teacher = torch.tensor([False, False])
+    at_oidn = float(oidn_ft.relative_l1(stock, target, stock, teacher))
+    better_easy = stock.clone()
+    better_easy[0] /= 2
+    better_hard = stock.clone()
+    better_hard[1] /= 2
+    gain_easy = at_oidn - float(oidn_ft.relative_l1(better_easy, target, stock, teacher))
+    gain_hard = at_oidn - float(oidn_ft.relative_l1(better_hard, target, stock, teacher))
+    assert gain_easy == pytest.approx(gain_hard, rel=0.02) and gain_easy > 0.2
+    # a distillation crop (target: OIDN's own output) is weighed like a typical crop of the batch
+    mixed = oidn_ft.relative_l1(stock + 0.01, torch.stack([target[0], stock[1]]), stock, torch.tensor([False, True]))
+    assert float(mixed) > 0
+
+
+def test_changed_frames_tint_the_light_not_the_albedo():
+    rng = np.random.default_rng(0)
+    images = {"color": rng.random((64, 64, 3)).astype(np.float32) + 0.1,
+              "albedo": rng.random((64, 64, 3)).astype(np.float32),
+              "normal": np.tile(np.array([0, 0, 1], np.float32), (64, 64, 1))}
+    images["target"] = images["color"] * 0.9
+    for seed in range(6):
+        out = oidn_ft._unlike(images, np.random.default_rng(seed), 16)
+        gains = (out["color"].reshape(-1, 3).mean(0) / images["color"].reshape(-1, 3).mean(0))
+        np.testing.assert_allclose(out["target"], out["color"] * 0.9, rtol=1e-5)
+        small = out["color"].shape[0] == 32
+        if not small:
+            np.testing.assert_array_equal(out["albedo"], images["albedo"])
+        assert not np.allclose(gains, gains[0], rtol=1e-3)      # the light's colour changed
+        assert np.allclose(np.linalg.norm(out["normal"], axis=2), 1, atol=1e-5)
