@@ -28,7 +28,7 @@ from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.metrics import all_metrics
 from mcdenoise.pipeline.runs import pick_device
-from mcdenoise.pipeline.store import FrameKey, Store
+from mcdenoise.pipeline.store import Store
 
 from .data import frame_inputs
 from .model import load_model
@@ -52,10 +52,6 @@ def default_runs(cfg: Config, spp: int) -> dict[str, Path]:
     gt1 = dataclasses.replace(cfg, afgsa=dataclasses.replace(cfg.afgsa, target="gt1"))
     clean = dataclasses.replace(cfg, afgsa=dataclasses.replace(cfg.afgsa, target="gt_clean"))
     return {"AFGSA -> GT_clean": run_dir(clean, "afgsa", spp), "AFGSA -> GT1": run_dir(gt1, "afgsa", spp)}
-
-
-def _frames(store: Store, split: str) -> list[FrameKey]:
-    return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
 
 
 def _score(images: dict[str, np.ndarray], ref: np.ndarray, eps: float, first: np.ndarray) -> dict[str, dict]:
@@ -89,7 +85,7 @@ def run_afgsa_report(cfg: Config, spp: int = 4, out: str = "reports/afgsa", runs
                          f"SPP={spp}, and again with afgsa.target=gt1)")
     store, device = Store(cfg.store), pick_device(cfg.afgsa.device)
     models = {label: load_model(folder, device)[0] for label, folder in runs.items()}
-    keys = _frames(store, cfg.eval.split)
+    keys = store.frames_with(cfg.eval.split)
     if not keys:
         raise TrainError(f"{store.root}: no {cfg.eval.split} frame with gt_clean")
     from .apply import denoise

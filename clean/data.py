@@ -200,14 +200,9 @@ class BaselinePairs(_Pairs):
 
 
 def usable_frames(store: Store, split: str, images: list[str]) -> list[FrameKey]:
-    """Frames of ``split`` that are complete and have every image of ``images`` on disk."""
-    out = []
-    for key in store.frames(split):
-        if not store.is_frame_complete(key.scene, key.frame, ["gt1"]):
-            continue
-        if all(store.image_path(key.scene, key.frame, name).exists() for name in images):
-            out.append(key)
-    return out
+    """Frames of ``split`` that are complete and have every image of ``images`` on disk (none for a split
+    the store does not have)."""
+    return [k for k in store.frames_with(split, images) if store.is_frame_complete(k.scene, k.frame, ["gt1"])]
 
 
 def baseline_images(store: Store, key: FrameKey, spp: int, target: str = "gt_clean") -> list[str]:

@@ -40,9 +40,7 @@ def cleaner_metrics(store: Store, split: str, eps: float, untrained=None, tile: 
     from .apply import denoise
 
     rows_gt1, rows_clean, rows_untrained, mse_ratio, tm_ratio = [], [], [], [], []
-    for key in store.frames(split):
-        if not store.image_path(key.scene, key.frame, "gt_clean").exists():
-            continue
+    for key in store.frames_with(split):
         gt1 = store.read_image(key.scene, key.frame, "gt1", None if untrained else ["color"])[0]
         g1 = gt1["color"]
         g2 = store.read_image(key.scene, key.frame, "gt2", ["color"])[0]["color"]
@@ -83,9 +81,7 @@ def baseline_metrics(cfg: Config, store: Store, spp: int, split: str = "test") -
     model, _ = load_model(folder)
     device = pick_device(cfg.clean.device)
     rows_noisy, rows_den = [], []
-    for key in store.frames(split):
-        if not store.image_path(key.scene, key.frame, "gt_clean").exists():
-            continue
+    for key in store.frames_with(split):
         buffers = store.read(key.scene, key.frame, spp)
         target = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
         inputs, radiance = frame_inputs(buffers)
@@ -109,7 +105,7 @@ def crop_grid(store: Store, split: str, path: Path, rows: int = 4, size: int = 6
     def diff(a, b):
         return DIFF_GAIN * np.abs(reinhard(a) - reinhard(b))
 
-    keys = [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()][:rows]
+    keys = store.frames_with(split)[:rows]
     grid = []
     for key in keys:
         g1, gc, g2 = (store.read_image(key.scene, key.frame, n, ["color"])[0]["color"]

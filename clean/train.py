@@ -216,8 +216,6 @@ def datasets(cfg: Config, recipe: Recipe):
     spps = store.spp_choices(recipe.spp) if mode != "cleaner" else []
 
     def keys(split: str) -> list:
-        if split not in store.manifest()["splits"]:
-            return []
         if mode == "cleaner":
             return usable_frames(store, split, ["gt1", "gt2"])
         return [k for k in usable_frames(store, split, ["gt1"])

@@ -82,7 +82,8 @@ def frame_groups(cfg: Config, store: Store) -> dict[str, list[FrameKey]]:
     for split in wanted:
         keys = [k for k in store.frames(split) if store.frame_record(k.scene, k.frame) is not None]
         if split != EXTERNAL:
-            with_clean = [k for k in keys if store.image_path(k.scene, k.frame, "gt_clean").exists()]
+            cleaned = set(store.frames_with(split))
+            with_clean = [k for k in keys if k in cleaned]
             if keys and not with_clean:
                 raise StoreError(f"{store.root}: no {split} frame has gt_clean.exr; run `make gt-clean` first")
             keys = with_clean

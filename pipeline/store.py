@@ -201,6 +201,13 @@ class Store:
             out += [FrameKey(scene, f) for f in range(int(sm["frames"]))]
         return out
 
+    def frames_with(self, split: str, images: tuple[str, ...] | list[str] = ("gt_clean",)) -> list[FrameKey]:
+        """The frames of ``split`` with every image of ``images`` on disk (by default ``gt_clean``: the frames
+        a denoiser trains and is scored on); none for a split this store does not have."""
+        if split not in self.manifest()["splits"]:
+            return []
+        return [k for k in self.frames(split) if all(self.image_path(k.scene, k.frame, n).exists() for n in images)]
+
     def is_frame_complete(self, scene: str, frame: int, images: list[str]) -> bool:
         """True when frame.json lists every expected image and each file is on disk."""
         try:

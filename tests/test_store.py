@@ -7,7 +7,7 @@ import pytest
 
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.exr import StoreError, read_header, read_image, write_image
-from mcdenoise.pipeline.store import Store, combine_stacks, image_seed
+from mcdenoise.pipeline.store import FrameKey, Store, combine_stacks, image_seed
 
 
 def random_image(h=12, w=10, seed=0):
@@ -198,6 +198,21 @@ def test_store_read_averages_stacks(tmp_path):
     assert one["color"].shape == (12, 10, 3)
     with pytest.raises(StoreError, match="spp 6 is not a multiple"):
         store.read("s0", 0, 6)
+
+
+def test_frames_with_lists_the_frames_that_have_the_images(tmp_path):
+    store = Store(tmp_path)
+    store.write_manifest({"scenes": ["s0", "s1"], "splits": {"train": ["s0"], "val": ["s1"]}})
+    for scene in ("s0", "s1"):
+        store.write_scene_manifest(scene, {"frames": 2, "stack_spp": 4, "stacks": 1, "gt_spp": 64})
+    store.write_image("s0", 1, "gt_clean", random_image())
+    store.write_image("s0", 0, "s00", random_image())
+    store.write_image("s0", 1, "s00", random_image())
+    assert store.frames_with("train") == [FrameKey("s0", 1)]
+    assert store.frames_with("train", ["s00"]) == [FrameKey("s0", 0), FrameKey("s0", 1)]
+    assert store.frames_with("train", ["s00", "gt_clean"]) == [FrameKey("s0", 1)]
+    assert store.frames_with("val") == []
+    assert store.frames_with("test") == []        # a split the store does not have: no frames
 
 
 def test_malformed_manifest_is_a_clear_error(tmp_path):

@@ -29,12 +29,6 @@ from .sampler import sample
 from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit
 
 
-def _frames(store: Store, split: str) -> list[FrameKey]:
-    if split not in store.manifest().get("splits", {}):
-        return []
-    return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
-
-
 def _fit_crop(crop: int, sides: list[int], multiple: int) -> int:
     crop = min([crop] + sides)
     crop -= crop % multiple
@@ -88,7 +82,7 @@ def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
     if not store.manifest_path.exists():
         raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
     choices = store.spp_choices(spp)
-    train_keys, val_keys = _frames(store, "train"), _frames(store, "val")
+    train_keys, val_keys = store.frames_with("train"), store.frames_with("val")
     if not train_keys:
         raise TrainError(f"{store.root}: no training frame with gt_clean; run `make gt-clean`")
     if not f.control and not f.train_base:
@@ -186,7 +180,7 @@ def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
             print(f"untrained base written to {out}", flush=True)
         return 0
 
-    val_keys = _frames(store, "val") if store.manifest_path.exists() else []
+    val_keys = store.frames_with("val") if store.manifest_path.exists() else []
     validate = _validator(store, val_keys, spps, cfg, device, autocast_dtype(cfg.diffusion.precision, device)) \
         if val_keys and not form.paper else None
     job = Job(name="pretrain", folder=folder, model=model, trainable=unet, params=list(unet.parameters()),
@@ -230,7 +224,7 @@ def _estimator(cfg: Config):
 
 def _pack_sources(cfg: Config, store: Store, frames: list, quiet: bool) -> list:
     """Real degraded versions of the store's frames from the train pack: (pack, item indices) per frame."""
-    keys = _frames(store, "train")
+    keys = store.frames_with("train")
     est, est_id = _estimator(cfg)
     path = ensure_pack(store, keys, pack_path(cfg.runs, "train", est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
     pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=est.kind)
@@ -387,7 +381,7 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
         raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
     est, est_id = _estimator(cfg)
     for split in splits:
-        keys = _frames(store, split)
+        keys = store.frames_with(split)
         if not keys:
             raise TrainError(f"{store.root}: no {split} frame with gt_clean; run `make gt-clean`")
         path = ensure_pack(store, keys, pack_path(cfg.runs, split, est.kind), cfg.diffusion.tonemap, est, quiet, est_id)

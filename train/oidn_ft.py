@@ -219,12 +219,6 @@ def prior(cfg: Config) -> tuple[oidn_net.UNet, str]:
     return oidn_net.UNet.from_tza(tza.read(blob, name)), hashlib.sha256(blob).hexdigest()
 
 
-def _frames(store: Store, split: str) -> list[FrameKey]:
-    if split not in store.manifest().get("splits", {}):
-        return []
-    return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
-
-
 class OIDNFineTune(Task):
     """OIDN's network, fine-tuned on the store's train split (see the module docstring)."""
 
@@ -236,7 +230,7 @@ class OIDNFineTune(Task):
         self.cfg, self.store = cfg, Store(cfg.store)
         if not self.store.manifest_path.exists():
             raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
-        self.train_keys, self.val_keys = _frames(self.store, "train"), _frames(self.store, "val")
+        self.train_keys, self.val_keys = self.store.frames_with("train"), self.store.frames_with("val")
         if not self.train_keys:
             raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
         self.spps = self.store.spp_choices(spp)

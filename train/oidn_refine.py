@@ -45,7 +45,7 @@ from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.numerics import repair_nonfinite
 from mcdenoise.pipeline.runs import pick_device, run_dir
-from mcdenoise.pipeline.store import FrameKey, Store
+from mcdenoise.pipeline.store import Store
 
 from .formulation import Formulation, snr_weight
 from .oidn_control import ControlledOIDN
@@ -137,12 +137,6 @@ def sample(model: ControlledOIDN, x: torch.Tensor, cond: torch.Tensor, f: Formul
 # ---- the training run --------------------------------------------------------------------------
 
 
-def _frames(store: Store, split: str) -> list[FrameKey]:
-    if split not in store.manifest().get("splits", {}):
-        return []
-    return [k for k in store.frames(split) if store.image_path(k.scene, k.frame, "gt_clean").exists()]
-
-
 class StoreSource:
     """The data of a config's store: the train split as the pack (``train.oidn_pack``), the first
     ``val_frames`` val frames whole, each at the run's smallest, middle and largest sample count."""
@@ -151,7 +145,7 @@ class StoreSource:
         self.cfg, self.store = cfg, Store(cfg.store)
         if not self.store.manifest_path.exists():
             raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
-        self.train_keys, self.val_keys = _frames(self.store, "train"), _frames(self.store, "val")
+        self.train_keys, self.val_keys = self.store.frames_with("train"), self.store.frames_with("val")
         if not self.train_keys:
             raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
 

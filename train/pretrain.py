@@ -134,11 +134,10 @@ def gather_pictures(store_path: str, folders: list[str]) -> tuple[list[np.ndarra
     pictures, sources, frames = [], [], []
     store = Store(store_path)
     if store.manifest_path.exists():
-        for key in store.frames("train"):
-            if store.image_path(key.scene, key.frame, "gt_clean").exists():
-                pictures.append(store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"])
-                sources.append(f"{key.scene}/{key.frame:03d}/gt_clean")
-                frames.append((store, key))
+        for key in store.frames_with("train"):
+            pictures.append(store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"])
+            sources.append(f"{key.scene}/{key.frame:03d}/gt_clean")
+            frames.append((store, key))
     for folder in folders:
         root = Path(folder)
         if not root.is_dir():
