@@ -81,13 +81,7 @@ def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) ->
 def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
     """The Isik baseline that serves ``spp``: the run trained at that spp (isik_spp<N>) if there is
     one, else the spp-conditioned run (isik_sppany) when it was trained on that count; None if neither."""
-    own = run_dir(cfg, "baseline", spp)
-    if (own / "model.safetensors").exists():
-        return own
-    anyspp = run_dir(cfg, "baseline", "any")
-    if (anyspp / "model.safetensors").exists() and int(spp) in trained_spps(anyspp):
-        return anyspp
-    return None
+    return runs.find_run(cfg, "isik", spp, "model.safetensors", serves=lambda folder: int(spp) in trained_spps(folder))
 
 
 def trained_spps(folder: Path) -> list[int]:

@@ -330,6 +330,7 @@ class Loader:
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model
         from mcdenoise.clean.train import baseline_checkpoint, run_dir
+        from mcdenoise.pipeline.runs import find_run, run_candidates
 
         if family == "isik":
             folder = baseline_checkpoint(self.cfg, spp)
@@ -339,10 +340,10 @@ class Loader:
                                         f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
             tile = self.cfg.clean.tile
         else:
-            folders = [run_dir(self.cfg, "afgsa", spp), run_dir(self.cfg, "afgsa", "any")]
-            folder = next((f for f in folders if (f / "model.safetensors").exists()), None)
+            folder = find_run(self.cfg, "afgsa", spp, "model.safetensors")
             if folder is None:
-                raise MethodUnavailable(f"no AFGSA checkpoint in {' or '.join(map(str, folders))}: run "
+                searched = " or ".join(map(str, run_candidates(self.cfg, "afgsa", spp)))
+                raise MethodUnavailable(f"no AFGSA checkpoint in {searched}: run "
                                         f"`make train MODEL=afgsa SPP={spp}` (or SPP=any)")
             tile = self.cfg.afgsa.tile
         # One spp-conditioned model serves every spp: load it once.

@@ -12,11 +12,15 @@ One folder per model and sample count (``spp<N>``, or ``sppany`` for one model s
 - ``diffusion``: ``<runs>/diffusion_spp<N>``, with ``_<variant>`` (``diffusion.name``, or the
   variant given) and ``_base_only`` (``diffusion.control`` false) appended.
 
+``find_run``: the run that serves a sample count, its own (``spp<N>``) else the one for every
+count (``sppany``); the evaluator, ``denoise`` and the reports find Isik, AFGSA and diffusion runs by it.
+
 Importing this module does not import torch; ``pick_device`` does.
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 from .config import Config
 
@@ -48,6 +52,29 @@ def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str 
         name = f"diffusion_{spp_tag(spp)}" + (f"_{variant}" if variant else "")
         return runs / (name if cfg.diffusion.control else name + "_base_only")
     raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
+
+
+def run_candidates(cfg: Config, model: str, spp: int | str, variant: str | None = None) -> list[Path]:
+    """Where the run of ``model`` that serves ``spp`` may be, in order: its own (``<model>_spp<N>``), then
+    the one model for every sample count (``<model>_sppany``); for ``spp`` 'any' only that one."""
+    own = run_dir(cfg, model, spp, variant)
+    return [own] if str(spp) == "any" else [own, run_dir(cfg, model, "any", variant)]
+
+
+def find_run(cfg: Config, model: str, spp: int | str, weights: str, variant: str | None = None,
+             serves: Callable[[Path], bool] | None = None, fallback: Path | None = None) -> Path | None:
+    """The run of ``model`` that serves ``spp``: the first of ``run_candidates`` with ``weights`` (a file name)
+    in it, the any-spp run only where ``serves(folder)`` says it trained on ``spp`` (default: it serves
+    every count), else ``fallback`` when it has ``weights``; None if none does."""
+    own, *others = run_candidates(cfg, model, spp, variant)
+    if (own / weights).exists():
+        return own
+    for folder in others:
+        if (folder / weights).exists() and (serves is None or serves(folder)):
+            return folder
+    if fallback is not None and (fallback / weights).exists():
+        return fallback
+    return None
 
 
 def pick_device(name: str):

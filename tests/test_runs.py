@@ -3,7 +3,7 @@ that delegate to it."""
 import pytest
 
 from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.runs import pick_device, run_dir
+from mcdenoise.pipeline.runs import find_run, pick_device, run_candidates, run_dir
 
 
 def test_every_model_has_its_folder(tmp_path):
@@ -37,6 +37,29 @@ def test_stage_spellings_delegate(tmp_path):
     assert diffusion_run_dir(cfg, 16) == run_dir(cfg, "diffusion", 16)
     with pytest.raises(ValueError, match="mode must be 'cleaner', 'baseline' or 'afgsa'"):
         clean_run_dir(cfg, "isik", 4)
+
+
+def test_find_run_takes_the_own_run_then_the_any_spp_run(tmp_path):
+    cfg = load_config(None, [f"runs={tmp_path}"])
+    assert run_candidates(cfg, "afgsa", 4) == [tmp_path / "afgsa_spp4", tmp_path / "afgsa_sppany"]
+    assert run_candidates(cfg, "afgsa", "any") == [tmp_path / "afgsa_sppany"]
+    assert find_run(cfg, "afgsa", 4, "model.safetensors") is None
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    (shipped / "model.json").write_text("{}")
+    assert find_run(cfg, "diffusion", 4, "model.json", fallback=shipped) == shipped
+    for name in ("afgsa_sppany", "diffusion_sppany"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "afgsa_sppany" / "model.safetensors").write_bytes(b"")
+    (tmp_path / "diffusion_sppany" / "model.json").write_text("{}")
+    assert find_run(cfg, "afgsa", 4, "model.safetensors") == tmp_path / "afgsa_sppany"
+    assert find_run(cfg, "diffusion", 4, "model.json", fallback=shipped) == tmp_path / "diffusion_sppany"
+    # the any-spp run serves only the counts it says it trained on; the own run always
+    assert find_run(cfg, "afgsa", 4, "model.safetensors", serves=lambda folder: False) is None
+    (tmp_path / "afgsa_spp4").mkdir()
+    (tmp_path / "afgsa_spp4" / "model.safetensors").write_bytes(b"")
+    assert find_run(cfg, "afgsa", 4, "model.safetensors", serves=lambda folder: False) == tmp_path / "afgsa_spp4"
+    assert find_run(cfg, "afgsa", "any", "model.safetensors", serves=lambda folder: False) == tmp_path / "afgsa_sppany"
 
 
 def test_pick_device():

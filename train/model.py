@@ -68,13 +68,12 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
     ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError) if none."""
-    own = run_dir(cfg, spp, variant)
-    candidates = [own] if str(spp) == "any" else [own, run_dir(cfg, "any", variant)]
-    if not (variant if variant is not None else cfg.diffusion.name) and cfg.diffusion.shipped and cfg.diffusion.control:
-        candidates.append(SHIPPED_MODEL)
-    for folder in candidates:
-        if (folder / "model.json").exists():
-            return folder
+    named = variant if variant is not None else cfg.diffusion.name
+    shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped and cfg.diffusion.control else None
+    folder = runs.find_run(cfg, "diffusion", spp, "model.json", variant, fallback=shipped)
+    if folder is not None:
+        return folder
+    candidates = runs.run_candidates(cfg, "diffusion", spp, variant) + ([shipped] if shipped else [])
     raise CheckpointError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
                           f"`make train SPP={spp}` or `make train SPP=any`" +
                           (f" with diffusion.name={variant}" if variant else ""))
