@@ -10,6 +10,8 @@ import pytest
 
 from mcdenoise.evaluate.stability import synthetic_buffers
 from mcdenoise.pipeline.exr import read_image
+from mcdenoise.pipeline.store import sha256
+from mcdenoise.train import oidn_refine
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import SHIPPED_MODEL
 from tests.helpers import cornell_box, write_rgb_exr
@@ -25,7 +27,9 @@ def test_shipped_model_is_in_the_repository_small_and_documented():
     files = [p for p in SHIPPED_MODEL.rglob("*") if p.is_file()]
     assert sum(p.stat().st_size for p in files) <= 30 * 2**20
     meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
-    assert meta["spp"] == "any" and meta["base"] == "base"
+    # a Control Module on OIDN's own network (its frozen weights in base.tza, checked against model.json)
+    assert meta["format"] == oidn_refine.FORMAT and meta["base_network"] == "rt_hdr_alb_nrm"
+    assert sha256(SHIPPED_MODEL / "base.tza") == meta["base_sha256"] and {4, 16, 64} <= set(meta["spp"])
     card = (SHIPPED_MODEL / "README.md").read_text()
     assert "configs/ship.yaml" in card and "python -m pipeline" in card
 

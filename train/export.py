@@ -110,7 +110,7 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
         f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
         f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
         f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
-        "configs/default.yaml's scenes (another seed).", "",
+        f"configs/default.yaml's scenes (another seed).{_split_sizes(cfg.store)}", "",
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
         f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
@@ -156,6 +156,15 @@ def _gain(best: dict) -> str:
     v = best.get("val") or {}
     gain = _gain_db(v)
     return "" if gain != gain else f": {gain:+.4f} dB over the first estimate on {v.get('frames', '?')} validation frames"
+
+
+def _split_sizes(store: str) -> str:
+    """The frames of each split in the store (what the model saw: fewer than the config plans if a render stopped)."""
+    manifest = Path(store) / "dataset.json"
+    if not manifest.exists():
+        return ""
+    splits = json.loads(manifest.read_text()).get("splits", {})
+    return " Frames in the store: " + ", ".join(f"{len(v)} {k}" for k, v in splits.items() if v) + "."
 
 
 def _gt_spp(d) -> str:
@@ -262,7 +271,7 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
         f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
         f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
         f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
-        "configs/default.yaml's scenes (another seed).", "",
+        f"configs/default.yaml's scenes (another seed).{_split_sizes(cfg.store)}", "",
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; lr "
         f"{st.get('lr')}, batch {st.get('batch_size')}, crop {st.get('crop')}, EMA {st.get('ema')}, buffer-group "
@@ -285,6 +294,8 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
     spp = "any" if isinstance(spp, list) and len(spp) > 1 else spp
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
               *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
+              *([f"python -m pipeline train --model oidn_ft --spp any --config {config}{extra}"]
+                if cfg.diffusion.base == "oidn_ft" else []),     # the base: OIDN fine-tuned, then blended
               f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
               f"python -m pipeline export --config {config} --spp {spp} --out {out}{extra}", "```", "",
               "Evaluation against OIDN, oidn_ft, Isik and the noisy input on the default test set: "
