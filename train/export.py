@@ -59,6 +59,11 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
     record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
     atomic_write_json(tmp / "model.json", record)
     (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
+    return _publish(tmp, out, folder, quiet)
+
+
+def _publish(tmp: Path, out: Path, folder: Path, quiet: bool) -> Path:
+    """Replace ``out`` by the finished ``tmp`` folder (a rename: no half-written model folder) and say so."""
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
     if not quiet:
@@ -229,12 +234,7 @@ def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool 
     record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
     atomic_write_json(tmp / "model.json", record)
     (tmp / "README.md").write_text(refine_card(cfg, record, folder, config or "<config>", out, overrides))
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
-    if not quiet:
-        size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
-        print(f"exported {folder} -> {out} ({size / 2**20:.1f} MiB)", flush=True)
-    return out
+    return _publish(tmp, out, folder, quiet)
 
 
 def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
