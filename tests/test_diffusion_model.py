@@ -5,12 +5,14 @@ import numpy as np
 import pytest
 import torch
 
+from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.fit import fit
 from mcdenoise.train import base as base_lib, diffusion
-from mcdenoise.train.control import ControlledDenoiser, ControlModule
+from mcdenoise.train.control import ControlledDenoiser
 from mcdenoise.train.data import AUX_CHANNELS, augment, aux_names, condition, from_model, to_model
 from mcdenoise.train.sampler import sample, sample_tiled
-from mcdenoise.train.train import Job, TrainError, fit, lr_factor
+from mcdenoise.train.train import ControlTask, TrainError, lr_factor
 from tests.helpers import tiny_model, tiny_unet_config
 
 TINY_UNET = tiny_unet_config()
@@ -158,26 +160,34 @@ class Synthetic(torch.utils.data.Dataset):
         return {"noisy": noisy, "aux": self.aux[i], "target": self.target[i]}
 
 
-def job(folder, model, epochs, ds=None, nan_limit=3, **kw):
-    trainable = torch.nn.ModuleDict({"control": model.control})
-    saved = {}
-    return Job(name="t", folder=folder, model=model, trainable=trainable, params=model.trainable_parameters(),
-               train_ds=ds or Synthetic(), validate=None, save_best=lambda r: saved.update(r), epochs=epochs,
-               batch_size=4, lr=1e-3, weight_decay=0.01, warmup_steps=1, grad_clip=1.0, nan_limit=nan_limit,
-               time_budget_s=0, seed=0, fingerprint={"x": 1}, device=torch.device("cpu"), **kw)
+# The paper's arrangement on a tiny frozen base: IF's hybrid loss, the noisy render as the image input.
+PAPER = ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false",
+         "diffusion.estimate=none", "diffusion.train_base=false"]
+
+
+def task(folder, epochs, data=None, *overrides):
+    """``train.train.ControlTask`` on a tiny saved base and ``data`` (default ``Synthetic()``) instead of a store."""
+    base = folder / "base"
+    if not base.exists():
+        base_lib.save(base, *base_lib.build(TINY_UNET, seed=0))
+    cfg = load_config(None, [f"runs={folder / 'runs'}", f"diffusion.base={base}", *PAPER, f"diffusion.epochs={epochs}",
+                             "diffusion.batch_size=4", "diffusion.lr=1e-3", "diffusion.warmup_steps=1",
+                             "diffusion.nan_limit=3", "diffusion.ema=0", "diffusion.device=cpu", *overrides])
+    return ControlTask(cfg, "any", data=data or Synthetic())
 
 
 def test_training_moves_only_the_control_module(tmp_path):
-    m = tiny_model()
-    base_before = {k: v.clone() for k, v in m.base.state_dict().items()}
-    control_before = {k: v.clone() for k, v in m.control.state_dict().items()}
-    summary = fit(job(tmp_path, m, 2), quiet=True)
+    t = task(tmp_path, 2)
+    base_before = {k: v.clone() for k, v in t.model.base.state_dict().items()}
+    control_before = {k: v.clone() for k, v in t.model.control.state_dict().items()}
+    summary = fit(t, quiet=True)
     assert summary["epochs"] == 2
-    assert all(torch.equal(base_before[k], v) for k, v in m.base.state_dict().items())
-    assert any(not torch.equal(control_before[k], v) for k, v in m.control.state_dict().items())
-    assert (tmp_path / "loss.png").stat().st_size > 1000
-    hist = json.loads((tmp_path / "train.json").read_text())["history"]
+    assert all(torch.equal(base_before[k], v) for k, v in t.model.base.state_dict().items())
+    assert any(not torch.equal(control_before[k], v) for k, v in t.model.control.state_dict().items())
+    assert (t.folder / "loss.png").stat().st_size > 1000
+    hist = json.loads((t.folder / "train.json").read_text())["history"]
     assert len(hist) == 2 and all(np.isfinite(h["train_loss"]) for h in hist)
+    assert (t.folder / "control.safetensors").exists() and (t.folder / "model.json").exists()
 
 
 class Counting(Synthetic):
@@ -192,42 +202,39 @@ class Counting(Synthetic):
 
 def test_epoch_steps_trains_a_new_subset_each_epoch(tmp_path):
     ds = Counting()
-    fit(job(tmp_path, tiny_model(), 2, ds=ds, epoch_steps=1), quiet=True)   # 1 step of batch 4 per epoch
+    t = task(tmp_path, 2, ds, "diffusion.epoch_steps=1")   # 1 step of batch 4 per epoch
+    fit(t, quiet=True)
     first, second = ds.read[:4], ds.read[4:]
     assert len(ds.read) == 8 and len(set(first)) == 4 and set(first) != set(second)
-    hist = json.loads((tmp_path / "train.json").read_text())["history"]
+    hist = json.loads((t.folder / "train.json").read_text())["history"]
     assert [h["epoch"] for h in hist] == [1, 2]
 
 
 def test_resume_continues_exactly(tmp_path):
-    straight = tiny_model()
-    fit(job(tmp_path / "a", straight, 3), quiet=True)
-    resumed = tiny_model()
-    fit(job(tmp_path / "b", resumed, 1), quiet=True)
-    again = tiny_model()   # a new process: fresh weights, everything must come from last.safetensors
-    fit(job(tmp_path / "b", again, 3), quiet=True)
-    for k, v in straight.control.state_dict().items():
-        assert torch.equal(v, again.control.state_dict()[k]), k
-    a = json.loads((tmp_path / "a" / "train.json").read_text())["history"]
-    b = json.loads((tmp_path / "b" / "train.json").read_text())["history"]
+    straight = task(tmp_path / "a", 3)
+    fit(straight, quiet=True)
+    stopped = task(tmp_path / "b", 3, None, "diffusion.time_budget_s=1e-9")   # stops after its first epoch
+    assert fit(stopped, quiet=True)["epochs"] == 1
+    again = task(tmp_path / "b", 3)   # a new process: fresh weights, everything must come from last.safetensors
+    fit(again, quiet=True)
+    for k, v in straight.model.control.state_dict().items():
+        assert torch.equal(v, again.model.control.state_dict()[k]), k
+    a = json.loads((straight.folder / "train.json").read_text())["history"]
+    b = json.loads((again.folder / "train.json").read_text())["history"]
     assert [h["train_loss"] for h in a] == [h["train_loss"] for h in b]
 
 
 def test_nan_guard_skips_then_stops(tmp_path):
-    m = tiny_model()
     with pytest.raises(TrainError, match="non-finite"):
-        fit(job(tmp_path, m, 2, ds=Synthetic(nan_at=0), nan_limit=2), quiet=True)
+        fit(task(tmp_path, 2, Synthetic(nan_at=0), "diffusion.nan_limit=2"), quiet=True)
 
 
 def test_resume_refuses_other_settings(tmp_path):
-    m = tiny_model()
-    fit(job(tmp_path, m, 1), quiet=True)
-    j = job(tmp_path, tiny_model(), 2)
-    j.fingerprint = {"x": 2}
+    fit(task(tmp_path, 1), quiet=True)
     # pipeline.checkpoint.load_last refuses before loading any weight; the CLI prints its errors
     # as one line (exit status 2), and the message names the setting that changed.
-    with pytest.raises(CheckpointError, match=r"different settings \(x\); delete"):
-        fit(j, quiet=True)
+    with pytest.raises(CheckpointError, match=r"different settings \(lr\); delete"):
+        fit(task(tmp_path, 1, None, "diffusion.lr=2e-3"), quiet=True)
 
 
 # ---- save / load --------------------------------------------------------------------------------
@@ -289,12 +296,10 @@ def test_tiled_sampling_covers_the_frame():
 
 
 def test_train_base_option_trains_the_base_too(tmp_path):
-    unet, prompt = base_lib.build(TINY_UNET, seed=0)
-    m = ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS), train_base=True)
+    t = task(tmp_path, 1, None, "diffusion.train_base=true")
+    m = t.model
     before = {k: v.clone() for k, v in m.base.state_dict().items()}
-    j = job(tmp_path, m, 1)
-    j.trainable = torch.nn.ModuleDict({"control": m.control, "base": m.base})
-    fit(j, quiet=True)
+    fit(t, quiet=True)
     assert any(not torch.equal(before[k], v) for k, v in m.base.state_dict().items())
     assert len(m.trainable_parameters()) == len(list(m.control.parameters())) + len(list(m.base.parameters()))
 

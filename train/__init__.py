@@ -3,13 +3,14 @@ OIDN's network) with a trainable Control Module (paper Fig. 1); and ``oidn_ft``,
 fine-tuned on the store.
 
 - ``train.base``: the base UNet (load, build, the stand-in in ``train/base_model_paper``);
-  ``train.pretrain``: trains a stand-in base (``make pretrain``).
+  ``train.pretrain``: a stand-in base's training run (``PretrainTask``, ``make pretrain``).
 - ``train.control``: the Control Module and the controlled denoiser around the base.
 - ``train.diffusion`` / ``train.formulation``: the diffusion process, what is diffused and
   predicted, the loss weighting; ``train.sampler``: the reverse diffusion.
 - ``train.data``, ``train.pack``, ``train.estimate``: model inputs, training packs, first estimates.
-- ``train.train``: a ``Job`` (model, data, settings: the diffusion run's or the stand-in base's)
-  run as a ``pipeline.fit`` task; the optimiser, the step (loss, clipping, EMA), DDP helpers.
+- ``train.train``: the diffusion denoiser's training run on the IF-II-layout base (``ControlTask``, a
+  ``pipeline.fit`` task reading top to bottom: model, data, optimiser; the step; validation), and
+  what every diffusion run shares (learning-rate schedule, EMA, DDP helpers).
 - ``train.model``: assemble, save and load a run.
 - ``train.infer``: denoise a frame with a trained run; ``train.export``: a self-contained model folder.
 - ``train.oidn_ft``: OIDN's network fine-tuned from its pretrained weights (augmentation, L2-SP,

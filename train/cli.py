@@ -6,197 +6,37 @@
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from mcdenoise.pipeline.config import PAPER_STEPS, Config
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import StoreError, write_image
-from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
-from mcdenoise.pipeline.runs import pick_device, run_dir as runs_dir
-from mcdenoise.pipeline.store import FrameKey, Store, sha256
+from mcdenoise.pipeline.store import FrameKey, Store
 
-from . import base as base_lib
-from .data import DenoisePairs, frame_rotation, from_model
-from .formulation import Formulation
-from .model import FORMAT, base_folder, build, estimator, find_run, isik_folder, new_base, run_dir, save
-from .pack import PackPairs, ensure_pack, pack_path
-from .pretrain import RestorationPairs, gather_pictures
-from .sampler import sample
-from .train import Job, TrainError, autocast_dtype, dist_shutdown, fit
-
-
-def _fit_crop(crop: int, sides: list[int], multiple: int) -> int:
-    crop = min([crop] + sides)
-    crop -= crop % multiple
-    if crop < multiple:
-        raise TrainError(f"frames of {min(sides)} pixels are smaller than the base's minimum side {multiple}")
-    return crop
-
-
-def _validator(store: Store, keys: list[FrameKey], spps: list[int], cfg: Config, device, autocast):
-    """Val PSNR (x/(1+x)) of the configured sampler on the first ``val_frames`` val frames (frame i at
-    ``spps[i % len]``), beside the noisy input's and the first estimate's."""
-    keys = keys[:cfg.diffusion.val_frames]
-    if not keys:
-        return None
-    f = cfg.diffusion
-    form = Formulation.from_config(f)
-    ds = DenoisePairs(store, keys, spps, crop=None, seed=cfg.seed, tonemap=f.tonemap, estimator=_estimator(cfg)[0])
-    items = [ds[i] for i in range(len(ds))]
-    refs = [from_model(it["target"], f.tonemap).numpy() for it in items]
-
-    def score(images) -> float:
-        return float(np.mean([min(psnr(from_model(im, f.tonemap).numpy(), ref), PSNR_CEILING)
-                              for im, ref in zip(images, refs)]))
-
-    base = {"noisy_psnr": score([it["noisy"] for it in items]), "estimate_psnr": score([it["image"] for it in items]),
-            "frames": len(items), "spp": [spps[i % len(spps)] for i in range(len(items))]}
-
-    def validate(model) -> dict:
-        model.eval()
-        outs = []
-        for it in items:
-            noisy, aux, image = (it[k][None].to(device) for k in ("noisy", "aux", "image"))
-            out = sample(model, noisy, aux, image=image, formulation=form,
-                         skip=f.val_skip if form.paper else f.skip, seed=cfg.seed,
-                         threshold_ratio=f.threshold_ratio, autocast_dtype=autocast, variance=f.variance)
-            outs.append(out[0].float().cpu())
-        model.train()
-        return {"psnr": score(outs), **base, "skip": f.val_skip if form.paper else f.skip,
-                "steps": PAPER_STEPS if form.paper else f.steps}
-    return validate
+from .data import frame_rotation
+from .model import estimator_and_id, find_run
+from .pack import ensure_pack, pack_path
+from .pretrain import pretrain
+from .train import train
 
 
 def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
-    """Train the Control Module for ``spp`` (or 'any') from the store's low-spp stacks to GT_clean."""
+    """Train the diffusion denoiser for ``spp`` (or 'any'): on OIDN's network (``train.oidn_refine``) or on
+    the IF-II-layout base (``train.train``)."""
     from . import oidn_refine
     if oidn_refine.is_oidn_base(cfg):
         oidn_refine.train(cfg, spp, quiet=quiet)
-        return 0
-    f = cfg.diffusion
-    store = Store(cfg.store)
-    if not store.manifest_path.exists():
-        raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    choices = store.spp_choices(spp)
-    train_keys, val_keys = store.frames_with("train"), store.frames_with("val")
-    if not train_keys:
-        raise TrainError(f"{store.root}: no training frame with gt_clean; run `make gt-clean`")
-    if not f.control and not f.train_base:
-        raise TrainError("diffusion.control=false with train_base=false leaves nothing to train; the base-only "
-                         "ablation needs no training (the evaluator runs it from the base)")
-    device = pick_device(f.device)
-    folder = run_dir(cfg, spp)
-    new_base(cfg, folder)
-    model = build(cfg, run=folder).to(device)
-    sides = [min(store.scene_manifest(s)["resolution"]) for s in {k.scene for k in train_keys}]
-    crop = _fit_crop(f.crop, sides, model.multiple)
-    form = Formulation.from_config(f)
-    if f.pack:
-        est, est_id = _estimator(cfg)
-        path = ensure_pack(store, train_keys, pack_path(cfg.runs, "train", form.estimate), f.tonemap, est, quiet,
-                           est_id)
-        ds = PackPairs(path, crop, f.crops_per_frame, cfg.seed, choices, f.tonemap, form.estimate)
-        choices = sorted(set(ds.t["spp"].tolist()) & set(choices))
     else:
-        ds = DenoisePairs(store, train_keys, choices, crop, f.crops_per_frame, cfg.seed, f.tonemap,
-                          estimator=_estimator(cfg)[0])
-    autocast = autocast_dtype(f.precision, device)
-    fp = {"spp": str(spp), "seed": cfg.seed, "base_sha256": _base_hash(cfg, folder), "crop": crop,
-          "formulation": form.record(), "train_steps": list(f.train_steps), "ema": f.ema,
-          **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr", "weight_decay",
-                                         "warmup_steps", "grad_clip", "train_base", "control", "epochs")},
-          # only when set, so runs from before the key resume as they were
-          **({"epoch_steps": f.epoch_steps} if f.epoch_steps else {})}
-
-    def save_best(record):
-        save(folder, model, cfg, str(spp), record)
-
-    trainable = torch.nn.ModuleDict({k: m for k, m in (("control", model.control),
-                                                        ("base", model.base if f.train_base else None)) if m})
-    job = Job(name=folder.name, folder=folder, model=model, trainable=trainable, params=model.trainable_parameters(),
-              train_ds=ds, validate=_validator(store, val_keys, choices, cfg, device, autocast),
-              objective=None if form.paper else form.objective(list(f.train_steps)),
-              validate_initial=not form.paper, ema=f.ema, epoch_steps=f.epoch_steps, save_best=save_best,
-              epochs=f.epochs,
-              batch_size=f.batch_size, lr=f.lr, weight_decay=f.weight_decay,
-              warmup_steps=f.warmup_steps, grad_clip=f.grad_clip, nan_limit=f.nan_limit,
-              time_budget_s=f.time_budget_s, seed=cfg.seed, fingerprint=fp, device=device, autocast=autocast,
-              fmt=FORMAT, title=f"Control Module, {spp} spp -> GT_clean")
-    try:
-        fit(job, quiet=quiet)
-    finally:
-        dist_shutdown()
+        train(cfg, spp, quiet=quiet)
     return 0
-
-
-def _base_hash(cfg: Config, run: Path) -> str:
-    from mcdenoise.pipeline.store import sha256
-    path = base_folder(cfg, run) / base_lib.WEIGHTS
-    if not path.exists():
-        raise TrainError(f"{path}: base weights missing; run `make pretrain` or set diffusion.base")
-    return sha256(path)
 
 
 def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
     """Train a new stand-in base (IF-II layout) as a restoration prior (``train.pretrain``)."""
-    p = cfg.pretrain
-    out = runs_dir(cfg, "base")
-    pictures, sources, frames = gather_pictures(cfg.store, list(p.images))
-    device = pick_device(cfg.diffusion.device)
-    form = Formulation.from_config(cfg.diffusion)
-    config = base_lib.default_config(list(p.channels), p.layers_per_block)
-    from .control import ControlledDenoiser, zero_module
-    unet, prompt = base_lib.build(config, seed=cfg.seed)
-    if not form.paper:
-        zero_module(unet.conv_out)   # the untrained base returns its image input (see train.formulation)
-    model = ControlledDenoiser(unet, prompt, None, train_base=True).to(device)
-    lcm = math.lcm(model.multiple, *[int(s) for s in p.scales])
-    crop = _fit_crop(p.crop, [min(x.shape[:2]) for x in pictures] if pictures else [p.crop], lcm)
-    store = Store(cfg.store)
-    spps = store.spp_choices("any") if store.manifest_path.exists() and store.scenes() else [4]
-    if cfg.diffusion.pack and any(frames):
-        frames = _pack_sources(cfg, store, frames, quiet)
-    ds = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
-                          cfg.diffusion.tonemap, frames=frames, real=p.real, spp_choices=spps,
-                          estimator=_estimator(cfg)[0], fireflies=p.fireflies)
-    folder = out.parent / (out.name + ".train")
-    fp = {"config": config, "seed": cfg.seed, "crop": crop, "pictures": len(pictures), "formulation": form.record(),
-          **{k: getattr(p, k) for k in ("epochs", "batch_size", "crops_per_image", "lr", "weight_decay", "scales",
-                                         "noise", "fireflies", "real")}}
-    card = {"what": "stand-in IF-II-layout base trained by make pretrain (restoration prior of radiance)",
-            "pictures": len(pictures), "sources": sources[:50], "tonemap": cfg.diffusion.tonemap,
-            "formulation": form.record()}
-
-    def save_best(record):
-        base_lib.save(out, unet, prompt, card | record)
-
-    if p.epochs == 0:   # the initialised base: with the refine formulation it returns its image input exactly
-        save_best({"epoch": 0, "metrics": None, "train_loss": None})
-        if not quiet:
-            print(f"untrained base written to {out}", flush=True)
-        return 0
-
-    val_keys = store.frames_with("val") if store.manifest_path.exists() else []
-    validate = _validator(store, val_keys, spps, cfg, device, autocast_dtype(cfg.diffusion.precision, device)) \
-        if val_keys and not form.paper else None
-    job = Job(name="pretrain", folder=folder, model=model, trainable=unet, params=list(unet.parameters()),
-              # Not epoch 0: a zero last layer is the identity, and a frozen identity base would give the Control
-              # Module no gradient (its residuals only reach the output through the base's last layer).
-              train_ds=ds, validate=validate, validate_initial=False, save_best=save_best, epochs=p.epochs,
-              batch_size=p.batch_size, lr=p.lr,
-              weight_decay=p.weight_decay, warmup_steps=cfg.diffusion.warmup_steps, grad_clip=cfg.diffusion.grad_clip,
-              nan_limit=cfg.diffusion.nan_limit, time_budget_s=p.time_budget_s, seed=cfg.seed, fingerprint=fp,
-              device=device, autocast=autocast_dtype(cfg.diffusion.precision, device), fmt="mcdenoise-base",
-              title="stand-in base: restoration prior",
-              objective=None if form.paper else form.objective(list(cfg.diffusion.train_steps)))
-    fit(job, quiet=quiet)
-    if not quiet:
-        print(f"base written to {out} ({sum(x.numel() for x in unet.parameters()) / 1e6:.2f} M parameters); "
-              f"use it with diffusion.base={out}", flush=True)
+    pretrain(cfg, quiet=quiet)
     return 0
 
 
@@ -213,26 +53,6 @@ def _exr_spp(path: Path) -> tuple[int, str]:
     if isinstance(spp, int) and spp > 0:
         return spp, "from its header"
     return DEFAULT_EXR_SPP, "not recorded in the file: assumed"
-
-
-def _estimator(cfg: Config):
-    """(the configured first estimate, an id of its weights for the pack header)."""
-    est = estimator(cfg)
-    ident = sha256(isik_folder(cfg) / "model.safetensors") if est.isik is not None else ""
-    return est, ident
-
-
-def _pack_sources(cfg: Config, store: Store, frames: list, quiet: bool) -> list:
-    """Real degraded versions of the store's frames from the train pack: (pack, item indices) per frame."""
-    keys = store.frames_with("train")
-    est, est_id = _estimator(cfg)
-    path = ensure_pack(store, keys, pack_path(cfg.runs, "train", est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
-    pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=est.kind)
-    items: dict[int, list[int]] = {}
-    for i, f in enumerate(pack.t["frame"].tolist()):
-        items.setdefault(f, []).append(i)
-    where = {str(k): items[j] for j, k in enumerate(keys)}
-    return [None if src is None else (pack, where[str(src[1])]) for src in frames]
 
 
 def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
@@ -379,7 +199,7 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
     store = Store(cfg.store)
     if not store.manifest_path.exists():
         raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    est, est_id = _estimator(cfg)
+    est, est_id = estimator_and_id(cfg)
     for split in splits:
         keys = store.frames_with(split)
         if not keys:

@@ -18,7 +18,7 @@ import torch
 from mcdenoise.pipeline import runs
 from mcdenoise.pipeline.checkpoint import save_safetensors
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.errors import CheckpointError, StoreError
+from mcdenoise.pipeline.errors import CheckpointError, StoreError, TrainError
 from mcdenoise.pipeline.exr import atomic_write_json, read_json
 from mcdenoise.pipeline.store import sha256
 
@@ -86,6 +86,20 @@ def isik_folder(cfg: Config) -> Path:
 
 def estimator(cfg: Config, device="cpu") -> Estimator:
     return load_estimator(Formulation.from_config(cfg.diffusion).estimate, isik_folder(cfg), device)
+
+
+def estimator_and_id(cfg: Config) -> tuple[Estimator, str]:
+    """(the configured first estimate, an id of its weights for a pack's header: the Isik network's SHA-256)."""
+    est = estimator(cfg)
+    return est, sha256(isik_folder(cfg) / "model.safetensors") if est.isik is not None else ""
+
+
+def base_sha256(cfg: Config, run: Path) -> str:
+    """The SHA-256 of the weights of the run's base (``base_folder``); a clear error when they are missing."""
+    path = base_folder(cfg, run) / base_lib.WEIGHTS
+    if not path.exists():
+        raise TrainError(f"{path}: base weights missing; run `make pretrain` or set diffusion.base")
+    return sha256(path)
 
 
 def build(cfg: Config, seed: int | None = None, run: Path | None = None) -> ControlledDenoiser:

@@ -17,11 +17,16 @@ crop x (model space), drawn per crop:
   ``pretrain.fireflies`` of pixels pushed towards white).
 
 The base learns p(x | y) in the configured formulation (``train.formulation``; the paper's
-ε-MSE + L_t when it is the paper's), with the same loop as the Control Module (``train.train.fit``).
-With the refine formulation its last convolution starts at zero, so the untrained base returns y.
+ε-MSE + L_t when it is the paper's): ``PretrainTask`` is the Control Module's run
+(``train.train.ControlTask``: the step, the validation, the files) with the base as the trained
+module and these pairs as data. With the refine formulation its last convolution starts at zero, so
+the untrained base returns y.
+
+    python -m pipeline pretrain        (make pretrain)  -> pretrain(cfg)   runs/<..>/base/ (or pretrain.out)
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +35,20 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from mcdenoise.pipeline.color import srgb_to_linear
+from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.fit import fit
+from mcdenoise.pipeline.runs import pick_device, run_dir
 from mcdenoise.pipeline.store import Store
 
+from . import base as base_lib, diffusion
+from .control import ControlledDenoiser, zero_module
 from .data import augment, random_crop, to_model, to_planar
 from .estimate import Estimator
+from .formulation import Formulation
+from .model import estimator_and_id
+from .pack import PackPairs, ensure_pack, pack_path
+from .train import ControlTask, autocast_dtype, dist_info, fit_crop, validation_items
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr"}
 
@@ -147,3 +161,95 @@ def gather_pictures(store_path: str, folders: list[str]) -> tuple[list[np.ndarra
             sources.append(str(path))
             frames.append(None)
     return pictures, sources, frames
+
+
+# ---- the training run ----------------------------------------------------------------------------
+
+
+def pretrain(cfg: Config, quiet: bool = False) -> dict | None:
+    """Train (or resume) a new stand-in base into ``<runs>/base`` (``pretrain.out``); with ``pretrain.epochs``
+    0 write the initialised one. The summary of ``pipeline.fit`` (None without training)."""
+    task = PretrainTask(cfg, quiet)
+    if cfg.pretrain.epochs == 0:   # with the refine formulation the initialised base returns its image input exactly
+        task.save_best({"epoch": 0, "val": None, "train_loss": None})
+        if not quiet:
+            print(f"untrained base written to {task.out}", flush=True)
+        return None
+    summary = fit(task, quiet=quiet)
+    if not quiet:
+        print(f"base written to {task.out} ({sum(x.numel() for x in task.unet.parameters()) / 1e6:.2f} M parameters); "
+              f"use it with diffusion.base={task.out}", flush=True)
+    return summary
+
+
+class PretrainTask(ControlTask):
+    """A new IF-II-layout base trained alone on ``RestorationPairs`` (no Control Module); written to ``out``."""
+
+    fmt = "mcdenoise-base"
+    # Not epoch 0: a zero last layer is the identity, and a frozen identity base would give the Control
+    # Module no gradient (its residuals only reach the output through the base's last layer).
+    validate_initial = False
+
+    def __init__(self, cfg: Config, quiet: bool = False):
+        p = self.s = cfg.pretrain
+        d = cfg.diffusion
+        self.cfg, self.quiet, self.rank, self.world = cfg, quiet, *dist_info()
+        self.out = run_dir(cfg, "base")
+        self.folder = self.out.parent / (self.out.name + ".train")
+        self.name, self.epochs, self.time_budget_s, self.nan_limit = "pretrain", p.epochs, p.time_budget_s, d.nan_limit
+        self.warmup_steps, self.grad_clip, self.epoch_steps = d.warmup_steps, d.grad_clip, 0
+        self.title = "stand-in base: restoration prior"
+        self.device = pick_device(d.device)
+        self.autocast = autocast_dtype(d.precision, self.device)
+        form = self.form = Formulation.from_config(d)
+
+        # The model: a new base (zero last layer for the refine formulation), no Control Module.
+        pictures, sources, frames = gather_pictures(cfg.store, list(p.images))
+        config = base_lib.default_config(list(p.channels), p.layers_per_block)
+        self.unet, self.prompt = base_lib.build(config, seed=cfg.seed)
+        if not form.paper:
+            zero_module(self.unet.conv_out)   # the untrained base returns its image input (see train.formulation)
+        self.model = ControlledDenoiser(self.unet, self.prompt, None, train_base=True).to(self.device)
+        self.state, self.params = self.unet, list(self.unet.parameters())
+
+        # The data: restoration pairs of the store's GT_clean frames and the pictures; val frames as the Control Module's.
+        lcm = math.lcm(self.model.multiple, *[int(s) for s in p.scales])
+        crop = fit_crop(p.crop, [min(x.shape[:2]) for x in pictures] if pictures else [p.crop], lcm)
+        store = Store(cfg.store)
+        spps = store.spp_choices("any") if store.manifest_path.exists() and store.scenes() else [4]
+        if d.pack and any(frames):
+            frames = pack_sources(cfg, store, frames, quiet)
+        self.data = RestorationPairs(pictures, crop, p.crops_per_image, [int(s) for s in p.scales], p.noise, cfg.seed,
+                                     d.tonemap, frames=frames, real=p.real, spp_choices=spps,
+                                     estimator=estimator_and_id(cfg)[0], fireflies=p.fireflies)
+        val_keys = store.frames_with("val") if store.manifest_path.exists() and p.epochs > 0 else []
+        self.val = validation_items(cfg, store, val_keys, spps) if val_keys and not form.paper else None
+
+        # The optimiser (no EMA) and the settings a resume must share.
+        self.objective = diffusion.objective(self.device) if form.paper else form.objective(list(d.train_steps))
+        self.optimizers = torch.optim.AdamW(self.params, lr=p.lr, weight_decay=p.weight_decay)
+        self.ema = None
+        self.fingerprint = {"config": config, "seed": cfg.seed, "crop": crop, "pictures": len(pictures),
+                            "formulation": form.record(),
+                            **{k: getattr(p, k) for k in ("epochs", "batch_size", "crops_per_image", "lr",
+                                                           "weight_decay", "scales", "noise", "fireflies", "real")}}
+        self.card = {"what": "stand-in IF-II-layout base trained by make pretrain (restoration prior of radiance)",
+                     "pictures": len(pictures), "sources": sources[:50], "tonemap": d.tonemap,
+                     "formulation": form.record()}
+
+    def save_best(self, entry: dict) -> None:
+        base_lib.save(self.out, self.unet, self.prompt,
+                      self.card | {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"]})
+
+
+def pack_sources(cfg: Config, store: Store, frames: list, quiet: bool) -> list:
+    """Real degraded versions of the store's frames from the train pack: (pack, item indices) per frame."""
+    keys = store.frames_with("train")
+    est, est_id = estimator_and_id(cfg)
+    path = ensure_pack(store, keys, pack_path(cfg.runs, "train", est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
+    pack = PackPairs(path, crop=None, tonemap=cfg.diffusion.tonemap, estimate=est.kind)
+    items: dict[int, list[int]] = {}
+    for i, f in enumerate(pack.t["frame"].tolist()):
+        items.setdefault(f, []).append(i)
+    where = {str(k): items[j] for j, k in enumerate(keys)}
+    return [None if src is None else (pack, where[str(src[1])]) for src in frames]
