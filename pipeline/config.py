@@ -4,6 +4,12 @@ Every field carries its documentation in ``metadata["doc"]``; ``configs/README.m
 from it (``python -m pipeline config --doc``) and a test keeps the two in sync, so a key cannot be
 added without being documented. Unknown keys and wrongly typed values are errors that name the
 file and the dotted key.
+
+Each section (a ``Section``) holds the value checks of its own keys in ``check``; ``validate``
+runs them all after loading. The trainer sections (clean, afgsa, diffusion, pretrain, oidn_ft)
+share the settings of ``TrainingConfig``, declared, documented and checked there once. The rules
+of the diffusion formulation keys (``check_formulation``) live here too, for ``DiffusionConfig``
+and for ``train.formulation.Formulation``, which is also built from model.json records.
 """
 from __future__ import annotations
 
@@ -12,13 +18,17 @@ import math
 import re
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import yaml
 
 from .errors import ConfigError
+
+# bad(key, message) raises: the key relative to the section being checked (validate names the section).
+Bad = Callable[[str, str], NoReturn]
 
 
 def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasses.MISSING):
@@ -28,8 +38,69 @@ def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasse
     return field(default=default, metadata={"doc": text})
 
 
+def required(text: str):
+    """A documented field without a default, for a base class whose subclasses each give their own.
+    Keyword-only, because it may follow fields that have defaults."""
+    return field(kw_only=True, metadata={"doc": text})
+
+
+class Section:
+    """A config section; ``check`` holds the value checks of its keys that types alone cannot express."""
+
+    def check(self, bad: Bad) -> None:
+        """Call ``bad(key, message)`` for the first value that cannot work; this section has no such rule."""
+
+    def at_least(self, bad: Bad, minimum: float, *keys: str) -> None:
+        """Each of ``keys`` must be >= ``minimum``."""
+        for key in keys:
+            if getattr(self, key) < minimum:
+                bad(key, f"must be >= {minimum}")
+
+    def one_of(self, bad: Bad, key: str, choices: tuple) -> None:
+        """``key`` must be one of ``choices``."""
+        value = getattr(self, key)
+        if value not in choices:
+            names = [repr(c) for c in choices]
+            bad(key, f"expected {', '.join(names[:-1])} or {names[-1]}, got {value!r}")
+
+
 @dataclass
-class DatasetConfig:
+class TrainingConfig(Section):
+    """The settings every trainer section has (clean, afgsa, diffusion, pretrain, oidn_ft), each with one
+    meaning in all of them: declared, documented and checked here once. A section re-declares one with
+    ``override`` to give its own default or add to the doc; epochs and lr have no common default, so
+    every section gives its own."""
+    epochs: int = required("Training epochs.")
+    batch_size: int = doc("Crops per optimisation step.", 8)
+    crop: int = doc("Side of the random training crops in pixels.", 64)
+    lr: float = required("Learning rate.")
+    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
+    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
+                         "an error after this many such steps in a row.", 10)
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
+                               "limit); the best and the last checkpoint are kept, a rerun resumes.", 0.0)
+    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
+
+    def check(self, bad: Bad) -> None:
+        self.check_epochs(bad)
+        self.at_least(bad, 1, "batch_size", "crop", "nan_limit")
+        self.at_least(bad, 0, "grad_clip", "time_budget_s")
+        if not self.lr > 0:
+            bad("lr", "must be > 0")
+
+    def check_epochs(self, bad: Bad) -> None:
+        self.at_least(bad, 1, "epochs")
+
+
+def override(name: str, default: Any, more: str = "", parent: type = TrainingConfig):
+    """Re-declare ``parent``'s field ``name`` in a subclass or a sibling section: its own default, the
+    parent's doc with ``more`` (what the section adds to the meaning) after it."""
+    text = parent.__dataclass_fields__[name].metadata["doc"]
+    return doc(f"{text} {more}" if more else text, default)
+
+
+@dataclass
+class DatasetConfig(Section):
     scenes: int = doc("Number of random scenes.", 24)
     frames: int = doc("Frames per scene along the random camera move (paper: 8).", 2)
     resolution: list = doc("Image size [width, height] in pixels (paper: [256, 256]).", factory=lambda: [128, 128])
@@ -54,8 +125,34 @@ class DatasetConfig:
                             "they are split into train/val/test with the random scenes (a training set).", "stress")
 
 
+    def check(self, bad: Bad) -> None:
+        self.at_least(bad, 1, "scenes", "frames")
+        if (not isinstance(self.resolution, list) or len(self.resolution) != 2
+                or not all(isinstance(v, int) and v > 0 for v in self.resolution)):
+            bad("resolution", f"expected [width, height] of positive integers, got {self.resolution!r}")
+        self.at_least(bad, 1, "gt_spp", "stack_spp", "stacks")
+        self.check_progressive_gt(bad)
+        if (not 0 <= self.val_fraction < 1 or not 0 <= self.test_fraction < 1
+                or self.val_fraction + self.test_fraction >= 1):
+            bad("val_fraction/test_fraction", "fractions in [0, 1) that sum to less than 1")
+        # The names in dataset.stress are checked by render.dataset, which knows the presets.
+        if self.stress_copies < 1:
+            bad("stress_copies", f"expected >= 1, got {self.stress_copies}")
+        self.one_of(bad, "stress_split", ("stress", "mixed"))
+
+    def check_progressive_gt(self, bad: Bad) -> None:
+        if self.gt_target_psnr is None:
+            return
+        if not math.isfinite(self.gt_target_psnr) or self.gt_target_psnr <= 0:
+            bad("gt_target_psnr", f"expected a positive number of dB or null, got {self.gt_target_psnr!r}")
+        if self.gt_pass_spp < 2:
+            bad("gt_pass_spp", f"must be >= 2 (a pass's variance needs two samples), got {self.gt_pass_spp}")
+        if self.gt_max_spp < self.gt_pass_spp or self.gt_max_spp % self.gt_pass_spp:
+            bad("gt_max_spp", f"must be a multiple of gt_pass_spp ({self.gt_pass_spp}), got {self.gt_max_spp}")
+
+
 @dataclass
-class SceneConfig:
+class SceneConfig(Section):
     objects: list = doc("Range [min, max] of objects per scene.", factory=lambda: [3, 7])
     mesh_dirs: list = doc("Folders of user meshes (OBJ/PLY/STL/OFF/GLB, e.g. ShapeNet) mixed into the scenes.", factory=list)
     mesh_probability: float = doc("Probability that an object is drawn from mesh_dirs (when any are given).", 0.5)
@@ -76,8 +173,15 @@ class SceneConfig:
     camera_move: float = doc("Length of the smooth random camera move over all frames, relative to the camera distance.", 0.25)
 
 
+    def check(self, bad: Bad) -> None:
+        for key in ("objects", "area_lights", "fov"):
+            rng = getattr(self, key)
+            if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
+                bad(key, f"expected a range [min, max], got {rng!r}")
+
+
 @dataclass
-class RenderConfig:
+class RenderConfig(Section):
     variant: str = doc("Mitsuba variant: 'auto' (cuda_ad_rgb with a GPU, else llvm_ad_rgb), or an explicit one "
                        "such as llvm_ad_rgb, cuda_ad_rgb, scalar_rgb.", "auto")
     max_depth: int = doc("Maximum path length (Mitsuba convention: 1 = directly visible emission only).", 8)
@@ -91,8 +195,14 @@ class RenderConfig:
     threads: int = doc("drjit worker threads per render process (0: all cores).", 0)
 
 
+    def check(self, bad: Bad) -> None:
+        self.one_of(bad, "features", ("auto", "all"))
+        self.one_of(bad, "encoding", ("compact", "exact"))
+        self.at_least(bad, 1, "max_depth")
+
+
 @dataclass
-class ExecutorConfig:
+class ExecutorConfig(Section):
     kind: str = doc("'local' (worker processes on this machine) or 'ray' (Ray tasks, local or a cluster).", "local")
     workers: int = doc("Parallel frames for the local executor (each uses render.threads threads).", 1)
     address: str = doc("Ray cluster address for kind=ray (e.g. 'ray://head:10001' or 'auto'); empty: start a local Ray.", "")
@@ -100,14 +210,20 @@ class ExecutorConfig:
     retries: int = doc("How often a frame whose worker died (native crash, killed node) is retried.", 2)
 
 
+    def check(self, bad: Bad) -> None:
+        self.one_of(bad, "kind", ("local", "ray"))
+        self.at_least(bad, 1, "workers")
+
+
 @dataclass
-class CleanConfig:
-    epochs: int = doc("Training epochs of the GT cleaner (SMAPE, GT1 -> GT2 swapped at random). With the range "
-                       "term the val score flattens after about 6 epochs on the default dataset.", 12)
-    batch_size: int = doc("Crops per optimisation step.", 8)
-    crop: int = doc("Side of the random training crops in pixels.", 64)
-    lr: float = doc("AdamW learning rate.", 1e-3)
+class CleanConfig(TrainingConfig):
+    epochs: int = override("epochs", 12, "The GT cleaner's loss is SMAPE, GT1 -> GT2 swapped at random; with the "
+                                         "range term its val score flattens after about 6 epochs on the default "
+                                         "dataset.")
+    lr: float = override("lr", 1e-3, "Optimiser: AdamW.")
+    grad_clip: float = override("grad_clip", 1.0, "HDR outliers otherwise make single steps huge.")
     weight_decay: float = doc("AdamW weight decay.", 1e-4)
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     smape_eps: float = doc("epsilon of SMAPE(A, B) = |A - B|_1 / (|A|_1 + |B|_1 + eps) (paper eq. 2).", 1e-2)
     kernel_size: int = doc("Side of each dilated affinity kernel.", 7)
     dilations: list = doc("Dilation of each of the K iterated kernels (Isik et al.: 1, 2, 4).", factory=lambda: [1, 2, 4])
@@ -119,28 +235,24 @@ class CleanConfig:
                            "kernel's log-weights, with a learned per-pixel weight (clean.model.range_distance). "
                            "Off: learned affinity features only, as in Isik et al.", True)
     range_patch: int = doc("Patch radius of the range distance (0: per pixel; 1: 3x3 patches).", 1)
-    time_budget_s: float = doc("Stop training at the end of the epoch during which this many seconds have passed "
-                               "(0: no limit); the best and the last checkpoint are kept, a rerun resumes.", 0.0)
-    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
-    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping); HDR outliers "
-                           "otherwise make single steps huge.", 1.0)
     tile: int = doc("Inference tile side in pixels: larger frames are denoised in overlapping tiles "
                     "(bounded memory).", 512)
-    device: str = doc("Torch device of the cleaner and the Isik baseline: 'auto' (CUDA if available), 'cpu', "
-                      "'cuda', ...", "auto")
-    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
-                         "an error after this many such steps in a row.", 10)
+
+    def check(self, bad: Bad) -> None:
+        super().check(bad)
+        self.at_least(bad, 1, "crops_per_frame")
 
 
 @dataclass
-class AfgsaConfig:
+class AfgsaConfig(TrainingConfig):
+    epochs: int = override("epochs", 12, "An epoch: crops_per_frame crops of every train frame.")
+    crop: int = override("crop", 64, "Paper: 128.")
+    lr: float = override("lr", 5e-4, "Of the generator; optimiser: Adam (paper: 1e-4; higher for minutes of CPU "
+                                       "training).")
+    grad_clip: float = override("grad_clip", 1.0, "The generator's and the critic's gradient, each.")
     target: str = doc("Training target: 'gt_clean' (as the paper) or 'gt1' (the raw reference; the GT_clean-vs-GT1 "
                       "experiment). gt1 runs are kept apart, in runs/<..>/afgsa_gt1_spp<N>.", "gt_clean")
-    epochs: int = doc("Training epochs (an epoch: crops_per_frame crops of every train frame).", 12)
-    batch_size: int = doc("Crops per optimisation step.", 8)
-    crop: int = doc("Side of the random training crops in pixels (paper: 128).", 64)
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
-    lr: float = doc("Adam learning rate of the generator (paper: 1e-4; higher for minutes of CPU training).", 5e-4)
     lr_critic: float = doc("Adam learning rate of the discriminator (paper: 1e-4).", 5e-4)
     adv_weight: float = doc("Weight of the adversarial (WGAN-GP) term in the generator loss, next to L1 in log "
                             "space with weight 1 (paper: 5e-3). 0: the L1-only ablation, no discriminator trained.",
@@ -157,24 +269,101 @@ class AfgsaConfig:
     critic_channels: int = doc("Channels of the patch discriminator's first layer, doubled at each stride-2 level "
                                "(the paper's VGG-style critic: 64).", 16)
     critic_levels: int = doc("Stride-2 levels of the patch discriminator.", 3)
-    grad_clip: float = doc("Clip the global L2 norm of the generator's and of the critic's gradient to this "
-                           "value (0: no clipping).", 1.0)
-    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
-                         "an error after this many such steps in a row.", 10)
-    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
-                               "limit); a rerun resumes.", 0.0)
     tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles (bounded "
                     "memory).", 256)
-    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
+
+    def check(self, bad: Bad) -> None:
+        super().check(bad)
+        self.one_of(bad, "target", ("gt_clean", "gt1"))
+        self.at_least(bad, 1, "crops_per_frame", "channels", "extractor_channels", "heads", "block_size",
+                      "critic_channels", "tile")
+        if self.blocks < 0 or self.halo < 0 or self.critic_levels < 0:
+            bad("blocks/halo/critic_levels", "must be >= 0")
+        if self.channels % self.heads or (self.channels // self.heads) % 2:
+            bad("channels/heads", f"{self.channels} channels must split into {self.heads} heads of an even size")
+        if self.adv_weight < 0 or self.gp_weight < 0:
+            bad("adv_weight/gp_weight", "must be >= 0")
 
 
+PRECISIONS = ("auto", "fp32", "bf16")   # diffusion.precision, pretrain.precision
+
+
+# ---- the diffusion formulation -------------------------------------------------------------------
+# What the diffusion model diffuses and predicts (train/formulation.py). The choices of its keys and
+# their rules live here, where both the config and train.formulation.Formulation read them.
+
+PREDICTIONS = ("epsilon", "v", "sample")
+SCHEDULES = ("if", "zero_snr")
+SAMPLERS = ("ddim", "ddpm")
+STARTS = ("noise", "render", "estimate")
+ESTIMATES = ("none", "oidn", "isik", "oidn+isik")   # train/estimate.py
+LOSS_NORMS = ("none", "crop")
+TRAIN_STEPS = 1000   # IF's training timesteps; the refine formulation's sampler spaces `steps` of them
 # The paper formulation samples with IF's super27 respacing of the 1000 training steps
 # (train.diffusion.super27): this many steps, of which diffusion.skip / val_skip skip the first.
 PAPER_STEPS = 27
 
 
+def is_paper(f) -> bool:
+    """IF's own path (ε-prediction on IF's schedule): ``f`` has the formulation fields."""
+    return f.prediction == "epsilon" and f.schedule == "if"
+
+
+def check_formulation(f, bad: Bad, val_skip: int | None = None) -> None:
+    """Refuse formulation fields that cannot work together: ``f`` is a ``DiffusionConfig`` or a
+    ``train.formulation.Formulation``, ``bad`` gets the key inside the ``diffusion`` section. The paper
+    formulation skips 0..PAPER_STEPS-1 of super27 (``skip``, and ``val_skip`` when given); the refine
+    formulation runs ``steps`` of the 1000 and skips fewer than that (its ``val_skip`` is unused)."""
+    _check_formulation_choices(f, bad)
+    _check_formulation_combination(f, bad)
+    if f.loss_norm not in LOSS_NORMS:
+        bad("loss_norm", f"expected one of {', '.join(LOSS_NORMS)}, got {f.loss_norm!r}")
+    if not f.residual_scale > 0:
+        bad("residual_scale", f"expected > 0, got {f.residual_scale}")
+    if not 0 <= f.t_focus <= 1:
+        bad("t_focus", f"expected a probability in [0, 1], got {f.t_focus}")
+    if not f.snr_gamma > 0:
+        bad("snr_gamma", f"expected > 0, got {f.snr_gamma}")
+    if not f.snr_floor >= 0:
+        bad("snr_floor", f"expected >= 0, got {f.snr_floor}")
+    _check_formulation_steps(f, bad, val_skip)
+
+
+def _check_formulation_choices(f, bad: Bad) -> None:
+    for key, choices in (("prediction", PREDICTIONS), ("schedule", SCHEDULES), ("sampler", SAMPLERS),
+                         ("start", STARTS), ("estimate", ESTIMATES)):
+        if getattr(f, key) not in choices:
+            bad(key, f"expected one of {', '.join(choices)}, got {getattr(f, key)!r}")
+
+
+def _check_formulation_combination(f, bad: Bad) -> None:
+    if f.prediction == "epsilon" and f.schedule == "zero_snr":
+        bad("prediction", "epsilon with diffusion.schedule=zero_snr: at zero terminal SNR the noise says nothing "
+                          "about the image; use v or sample")
+    if is_paper(f) and (f.residual or f.estimate != "none"):
+        bad("residual" if f.residual else "estimate",
+            "the paper formulation (prediction=epsilon, schedule=if) diffuses the image from the noisy render: set "
+            "diffusion.residual=false and diffusion.estimate=none")
+    if f.residual and f.estimate == "none":
+        bad("residual", "true needs a first estimate (diffusion.estimate=oidn, isik or oidn+isik)")
+
+
+def _check_formulation_steps(f, bad: Bad, val_skip: int | None) -> None:
+    if is_paper(f):
+        skips = {"skip": f.skip, **({} if val_skip is None else {"val_skip": val_skip})}
+        for key, skip in skips.items():
+            if not 0 <= skip < PAPER_STEPS:
+                bad(key, f"the paper formulation skips 0..{PAPER_STEPS - 1} of IF's {PAPER_STEPS} super27 steps "
+                         f"(at least one must run), got {skip}")
+        return
+    if not 1 <= f.steps <= TRAIN_STEPS:
+        bad("steps", f"need 1 <= steps <= {TRAIN_STEPS}, got {f.steps}")
+    if not 0 <= f.skip < f.steps:
+        bad("skip", f"need 0 <= skip < steps ({f.steps}), got {f.skip}")
+
+
 @dataclass
-class DiffusionConfig:
+class DiffusionConfig(TrainingConfig):
     base: str = doc("The frozen base. 'oidn': OIDN's own network (rt_hdr_alb_nrm, weights from oidn.weights or "
                     "pyoidn) under a Control Module reading every buffer, in OIDN's output space "
                     "(train/oidn_refine.py); 'oidn_ft': the same on this config's oidn_ft run; a .tza file: those "
@@ -186,28 +375,23 @@ class DiffusionConfig:
                     "diffusion.train_base=true).", "")
     tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
                        "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
-    epochs: int = doc("Training epochs of the Control Module (an epoch: crops_per_frame crops of every train frame).", 100)
-    batch_size: int = doc("Crops per optimisation step (per process under torchrun).", 8)
-    crop: int = doc("Side of the random training crops (a multiple of 2^(levels-1) of the base).", 64)
+    epochs: int = override("epochs", 100, "An epoch: crops_per_frame crops of every train frame, at most "
+                                          "epoch_steps steps.")
+    batch_size: int = override("batch_size", 8, "Per process under torchrun.")
+    crop: int = override("crop", 64, "A multiple of 2^(levels-1) of the base.")
+    lr: float = override("lr", 2e-5, "Optimiser: AdamW (the authors' code: 2e-5).")
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     epoch_steps: int = doc("At most this many steps per epoch, on a random subset of the epoch's crops (new each epoch), "
                            "so validation, checkpoints and the time budget come that often on a large training set; "
                            "0: every crop.", 0)
-    lr: float = doc("AdamW learning rate (the authors' code: 2e-5).", 2e-5)
     weight_decay: float = doc("AdamW weight decay (the authors' code: 0.01).", 0.01)
     warmup_steps: int = doc("Linear learning-rate warm-up steps, then a cosine decay to 0 over the run.", 100)
-    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
-    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
-                         "an error after this many such steps in a row.", 10)
     train_base: bool = doc("Train the base as well as the Control Module. The paper freezes it (false); with the "
                            "refine formulation's new base (diffusion.base empty) it must train (docs/diffusion.md: a "
                            "frozen base that returns the estimate passes the Control Module no gradient).", True)
     control: bool = doc("Use the Control Module; false trains/evaluates the base alone (the paper's ablation row).",
                         True)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
-    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
-    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
-                               "limit); a rerun resumes.", 0.0)
     shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
                         "own (make eval's ours rows, make denoise).", True)
     name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
@@ -271,40 +455,70 @@ class DiffusionConfig:
                           "configured sampler; the paper formulation samples at val_skip). SPP=any models cycle "
                           "through the sample counts.", 8)
     val_skip: int = doc("Paper formulation: sampler skip used for the per-epoch validation (cheaper than the full "
-                        "27 steps).", 12)
+                        "27 steps; 0..26). The refine formulation validates with skip.", 12)
     tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles.", 256)
     tile_overlap: int = doc("Overlap between inference tiles, blended linearly.", 32)
 
+    def check(self, bad: Bad) -> None:
+        super().check(bad)
+        self.at_least(bad, 1, "crops_per_frame")
+        self.at_least(bad, 0, "warmup_steps")
+        if self.epoch_steps < 0:
+            bad("epoch_steps", f"must be >= 0 (0: every crop), got {self.epoch_steps}")
+        check_formulation(self, bad, val_skip=self.val_skip)
+        self.one_of(bad, "tonemap", ("log", "gamma"))
+        self.one_of(bad, "precision", PRECISIONS)
+        self.one_of(bad, "variance", ("learned", "small"))
+        if not 0 < self.threshold_ratio <= 1:
+            bad("threshold_ratio", "must be in (0, 1]")
+        if self.tile_overlap < 0 or self.tile <= 2 * self.tile_overlap:
+            bad("tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
+
 
 @dataclass
-class PretrainConfig:
+class PretrainConfig(TrainingConfig):
+    # train/cli.py's cmd_pretrain still reads warmup_steps, grad_clip, nan_limit, precision and device from
+    # the diffusion section, whose defaults these keys have; it moves to them next (issue 24).
+    epochs: int = override("epochs", 100, "An epoch: crops_per_image crops of every image; 0 writes the "
+                                          "initialised base (with the refine formulation its zero last layer "
+                                          "returns the first estimate exactly; train it with "
+                                          "diffusion.train_base=true).")
+    lr: float = override("lr", 2e-4, "Optimiser: AdamW.")
+    weight_decay: float = doc("AdamW weight decay.", 0.01)
+    warmup_steps: int = override("warmup_steps", 100, parent=DiffusionConfig)
+    precision: str = override("precision", "auto", parent=DiffusionConfig)
     channels: list = doc("Channels per level of a new base (IF-II layout; the last level has attention).",
                          factory=lambda: [32, 64, 96, 128])
     layers_per_block: int = doc("ResNet layers per level of a new base.", 1)
     images: list = doc("Extra folders of images (.png/.jpg, sRGB) or EXRs (R,G,B radiance) for the prior, besides "
                        "every GT_clean frame of the store.", factory=list)
-    epochs: int = doc("Pretraining epochs (an epoch: crops_per_image crops of every image); 0 writes the initialised "
-                      "base (with the refine formulation its zero last layer returns the first estimate exactly; "
-                      "train it with diffusion.train_base=true).", 100)
-    batch_size: int = doc("Crops per step.", 8)
-    crop: int = doc("Side of the training crops.", 64)
     crops_per_image: int = doc("Crops per image per epoch.", 4)
-    lr: float = doc("AdamW learning rate.", 2e-4)
-    weight_decay: float = doc("AdamW weight decay.", 0.01)
     scales: list = doc("Down-sampling factors of the super-resolution degradation (one drawn per crop).",
                        factory=lambda: [2, 4])
     noise: float = doc("Largest std of the synthetic degradation's noise (model space, drawn uniformly).", 0.1)
     fireflies: float = doc("Fraction of pixels the synthetic degradation turns into fireflies.", 0.002)
     real: float = doc("Probability that a crop's degraded input is a real low-spp render of its frame (through the "
                       "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.75)
-    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: none).",
-                               0.0)
     out: str = doc("Where make pretrain writes the new base; empty: <runs>/base (use it with diffusion.base=...).",
                    "")
 
+    def check(self, bad: Bad) -> None:
+        super().check(bad)
+        self.at_least(bad, 1, "crops_per_image")
+        self.at_least(bad, 0, "warmup_steps")
+        self.one_of(bad, "precision", PRECISIONS)
+        if not self.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in self.channels):
+            bad("channels", f"expected positive multiples of 16 (group norm), got {self.channels!r}")
+        if not self.scales or not all(isinstance(k, int) and k >= 1 for k in self.scales):
+            bad("scales", f"expected integers >= 1, got {self.scales!r}")
+
+    def check_epochs(self, bad: Bad) -> None:
+        if self.epochs < 0:
+            bad("epochs", "must be >= 0 (0: write the initialised base)")
+
 
 @dataclass
-class OidnConfig:
+class OidnConfig(Section):
     weights: str = doc("Where OIDN's trained weights are read from (the prior of oidn_ft and of the diffusion "
                        "base): empty: the blobs inside pyoidn's library (Linux); else a .tza file (used for the "
                        "network being loaded) or a folder of <network>.tza files, as OIDN's public weights "
@@ -313,23 +527,22 @@ class OidnConfig:
 
 
 @dataclass
-class OidnFtConfig:
+class OidnFtConfig(TrainingConfig):
+    epochs: int = override("epochs", 30, "An epoch: crops_per_frame crops of every train frame, at most epoch_steps "
+                                         "steps.")
+    crop: int = override("crop", 64, "A multiple of 16, OIDN's alignment.")
+    lr: float = override("lr", 5e-5, "Optimiser: Adam; reached after the warm-up, then a cosine decay to lr_end "
+                                       "over the run.")
     network: str = doc("OIDN network fine-tuned by make train MODEL=oidn_ft: 'rt_hdr_alb_nrm' (colour + albedo + "
                        "normal: what make eval's oidn row runs), 'rt_hdr_alb' (+ albedo) or 'rt_hdr' (colour only: "
                        "the oidn_ft_color row); a '_small' variant of each also loads. Its run folder is "
                        "<runs>/oidn_ft_<network>.", "rt_hdr_alb_nrm")
-    epochs: int = doc("Training epochs (an epoch: crops_per_frame crops of every train frame, at most epoch_steps "
-                      "steps).", 30)
-    batch_size: int = doc("Crops per optimisation step.", 8)
-    crop: int = doc("Side of the random training crops in pixels (a multiple of 16, OIDN's alignment).", 64)
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     epoch_steps: int = doc("At most this many steps per epoch (a random subset of the epoch's crops); 0: every "
                            "crop.", 0)
-    lr: float = doc("Adam learning rate after the warm-up (then a cosine decay to lr_end over the run).", 5e-5)
     lr_end: float = doc("Learning rate at the last step of the cosine decay.", 5e-6)
     warmup_steps: int = doc("Linear learning-rate warm-up steps from 0.", 50)
     weight_decay: float = doc("Adam(W) decoupled weight decay (toward 0; l2sp pulls toward OIDN instead).", 0.0)
-    grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
     loss: str = doc("Training loss in OIDN's output space (PU of the exposed radiance, as OIDN's training kit): "
                     "'l1'; 'l1_relative' (each crop's L1 divided by stock OIDN's on it: every crop counts by its "
                     "gain over OIDN); or 'l1_ssim' (0.16 L1 + 0.84 (1 - SSIM), the kit's mix with single-scale SSIM "
@@ -350,15 +563,24 @@ class OidnFtConfig:
                        "exported: w = w_oidn + blend (w_trained - w_oidn); 1: the trained weights.", 1.0)
     val_frames: int = doc("Validation frames scored after every epoch (each at every sample count of the run); 0: "
                           "the whole val split.", 0)
-    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
-                               "limit); a rerun resumes.", 0.0)
-    nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
-                         "an error after this many such steps in a row.", 10)
-    device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
+
+    def check(self, bad: Bad) -> None:
+        super().check(bad)
+        if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?", self.network):
+            bad("network", f"expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), got {self.network!r}")
+        self.at_least(bad, 1, "crops_per_frame")
+        if self.crop % 16:
+            bad("crop", f"must be a positive multiple of 16 (OIDN's alignment), got {self.crop}")
+        self.one_of(bad, "loss", ("l1", "l1_relative", "l1_ssim"))
+        self.one_of(bad, "trainable", ("all", "decoder", "bias"))
+        if not 0 <= self.distill < 1 or not 0 <= self.diversify <= 1:
+            bad("distill/diversify", f"probabilities: distill in [0, 1), diversify in [0, 1]; got {self.distill}, "
+                                     f"{self.diversify}")
+        self.at_least(bad, 0, "l2sp", "lr_end", "warmup_steps", "epoch_steps")
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(Section):
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, oidn_ft "
                         "and oidn_ft_color (OIDN fine-tuned on the store: make train MODEL=oidn_ft), isik, "
                         "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
@@ -395,6 +617,12 @@ class EvalConfig:
     crop_size: int = doc("Side of each crop in pixels.", 64)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
+
+
+    def check(self, bad: Bad) -> None:
+        if self.bootstrap_resamples < 100:
+            bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
+        self.one_of(bad, "equal_time", ("render", "pool", "none"))
 
 
 @dataclass
@@ -512,118 +740,18 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
 
 
 def validate(cfg: Config, source: str) -> None:
-    """Value checks that types alone cannot express."""
-    d = cfg.dataset
-
-    def bad(key: str, msg: str) -> None:
-        raise ConfigError(f"{source}: {key}: {msg}")
-
-    if d.scenes < 1:
-        bad("dataset.scenes", "must be >= 1")
-    if d.frames < 1:
-        bad("dataset.frames", "must be >= 1")
-    if (not isinstance(d.resolution, list) or len(d.resolution) != 2
-            or not all(isinstance(v, int) and v > 0 for v in d.resolution)):
-        bad("dataset.resolution", f"expected [width, height] of positive integers, got {d.resolution!r}")
-    for key in ("gt_spp", "stack_spp", "stacks"):
-        if getattr(d, key) < 1:
-            bad(f"dataset.{key}", "must be >= 1")
-    _validate_progressive_gt(d, bad)
-    if not 0 <= d.val_fraction < 1 or not 0 <= d.test_fraction < 1 or d.val_fraction + d.test_fraction >= 1:
-        bad("dataset.val_fraction/test_fraction", "fractions in [0, 1) that sum to less than 1")
-    if cfg.render.features not in ("auto", "all"):
-        bad("render.features", f"expected 'auto' or 'all', got {cfg.render.features!r}")
-    if cfg.render.encoding not in ("compact", "exact"):
-        bad("render.encoding", f"expected 'compact' or 'exact', got {cfg.render.encoding!r}")
-    if cfg.render.max_depth < 1:
-        bad("render.max_depth", "must be >= 1")
-    if cfg.executor.kind not in ("local", "ray"):
-        bad("executor.kind", f"expected 'local' or 'ray', got {cfg.executor.kind!r}")
-    if cfg.executor.workers < 1:
-        bad("executor.workers", "must be >= 1")
-    if cfg.eval.bootstrap_resamples < 100:
-        bad("eval.bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got "
-            f"{cfg.eval.bootstrap_resamples}")
-    if cfg.eval.equal_time not in ("render", "pool", "none"):
-        bad("eval.equal_time", f"expected 'render', 'pool' or 'none', got {cfg.eval.equal_time!r}")
-    for key in ("objects", "area_lights", "fov"):
-        rng = getattr(cfg.scene, key)
-        if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
-            bad(f"scene.{key}", f"expected a range [min, max], got {rng!r}")
-    f = cfg.diffusion
-    if f.tonemap not in ("log", "gamma"):
-        bad("diffusion.tonemap", f"expected 'log' or 'gamma', got {f.tonemap!r}")
-    if f.precision not in ("auto", "fp32", "bf16"):
-        bad("diffusion.precision", f"expected 'auto', 'fp32' or 'bf16', got {f.precision!r}")
-    for key in ("skip", "val_skip"):
-        if not 0 <= getattr(f, key) < PAPER_STEPS:
-            bad(f"diffusion.{key}", f"must be in [0, {PAPER_STEPS - 1}] (super27 has {PAPER_STEPS} steps; "
-                                    "at least one must run)")
-    if f.variance not in ("learned", "small"):
-        bad("diffusion.variance", f"expected 'learned' or 'small', got {f.variance!r}")
-    if not 0 < f.threshold_ratio <= 1:
-        bad("diffusion.threshold_ratio", "must be in (0, 1]")
-    for sec, key in (("diffusion", "epochs"), ("diffusion", "batch_size"), ("diffusion", "crop"),
-                     ("pretrain", "batch_size"), ("pretrain", "crop")):
-        if getattr(getattr(cfg, sec), key) < 1:
-            bad(f"{sec}.{key}", "must be >= 1")
-    if cfg.pretrain.epochs < 0:
-        bad("pretrain.epochs", "must be >= 0 (0: write the initialised base)")
-    if f.epoch_steps < 0:
-        bad("diffusion.epoch_steps", f"must be >= 0 (0: every crop), got {f.epoch_steps}")
-    if f.tile_overlap < 0 or f.tile <= 2 * f.tile_overlap:
-        bad("diffusion.tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
-    _validate_afgsa(cfg.afgsa, bad)
-    _validate_oidn_ft(cfg.oidn_ft, bad)
-    if not cfg.pretrain.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in cfg.pretrain.channels):
-        bad("pretrain.channels", f"expected positive multiples of 16 (group norm), got {cfg.pretrain.channels!r}")
-    if not all(isinstance(k, int) and k >= 1 for k in cfg.pretrain.scales) or not cfg.pretrain.scales:
-        bad("pretrain.scales", f"expected integers >= 1, got {cfg.pretrain.scales!r}")
+    """Value checks that types alone cannot express: every section's ``check``, its keys named
+    ``<source>: <section>.<key>``. No rule spans two sections."""
+    for f in dataclasses.fields(cfg):
+        section = getattr(cfg, f.name)
+        if isinstance(section, Section):
+            section.check(_bad_in(source, f.name))
 
 
-def _validate_progressive_gt(d: DatasetConfig, bad) -> None:
-    if d.gt_target_psnr is None:
-        return
-    if not math.isfinite(d.gt_target_psnr) or d.gt_target_psnr <= 0:
-        bad("dataset.gt_target_psnr", f"expected a positive number of dB or null, got {d.gt_target_psnr!r}")
-    if d.gt_pass_spp < 2:
-        bad("dataset.gt_pass_spp", f"must be >= 2 (a pass's variance needs two samples), got {d.gt_pass_spp}")
-    if d.gt_max_spp < d.gt_pass_spp or d.gt_max_spp % d.gt_pass_spp:
-        bad("dataset.gt_max_spp", f"must be a multiple of gt_pass_spp ({d.gt_pass_spp}), got {d.gt_max_spp}")
-
-
-def _validate_afgsa(a: AfgsaConfig, bad) -> None:
-    if a.target not in ("gt_clean", "gt1"):
-        bad("afgsa.target", f"expected 'gt_clean' or 'gt1', got {a.target!r}")
-    for key in ("epochs", "batch_size", "crop", "crops_per_frame", "channels", "extractor_channels", "heads",
-                "block_size", "critic_channels", "tile"):
-        if getattr(a, key) < 1:
-            bad(f"afgsa.{key}", "must be >= 1")
-    if a.blocks < 0 or a.halo < 0 or a.critic_levels < 0:
-        bad("afgsa.blocks/halo/critic_levels", "must be >= 0")
-    if a.channels % a.heads or (a.channels // a.heads) % 2:
-        bad("afgsa.channels/heads", f"{a.channels} channels must split into {a.heads} heads of an even size")
-    if a.adv_weight < 0 or a.gp_weight < 0:
-        bad("afgsa.adv_weight/gp_weight", "must be >= 0")
-
-
-def _validate_oidn_ft(o: OidnFtConfig, bad) -> None:
-    if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?", o.network):
-        bad("oidn_ft.network", f"expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), got {o.network!r}")
-    for key in ("epochs", "batch_size", "crops_per_frame"):
-        if getattr(o, key) < 1:
-            bad(f"oidn_ft.{key}", "must be >= 1")
-    if o.crop < 16 or o.crop % 16:
-        bad("oidn_ft.crop", f"must be a positive multiple of 16 (OIDN's alignment), got {o.crop}")
-    if o.loss not in ("l1", "l1_relative", "l1_ssim"):
-        bad("oidn_ft.loss", f"expected 'l1', 'l1_relative' or 'l1_ssim', got {o.loss!r}")
-    if o.trainable not in ("all", "decoder", "bias"):
-        bad("oidn_ft.trainable", f"expected 'all', 'decoder' or 'bias', got {o.trainable!r}")
-    if not 0 <= o.distill < 1 or not 0 <= o.diversify <= 1:
-        bad("oidn_ft.distill/diversify", f"probabilities: distill in [0, 1), diversify in [0, 1]; got {o.distill}, "
-            f"{o.diversify}")
-    if o.l2sp < 0 or o.lr <= 0 or o.lr_end < 0 or o.warmup_steps < 0 or o.epoch_steps < 0:
-        bad("oidn_ft.l2sp/lr/lr_end/warmup_steps/epoch_steps", "lr must be > 0, the others >= 0")
+def _bad_in(source: str, section: str) -> Bad:
+    def bad(key: str, msg: str) -> NoReturn:
+        raise ConfigError(f"{source}: {section}.{key}: {msg}")
+    return bad
 
 
 def to_dict(cfg: Any) -> dict:

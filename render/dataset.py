@@ -87,10 +87,6 @@ def make_plan(cfg: Config) -> Plan:
     for name in stress:
         if name not in STRESS_PRESETS:
             raise config_mod.ConfigError(f"dataset.stress: unknown preset {name!r} (have {', '.join(STRESS_PRESETS)})")
-    if d.stress_copies < 1:
-        raise config_mod.ConfigError(f"dataset.stress_copies: expected >= 1, got {d.stress_copies}")
-    if d.stress_split not in ("stress", "mixed"):
-        raise config_mod.ConfigError(f"dataset.stress_split: expected 'stress' or 'mixed', got {d.stress_split!r}")
     entries = [(scene_id(i), i, None) for i in range(d.scenes)]
     entries += stress_entries(stress, d.stress_copies, d.scenes)
     mixed = d.stress_split == "mixed"

@@ -3,14 +3,14 @@ from pathlib import Path
 
 import pytest
 
-from mcdenoise.pipeline.config import ConfigError, documentation_markdown, load_config
+from mcdenoise.pipeline.config import ConfigError, documentation_markdown, load_config, to_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("name", ["default", "tiny", "paper"])
-def test_shipped_configs_load(name):
-    cfg = load_config(ROOT / "configs" / f"{name}.yaml")
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_configs_load(path):
+    cfg = load_config(path)
     assert cfg.dataset.scenes >= 1
 
 
@@ -102,3 +102,110 @@ def test_overrides_may_follow_options(capsys):
             main(["config", "clean.lr=0.5", "--config", "configs/tiny.yaml", *stray])
         assert exc.value.code == 2
         assert f"unrecognized arguments: {stray[0]}" in capsys.readouterr().err
+
+
+# ---- sections: each checks its own keys; the trainer sections share TrainingConfig ---------------
+
+SHARED = {"epochs", "batch_size", "crop", "lr", "grad_clip", "nan_limit", "time_budget_s", "device"}
+# Every key each trainer section had before TrainingConfig (pretrain: plus the five it borrowed from
+# diffusion), written out: a YAML file, a `section.key=value` or a run fingerprint keeps working.
+TRAINER_KEYS = {
+    "clean": SHARED | {"weight_decay", "crops_per_frame", "smape_eps", "kernel_size", "dilations", "channels",
+                       "embed_channels", "affinity_channels", "range_term", "range_patch", "tile"},
+    "afgsa": SHARED | {"target", "crops_per_frame", "lr_critic", "adv_weight", "gp_weight", "channels",
+                       "extractor_channels", "blocks", "heads", "block_size", "halo", "critic_channels",
+                       "critic_levels", "tile"},
+    "diffusion": SHARED | {"base", "tonemap", "crops_per_frame", "epoch_steps", "weight_decay", "warmup_steps",
+                           "train_base", "control", "precision", "shipped", "name", "prediction", "schedule",
+                           "estimate", "isik_run", "residual", "residual_scale", "snr_gamma", "snr_floor",
+                           "hdr_weight", "dropout", "loss_norm", "t_focus", "train_steps", "sampler", "steps",
+                           "start", "samples", "skip", "threshold_ratio", "variance", "ema", "pack", "val_frames",
+                           "val_skip", "tile", "tile_overlap"},
+    "pretrain": SHARED | {"channels", "layers_per_block", "images", "crops_per_image", "weight_decay", "scales",
+                          "noise", "fireflies", "real", "out", "warmup_steps", "precision"},
+    "oidn_ft": SHARED | {"network", "crops_per_frame", "epoch_steps", "lr_end", "warmup_steps", "weight_decay",
+                         "loss", "l2sp", "distill", "diversify", "trainable", "augment", "blend", "val_frames"},
+}
+TRAINER_DEFAULTS = {   # section: (epochs, lr), the defaults each section gives the shared keys without one
+    "clean": (12, 1e-3), "afgsa": (12, 5e-4), "diffusion": (100, 2e-5), "pretrain": (100, 2e-4),
+    "oidn_ft": (30, 5e-5),
+}
+
+
+@pytest.mark.parametrize("section", sorted(TRAINER_KEYS))
+def test_trainer_sections_keep_their_keys_and_defaults(section):
+    values = to_dict(load_config(None))[section]
+    assert set(values) == TRAINER_KEYS[section]
+    assert (values["epochs"], values["lr"]) == TRAINER_DEFAULTS[section]
+    assert {k: values[k] for k in SHARED - {"epochs", "lr"}} == {
+        "batch_size": 8, "crop": 64, "grad_clip": 1.0, "nan_limit": 10, "time_budget_s": 0.0, "device": "auto"}
+
+
+def test_pretrain_has_the_defaults_it_borrowed_from_diffusion():
+    cfg = load_config(None)
+    for key in ("warmup_steps", "grad_clip", "nan_limit", "precision", "device"):
+        assert getattr(cfg.pretrain, key) == getattr(cfg.diffusion, key), key
+
+
+@pytest.mark.parametrize("section", sorted(TRAINER_KEYS))
+@pytest.mark.parametrize("override", ["batch_size=0", "crop=0", "nan_limit=0", "grad_clip=-1", "time_budget_s=-5",
+                                      "lr=0"])
+def test_a_bad_shared_setting_is_named_with_its_section(section, override):
+    key = override.split("=")[0]
+    with pytest.raises(ConfigError, match=rf"<defaults>: {section}\.{key}: must be "):
+        load_config(None, [f"{section}.{override}"])
+
+
+def test_epochs_zero_is_refused_except_for_pretrain():
+    for section in ("clean", "afgsa", "diffusion", "oidn_ft"):
+        with pytest.raises(ConfigError, match=rf"{section}\.epochs: must be >= 1"):
+            load_config(None, [f"{section}.epochs=0"])
+    assert load_config(None, ["pretrain.epochs=0"]).pretrain.epochs == 0   # writes the initialised base
+    with pytest.raises(ConfigError, match=r"pretrain\.epochs: must be >= 0"):
+        load_config(None, ["pretrain.epochs=-1"])
+
+
+def test_section_checks_keep_their_messages():
+    for override, message in [
+        ("oidn_ft.crop=40", r"oidn_ft\.crop: must be a positive multiple of 16"),
+        ("afgsa.heads=3", r"afgsa\.channels/heads: 32 channels must split into 3 heads"),
+        ("dataset.stress_split=both", r"dataset\.stress_split: expected 'stress' or 'mixed', got 'both'"),
+        ("pretrain.precision=fp16", r"pretrain\.precision: expected 'auto', 'fp32' or 'bf16', got 'fp16'"),
+        ("diffusion.tile=64", r"diffusion\.tile/tile_overlap: need tile > 2 \* tile_overlap"),
+        ("eval.equal_time=never", r"eval\.equal_time: expected 'render', 'pool' or 'none', got 'never'"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            load_config(None, [override])
+
+
+# ---- the formulation keys: one set of rules for the config and train.formulation -----------------
+
+PAPER = ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false",
+         "diffusion.estimate=none"]
+
+
+def test_refine_skip_counts_in_its_own_steps():
+    d = load_config(None, ["diffusion.steps=50", "diffusion.skip=30"]).diffusion
+    assert (d.steps, d.skip) == (50, 30)
+    with pytest.raises(ConfigError, match=r"diffusion\.skip: need 0 <= skip < steps \(50\), got 50"):
+        load_config(None, ["diffusion.steps=50", "diffusion.skip=50"])
+    with pytest.raises(ConfigError, match=r"diffusion\.steps: need 1 <= steps <= 1000, got 1001"):
+        load_config(None, ["diffusion.steps=1001"])
+    # val_skip is the paper formulation's: unused by the refine formulation, so not refused there
+    assert load_config(None, ["diffusion.val_skip=40"]).diffusion.val_skip == 40
+
+
+def test_paper_skips_count_in_super27():
+    assert load_config(None, [*PAPER, "diffusion.skip=12"]).diffusion.skip == 12
+    for key in ("skip", "val_skip"):
+        with pytest.raises(ConfigError, match=rf"<defaults>: diffusion\.{key}: the paper formulation skips 0\.\.26"):
+            load_config(None, [*PAPER, f"diffusion.{key}=27"])
+
+
+def test_a_formulation_error_is_a_config_error_naming_the_key():
+    with pytest.raises(ConfigError, match=r"diffusion\.residual: true needs a first estimate"):
+        load_config(None, ["diffusion.estimate=none"])
+    with pytest.raises(ConfigError, match=r"diffusion\.prediction: epsilon with diffusion\.schedule=zero_snr"):
+        load_config(None, ["diffusion.prediction=epsilon"])
+    with pytest.raises(ConfigError, match=r"diffusion\.estimate: the paper formulation"):
+        load_config(None, ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false"])

@@ -1,9 +1,12 @@
 """The refine formulation (train/formulation.py) and its sampler: parametrisations, weights, oracle and
 zero networks through every sampler and start option, the denoiser's black and over-range rules."""
+import re
+
 import numpy as np
 import pytest
 import torch
 
+from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.train.formulation import Formulation, FormulationError, snr_weight
 from mcdenoise.train.sampler import sample, sample_many
 
@@ -212,6 +215,54 @@ def test_training_objective_with_crop_norm_starts_at_one_for_an_untrained_networ
 def test_formulation_refuses_what_cannot_work(bad, match):
     with pytest.raises(FormulationError, match=match):
         form(**bad)
+
+
+def test_steps_and_skips_of_each_formulation():
+    assert form(steps=50, skip=30).skip == 30                      # refine: skip counts in its own steps
+    with pytest.raises(FormulationError, match=r"^diffusion\.skip: need 0 <= skip < steps \(50\), got 50$"):
+        form(steps=50, skip=50)
+    with pytest.raises(FormulationError, match=r"^diffusion\.steps: need 1 <= steps <= 1000, got 0$"):
+        form(steps=0)
+    paper = dict(prediction="epsilon", schedule="if", residual=False, estimate="none")
+    assert form(**paper, skip=26).skip == 26                        # paper: skip counts in super27
+    with pytest.raises(FormulationError, match=r"^diffusion\.skip: the paper formulation skips 0\.\.26"):
+        form(**paper, skip=27)
+
+
+def test_every_configurable_prediction_has_a_diffusers_type():
+    from mcdenoise.pipeline.config import PREDICTIONS
+    from mcdenoise.train.formulation import PREDICTION_TYPES
+    assert set(PREDICTION_TYPES) == set(PREDICTIONS)
+    for prediction in PREDICTIONS:   # each one the config accepts builds its scheduler
+        f = form(prediction=prediction, schedule="if", residual=False, estimate="none")
+        assert f.scheduler("ddim").config.prediction_type == PREDICTION_TYPES[prediction]
+
+
+def test_a_record_with_a_bad_combination_is_refused():
+    """Formulation is also built from model.json records: it checks itself, whatever the source."""
+    record = form().record()
+    with pytest.raises(FormulationError, match=r"diffusion\.skip"):
+        Formulation.from_record({**record, "steps": 3, "skip": 3})
+    assert issubclass(FormulationError, ConfigError)
+
+
+GRID = [dict(prediction=p, schedule=s, residual=r, estimate=e, steps=n, skip=k)
+        for p in ("epsilon", "v", "sample") for s in ("if", "zero_snr") for r in (True, False)
+        for e in ("none", "oidn") for n, k in ((1, 0), (50, 30), (50, 50), (27, 27))]
+
+
+@pytest.mark.parametrize("values", GRID, ids=lambda v: "-".join(str(x) for x in v.values()))
+def test_the_config_and_the_formulation_apply_the_same_rules(values):
+    """One set of rules (pipeline.config.check_formulation): a diffusion section loads exactly when a
+    Formulation of the same fields can be built, and both name the same key."""
+    def outcome(build):
+        try:
+            build()
+        except ConfigError as exc:
+            return re.search(r"diffusion\.\w+", str(exc)).group(0)
+        return "ok"
+    in_config = outcome(lambda: load_config(None, [f"diffusion.{k}={v}" for k, v in values.items()]))
+    assert in_config == outcome(lambda: form(**values))
 
 
 def test_samples_mean_and_std():

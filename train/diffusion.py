@@ -28,10 +28,7 @@ import math
 
 import torch
 
-from mcdenoise.pipeline.config import PAPER_STEPS  # noqa: F401  (IF's super27: len(super27()))
-
-TRAIN_STEPS = 1000
-
+from mcdenoise.pipeline.config import PAPER_STEPS, TRAIN_STEPS  # noqa: F401  (PAPER_STEPS: len(super27()))
 
 # Sampler variance: IF's learned range (the network's second output interpolates log β and log β̃)
 # or DDPM's fixed posterior variance β̃ ("small"), which ignores the variance head.

@@ -47,18 +47,10 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from mcdenoise.pipeline.config import ConfigError
+from mcdenoise.pipeline.config import TRAIN_STEPS, ConfigError, check_formulation, is_paper
 
-from . import diffusion as if_ddpm
-
-TRAIN_STEPS = if_ddpm.TRAIN_STEPS
-PAPER_STEPS = if_ddpm.PAPER_STEPS
-PREDICTIONS = {"epsilon": "epsilon", "v": "v_prediction", "sample": "sample"}
-SCHEDULES = ("if", "zero_snr")
-SAMPLERS = ("ddim", "ddpm")
-STARTS = ("noise", "render", "estimate")
-ESTIMATES = ("none", "oidn", "isik", "oidn+isik")   # train/estimate.py
-LOSS_NORMS = ("none", "crop")
+# diffusers' prediction_type of each diffusion.prediction (pipeline.config.PREDICTIONS)
+PREDICTION_TYPES = {"epsilon": "epsilon", "v": "v_prediction", "sample": "sample"}
 # Floor of the per-crop normaliser, in model-space MSE: about 60 dB in the log space, so the crops
 # that are already near perfect (flat emitters, black background) weigh at most ~1000 times an
 # average one instead of without bound.
@@ -91,7 +83,7 @@ class Formulation:
     @property
     def paper(self) -> bool:
         """IF's own path: ε, learned-range variance, hybrid loss, super27 DDPM."""
-        return self.prediction == "epsilon" and self.schedule == "if"
+        return is_paper(self)
 
     def record(self) -> dict:
         """The fields, for model.json and the resume fingerprint. ``loss_norm: none`` is left out: it is
@@ -131,7 +123,7 @@ class Formulation:
 
         kind = sampler or self.sampler
         common = dict(num_train_timesteps=TRAIN_STEPS, beta_schedule="squaredcos_cap_v2",
-                      prediction_type=PREDICTIONS[self.prediction], clip_sample=False,
+                      prediction_type=PREDICTION_TYPES[self.prediction], clip_sample=False,
                       rescale_betas_zero_snr=self.schedule == "zero_snr", timestep_spacing="trailing")
         if kind == "ddim":
             return DDIMScheduler(set_alpha_to_one=True, **common)
@@ -219,38 +211,8 @@ def snr_weight(sched, t: torch.Tensor, prediction: str, gamma: float, floor: flo
 
 
 def check(f: Formulation) -> None:
-    """Refuse combinations that cannot work, naming the ``diffusion.*`` key."""
-    if f.prediction not in PREDICTIONS:
-        raise FormulationError(f"diffusion.prediction: expected one of {', '.join(PREDICTIONS)}, got {f.prediction!r}")
-    if f.schedule not in SCHEDULES:
-        raise FormulationError(f"diffusion.schedule: expected one of {', '.join(SCHEDULES)}, got {f.schedule!r}")
-    if f.sampler not in SAMPLERS:
-        raise FormulationError(f"diffusion.sampler: expected one of {', '.join(SAMPLERS)}, got {f.sampler!r}")
-    if f.start not in STARTS:
-        raise FormulationError(f"diffusion.start: expected one of {', '.join(STARTS)}, got {f.start!r}")
-    if f.estimate not in ESTIMATES:
-        raise FormulationError(f"diffusion.estimate: expected one of {', '.join(ESTIMATES)}, got {f.estimate!r}")
-    if f.prediction == "epsilon" and f.schedule == "zero_snr":
-        raise FormulationError("diffusion.prediction=epsilon with diffusion.schedule=zero_snr: at zero terminal SNR "
-                               "the noise says nothing about the image; use v or sample")
-    if f.paper and (f.residual or f.estimate != "none"):
-        raise FormulationError("the paper formulation (prediction=epsilon, schedule=if) diffuses the image from the "
-                               "noisy render: set diffusion.residual=false and diffusion.estimate=none")
-    if f.residual and f.estimate == "none":
-        raise FormulationError("diffusion.residual=true needs a first estimate (diffusion.estimate=oidn, isik or "
-                               "oidn+isik)")
-    if f.loss_norm not in LOSS_NORMS:
-        raise FormulationError(f"diffusion.loss_norm: expected one of {', '.join(LOSS_NORMS)}, got {f.loss_norm!r}")
-    if not f.residual_scale > 0:
-        raise FormulationError(f"diffusion.residual_scale: expected > 0, got {f.residual_scale}")
-    if not 0 <= f.t_focus <= 1:
-        raise FormulationError(f"diffusion.t_focus: expected a probability in [0, 1], got {f.t_focus}")
-    if f.snr_gamma <= 0 or f.snr_floor < 0:
-        raise FormulationError("diffusion.snr_gamma must be > 0 and diffusion.snr_floor >= 0")
-    if f.paper:
-        if not 0 <= f.skip < PAPER_STEPS:
-            raise FormulationError(f"diffusion.skip: the paper formulation skips 0..{PAPER_STEPS - 1} of IF's "
-                                   f"{PAPER_STEPS} super27 steps, got {f.skip}")
-    elif not 1 <= f.steps <= TRAIN_STEPS or not 0 <= f.skip < f.steps:
-        raise FormulationError(f"diffusion.steps / diffusion.skip: need 1 <= steps <= {TRAIN_STEPS} and "
-                               f"0 <= skip < steps, got {f.steps} / {f.skip}")
+    """Refuse combinations that cannot work (``pipeline.config.check_formulation``, the rules the config's
+    diffusion section is loaded with), naming the ``diffusion.*`` key."""
+    def bad(key: str, msg: str):
+        raise FormulationError(f"diffusion.{key}: {msg}")
+    check_formulation(f, bad)

@@ -35,11 +35,10 @@ from pathlib import Path
 import torch
 
 from mcdenoise.pipeline.checkpoint import save_safetensors
-from mcdenoise.pipeline.config import PAPER_STEPS
+from mcdenoise.pipeline.config import LOSS_NORMS, PAPER_STEPS
 from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.timing import best_time
 
-from .formulation import LOSS_NORMS
 from .model import SHIPPED_MODEL, formulation, load
 from .pack import PackPairs
 from .sampler import sample_tiled
