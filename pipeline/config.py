@@ -477,8 +477,6 @@ class DiffusionConfig(TrainingConfig):
 
 @dataclass
 class PretrainConfig(TrainingConfig):
-    # train/cli.py's cmd_pretrain still reads warmup_steps, grad_clip, nan_limit, precision and device from
-    # the diffusion section, whose defaults these keys have; it moves to them next (issue 24).
     epochs: int = override("epochs", 100, "An epoch: crops_per_image crops of every image; 0 writes the "
                                           "initialised base (with the refine formulation its zero last layer "
                                           "returns the first estimate exactly; train it with "

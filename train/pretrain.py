@@ -196,11 +196,11 @@ class PretrainTask(ControlTask):
         self.cfg, self.quiet, self.rank, self.world = cfg, quiet, *dist_info()
         self.out = run_dir(cfg, "base")
         self.folder = self.out.parent / (self.out.name + ".train")
-        self.name, self.epochs, self.time_budget_s, self.nan_limit = "pretrain", p.epochs, p.time_budget_s, d.nan_limit
-        self.warmup_steps, self.grad_clip, self.epoch_steps = d.warmup_steps, d.grad_clip, 0
+        self.name, self.epochs, self.time_budget_s, self.nan_limit = "pretrain", p.epochs, p.time_budget_s, p.nan_limit
+        self.warmup_steps, self.grad_clip, self.epoch_steps = p.warmup_steps, p.grad_clip, 0
         self.title = "stand-in base: restoration prior"
-        self.device = pick_device(d.device)
-        self.autocast = autocast_dtype(d.precision, self.device)
+        self.device = pick_device(p.device)
+        self.autocast = autocast_dtype(p.precision, self.device)
         form = self.form = Formulation.from_config(d)
 
         # The model: a new base (zero last layer for the refine formulation), no Control Module.
