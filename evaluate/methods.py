@@ -34,6 +34,8 @@ Names (``eval.methods``):
   posterior variance instead of the learned one), ``noise`` / ``render`` / ``estimate`` (where
   sampling starts). E.g. ``ours_s1``, ``ours_s3_k4``, ``ours_paper_skip24``,
   ``ours_paper_small_skip24``, ``base_only_s1``.
+- ``_xN`` after any name (N in 2, 4, 8; last): that method's self-ensemble over N flipped and transposed
+  copies of the frame (``pipeline.ensemble``), at N times its cost, e.g. ``oidn_x8``, ``ours_x8``.
   These are looked up lazily, as
 
       from mcdenoise.train.infer import load_denoiser
@@ -53,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mcdenoise.pipeline import ensemble
 from mcdenoise.pipeline.config import PAPER_STEPS, Config, ConfigError
 from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.exr import StoreError
@@ -63,7 +66,7 @@ _DIFFUSION = {"ours": False, "base_only": True}
 FAMILIES = ("noisy", "oidn", "oidn_color", "oidn_ft", "oidn_ft_color", "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 # oidn_ft families -> the OIDN network their run fine-tuned
 OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_color": "rt_hdr"}
-_TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|(?P<variance>small)|"
+_TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
           "oidn_ft": "OIDN fine-tuned on our data (colour+albedo+normal)",
@@ -78,7 +81,7 @@ class MethodUnavailable(PipelineError):
 
 @dataclass(frozen=True)
 class Spec:
-    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate]``."""
+    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_xN]``."""
     family: str
     variant: str = ""
     steps: int | None = None
@@ -86,6 +89,7 @@ class Spec:
     samples: int = 1
     variance: str | None = None
     start: str | None = None
+    ensemble: int = 1
 
 
 def parse(name: str) -> Spec:
@@ -96,8 +100,8 @@ def parse(name: str) -> Spec:
         raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, and "
                           "<ours|base_only>[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate])")
     tokens = [t for t in name[len(family):].split("_") if t]
-    if tokens and family not in _DIFFUSION:
-        raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options")
+    if family not in _DIFFUSION and any(not re.fullmatch(r"x\d+", t) for t in tokens):
+        raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options other than xN")
     fields: dict = {}
     for i, tok in enumerate(tokens):
         m = _TOKEN.match(tok)
@@ -109,10 +113,12 @@ def parse(name: str) -> Spec:
             continue
         for key, value in m.groupdict().items():
             if value is not None:
-                fields[key] = int(value) if key in ("steps", "skip", "samples") else value
+                fields[key] = int(value) if key in ("steps", "skip", "samples", "ensemble") else value
     spec = Spec(family, **fields)
     if spec.samples < 1 or (spec.steps is not None and spec.steps < 1):
         raise ConfigError(f"eval.methods: {name!r}: steps and samples must be at least 1")
+    if spec.ensemble not in ensemble.SIZES or (spec.ensemble > 1 and tokens[-1] != f"x{spec.ensemble}"):
+        raise ConfigError(f"eval.methods: {name!r}: a self-ensemble xN comes last, N in {ensemble.SIZES}")
     return spec
 
 
@@ -120,7 +126,8 @@ def curve_kind(name: str) -> str:
     """The name without its step options (sN, skipN): rows of one kind form one curve over step counts."""
     spec = parse(name)
     return "_".join([spec.family] + [p for p in (spec.variant, spec.variance, spec.start) if p]
-                    + ([f"k{spec.samples}"] if spec.samples > 1 else []))
+                    + ([f"k{spec.samples}"] if spec.samples > 1 else [])
+                    + ([f"x{spec.ensemble}"] if spec.ensemble > 1 else []))
 
 
 def label(name: str) -> str:
@@ -136,6 +143,8 @@ def label(name: str) -> str:
         parts.append("fixed small variance")
     if spec.samples > 1:
         parts.append(f"mean of {spec.samples} samples")
+    if spec.ensemble > 1:
+        parts.append(f"self-ensemble of {spec.ensemble} flips/transposes")
     return ", ".join(parts)
 
 
@@ -281,6 +290,27 @@ class Diffusion(Method):
 
 
 @dataclass
+class SelfEnsemble(Method):
+    """``inner`` on ``n`` flipped and transposed copies of the frame, turned back and averaged
+    (``pipeline.ensemble``): ``n`` times its cost. No per-pixel uncertainty of its own."""
+
+    inner: Method = None
+    n: int = 8
+
+    def __post_init__(self):
+        self.device, self.checkpoint = self.inner.device, self.inner.checkpoint
+
+    def set_frame(self, store, key) -> None:
+        self.inner.set_frame(store, key)
+
+    def note(self) -> str:
+        return self.inner.note()
+
+    def denoise(self, buffers):
+        return ensemble.ensemble(self.inner.denoise, buffers, self.n)
+
+
+@dataclass
 class Loader:
     """Builds methods for one config; loaded models are shared (ours and ours_skipN use one model)."""
 
@@ -294,6 +324,9 @@ class Loader:
     def load(self, name: str, spp: int) -> Method:
         """The method ``name`` at ``spp``; raises ``MethodUnavailable`` with the reason."""
         spec = parse(name)
+        if spec.ensemble > 1:
+            inner = self.load(name.removesuffix(f"_x{spec.ensemble}"), spp)
+            return SelfEnsemble(inner=inner, n=spec.ensemble, name=name)
         if spec.family == "noisy":
             return Noisy()
         if spec.family in ("oidn", "oidn_color"):

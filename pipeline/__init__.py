@@ -27,6 +27,7 @@ Mitsuba and torch load on demand.
 - ``pipeline.oidn_net``: OIDN's network in PyTorch, equal to pyoidn's output (what trains).
 - ``pipeline.oidn_weights``: OIDN's trained weights, from pyoidn's library or a ``.tza`` file.
 - ``pipeline.tza``: OIDN's Tensor Archive format, read and written.
+- ``pipeline.ensemble``: a denoiser's self-ensemble over flipped and transposed copies of a frame.
 - ``pipeline.figures``: the crop grid the reports share.
 - ``pipeline.progress``, ``pipeline.timing``, ``pipeline.versions``: progress bars, wall-clock
   timing for the benchmarks, package versions and the machine for provenance.

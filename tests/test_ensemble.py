@@ -1,0 +1,52 @@
+"""The dihedral self-ensemble (pipeline/ensemble.py) and its evaluator rows (``<method>_xN``)."""
+import numpy as np
+import pytest
+
+from mcdenoise.evaluate.methods import parse
+from mcdenoise.pipeline import ensemble
+from mcdenoise.pipeline.config import ConfigError
+
+
+def test_every_transform_is_undone_and_the_eight_are_distinct():
+    x = np.random.default_rng(0).random((5, 7, 3), np.float32)
+    seen = set()
+    for t in ensemble.TRANSFORMS:
+        y = ensemble.apply(x, t)
+        assert y.shape == ((7, 5, 3) if t[0] else (5, 7, 3))
+        np.testing.assert_array_equal(ensemble.invert(y, t), x)
+        seen.add(np.ascontiguousarray(y).tobytes())
+    assert len(seen) == 8
+
+
+def test_an_equivariant_denoiser_is_unchanged_and_a_position_bias_is_averaged_away():
+    color = np.random.default_rng(1).random((4, 6, 3), np.float32)
+    buffers = {"color": color, "albedo": np.ones_like(color)}
+    squared = ensemble.ensemble(lambda b: b["color"] ** 2 * b["albedo"], buffers, 8)
+    np.testing.assert_allclose(squared, color ** 2, rtol=1e-6)
+
+    def biased(b):   # adds 1 to the first column of whatever copy it is given
+        out = b["color"].copy()
+        out[:, 0] += 1.0
+        return out
+    two = ensemble.ensemble(biased, buffers, 2)   # the identity and the horizontal flip
+    expected = color.copy()
+    expected[:, 0] += 0.5
+    expected[:, -1] += 0.5
+    np.testing.assert_allclose(two, expected, rtol=1e-6)
+    # All eight: the bias lands twice on each border column and, through the transposes, twice on each
+    # border row; a quarter of it on each border, half in the corners.
+    expected = color.copy()
+    expected[:, 0] += 0.25
+    expected[:, -1] += 0.25
+    expected[0] += 0.25
+    expected[-1] += 0.25
+    np.testing.assert_allclose(ensemble.ensemble(biased, buffers, 8), expected, rtol=1e-6)
+    with pytest.raises(ValueError, match="self-ensemble of 3"):
+        ensemble.ensemble(biased, buffers, 3)
+
+
+def test_method_names_take_the_ensemble_last():
+    assert parse("oidn_x8").ensemble == 8 and parse("ours_s3_k4_x4").ensemble == 4 and parse("ours").ensemble == 1
+    for bad in ("ours_x8_s3", "oidn_x3", "oidn_s3", "isik_x16"):
+        with pytest.raises(ConfigError, match="eval.methods"):
+            parse(bad)
