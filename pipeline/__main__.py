@@ -60,8 +60,9 @@ def cmd_train(args) -> int:
         from mcdenoise.clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
     if args.model == "afgsa":
-        from mcdenoise.clean.cli import cmd_train_afgsa
-        return cmd_train_afgsa(cfg, args.spp, quiet=args.quiet)
+        from mcdenoise.train.afgsa import train as train_afgsa
+        train_afgsa(cfg, args.spp, quiet=args.quiet)
+        return 0
     if args.model == "oidn_ft":
         from mcdenoise.train.oidn_ft import train as train_oidn_ft
         train_oidn_ft(cfg, args.spp, quiet=args.quiet)
@@ -119,7 +120,7 @@ def cmd_clean_report(args) -> int:
 
 
 def cmd_afgsa_report(args) -> int:
-    from mcdenoise.clean.afgsa_report import default_runs, run_afgsa_report
+    from mcdenoise.train.afgsa_report import default_runs, run_afgsa_report
     cfg = _config(args)
     runs = default_runs(cfg, args.spp)
     for text in args.runs or []:

@@ -1,6 +1,6 @@
 """Stage 3: the diffusion denoiser, a pixel-space diffusion base (DeepFloyd IF stage II's layout, or
-OIDN's network) with a trainable Control Module (paper Fig. 1); and ``oidn_ft``, OIDN's own network
-fine-tuned on the store.
+OIDN's network) with a trainable Control Module (paper Fig. 1); and the other trained competitors:
+``oidn_ft``, OIDN's own network fine-tuned on the store, and AFGSA.
 
 - ``train.base``: the base UNet (load, build, the stand-in in ``train/base_model_paper``);
   ``train.pretrain``: trains a stand-in base (``make pretrain``).
@@ -20,6 +20,10 @@ fine-tuned on the store.
   buffer-group dropout) and its training pack of augmented crops.
 - ``train.oidn_refine``: the OIDN-based denoiser's training run (``RefineTask``, loss relative to
   OIDN), sampler and denoiser (``diffusion.base: oidn``).
+- ``train.afgsa``: AFGSA (Yu et al. 2021): block-wise self-attention guided by the auxiliary
+  buffers, predicting log radiance, the patch critic and WGAN-GP losses of its adversarial training,
+  its recipe on ``clean.train``'s loop and its checkpoint loader; ``train.afgsa_report``:
+  ``afgsa-report``: AFGSA trained against GT_clean vs against GT1.
 - ``train.cli``, ``train.bench``, ``train.gpu_recipe``: ``python -m pipeline`` entry points,
   inference timing, the GPU recipe.
 """
