@@ -14,4 +14,5 @@
 - ``clean.report``: ``clean-report``: is GT_clean closer to an independent GT2 than GT1 is (and the
   Isik baseline against GT_clean with ``--spp``).
 - ``clean.cli``: ``cmd_gt_clean`` and ``cmd_train_isik``, what ``gt-clean`` and ``train --model isik`` run.
+- ``clean.commands``: the subcommands ``gt-clean`` and ``clean-report`` of ``python -m pipeline``.
 """

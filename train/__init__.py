@@ -24,6 +24,9 @@ OIDN's network) with a trainable Control Module (paper Fig. 1); and the other tr
   buffers, predicting log radiance, the patch critic and WGAN-GP losses of its adversarial training,
   its recipe on ``clean.train``'s loop and its checkpoint loader; ``train.afgsa_report``:
   ``afgsa-report``: AFGSA trained against GT_clean vs against GT1.
-- ``train.cli``, ``train.bench``, ``train.gpu_recipe``: ``python -m pipeline`` entry points,
-  inference timing, the GPU recipe.
+- ``train.cli``, ``train.bench``, ``train.gpu_recipe``: the diffusion stage's command-line entry
+  points, inference timing, the GPU recipe (``gpu-prepare`` here, ``gpu-recipe`` on a GPU machine).
+- ``train.commands``: the subcommands ``train`` (every model, Isik's through ``clean.cli``),
+  ``pretrain``, ``export``, ``gpu-prepare``, ``gpu-recipe``, ``pack``, ``denoise``, ``afgsa-report``
+  and ``bench-denoise`` of ``python -m pipeline``.
 """
