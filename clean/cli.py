@@ -2,7 +2,6 @@
 
     python -m pipeline gt-clean [--config FILE] [key=value ...]       → cmd_gt_clean(cfg)
     python -m pipeline train --model isik --spp 4|any [--config FILE] ... → cmd_train_isik(cfg, 4)
-    python -m pipeline train --model afgsa --spp 4|any ...            → cmd_train_afgsa(cfg, 4)
 
 All return a process exit status. Training resumes from the run folder's last checkpoint and is
 a no-op when it already reached ``clean.epochs``; applying is a no-op for frames whose
@@ -29,12 +28,4 @@ def cmd_train_isik(cfg: Config, spp: int | str, quiet: bool = False) -> int:
     from .train import train
 
     train(cfg, mode="baseline", spp=spp if str(spp) == "any" else int(spp), quiet=quiet)
-    return 0
-
-
-def cmd_train_afgsa(cfg: Config, spp, quiet: bool = False) -> int:
-    """Train AFGSA from the ``spp`` (or 'any': 4/16/64) low-spp buffers to ``afgsa.target``."""
-    from .train import train
-
-    train(cfg, mode="afgsa", spp=spp, quiet=quiet)
     return 0

@@ -39,9 +39,9 @@ RADIANCE = "color"
 CACHE_BYTES = 1 << 30
 
 ENCODING = features.Encoding()   # log1p radiance, normals as stored, no spp channel
-# The encoded inputs lie in roughly [-20, 20]; the networks on them (clean.model, clean.afgsa) clamp
-# them to +-INPUT_CLAMP first, which only guards against pathological finite inputs (1e30 would
-# otherwise overflow the convolutions to inf).
+# The encoded inputs lie in roughly [-20, 20]; every network on them (clean.model's, and any other
+# that reads this encoding) clamps them to +-INPUT_CLAMP first, which only guards against
+# pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
 INPUT_CLAMP = 1e3
 # (key, channels, kind) of every input channel group, in order.
 CHANNELS: tuple[tuple[str, int, str], ...] = features.TABLE
@@ -171,7 +171,7 @@ class CleanerPairs(_Pairs):
 
 class BaselinePairs(_Pairs):
     """Low-spp buffers at ``spp`` (random stacks in training, the first ones in validation) → ``target``
-    (gt_clean; AFGSA's experiment also trains against gt1).
+    (gt_clean, or another reference such as gt1).
 
     ``spp`` may be a list (one model for several sample counts): training draws one per item,
     validation has every frame at every count."""

@@ -39,7 +39,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .afgsa import FORMAT as AFGSA_FORMAT, AFGSANet
 from .data import INPUT_CLAMP, decode_variance
 
 # Added to the denominator of the range distance (radiance² units): two exactly noise-free pixels
@@ -281,16 +280,11 @@ class AffinityDenoiser(nn.Module):
 # ---- weights on disk: safetensors + a JSON sidecar ------------------------------------------
 
 
-def _network_class(fmt: str | None) -> type[nn.Module]:
-    """The class a sidecar's ``format`` names: the affinity network, or AFGSA (``clean.afgsa``)."""
-    if fmt == AFGSA_FORMAT:
-        return AFGSANet
-    return AffinityDenoiser
-
-
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, dict]:
-    """Load ``model.safetensors`` and its sidecar ``model.json`` (format, hparams, epoch, metrics, ...):
-    an ``AffinityDenoiser``, or an ``AFGSANet`` where the sidecar's format says so.
+def load_model(path: str | Path, device: str | torch.device = "cpu",
+               network: type[nn.Module] = AffinityDenoiser) -> tuple[nn.Module, dict]:
+    """Load ``model.safetensors`` and its sidecar ``model.json`` (format, hparams, epoch, metrics, ...)
+    as ``network(**hparams)``: an ``AffinityDenoiser``, or the class of another network that
+    ``clean.train`` trained (a recipe's model).
 
     ``path`` is the .safetensors file or the run folder holding ``model.safetensors``.
     """
@@ -305,7 +299,7 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn
         path = path / "model.safetensors"
     meta = read_json(path.with_suffix(".json"), "model sidecar")
     try:
-        model = _network_class(meta.get("format"))(**meta["hparams"])
+        model = network(**meta["hparams"])
         # safetensors only: a pickle (torch.save) checkpoint is refused here, never unpickled.
         model.load_state_dict(load_file(str(path), device=str(device)))
     except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as exc:

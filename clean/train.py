@@ -1,20 +1,17 @@
-"""Training of this package's networks, one loop for three recipes: the GT cleaner (GT1 ↔ GT2,
-paper eq. 1), the Isik baseline (low-spp buffers at ``spp`` → GT_clean) and AFGSA (low-spp → GT_clean,
-or GT1 for the GT_clean-vs-GT1 experiment of ``clean.afgsa_report``; L1 in log space + WGAN-GP
-adversarial loss).
+"""Training of the networks on ``clean.data``'s inputs, one loop for every recipe: the GT cleaner
+(GT1 ↔ GT2, paper eq. 1) and the Isik baseline (low-spp buffers at ``spp`` → GT_clean).
 
     train(cfg, mode="cleaner")          → runs/<...>/cleaner/
     train(cfg, mode="baseline", spp=4)  → runs/<...>/isik_spp4/
     train(cfg, mode="baseline", spp="any") → runs/<...>/isik_sppany/ (trained at 4, 8, ... 64 spp)
-    train(cfg, mode="afgsa", spp=4)     → runs/<...>/afgsa_spp4/   (afgsa.target=gt1: afgsa_gt1_spp4/;
-                                          spp="any": afgsa_sppany/, crops drawn at 4, 8, ... 64 spp)
 
-A ``Recipe`` holds what differs between them: the networks, their optimizers, one optimisation
-step, and the config section with the loop's settings (``clean`` or ``afgsa``). The cleaner and
-the Isik baseline: SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW. AFGSA: one
-critic step, then one generator step per batch (``clean.losses``; Adam, as the paper).
+A ``Recipe`` holds what differs between trainers: the networks, their optimizers, one optimisation
+step, the config section with the loop's settings, the run folder and the training target. The
+cleaner and the Isik baseline: SMAPE (``clean.losses.smape``, ε = ``clean.smape_eps``), AdamW.
+``train_recipe`` trains any recipe, so a network of another package on the same inputs (a
+competitor baseline) brings its own recipe and reuses the loop.
 
-``train`` runs a recipe through the loop every trainer shares (``pipeline.fit``; ``RecipeTask``
+``train_recipe`` runs a recipe through the loop every trainer shares (``pipeline.fit``; ``RecipeTask``
 says what is particular here): random crops and flips from the train split; a NaN guard (a step
 whose loss or gradient norm is not finite is skipped and counted, ``nan_limit`` in a row within
 an epoch stop the run with an error); after every epoch a validation pass over the whole frames
@@ -24,7 +21,7 @@ of the val split (SMAPE, L1 and PSNR). Files of a run folder:
   training loss where the val split is empty). What ``clean.apply`` and the evaluator load
   (``clean.model.load_model``).
 - ``last.safetensors``: the state after the last finished epoch, one file written atomically:
-  weights (``model.*``; AFGSA's generator and critic), optimizer moments (``optim.*``), the torch
+  weights (``model.*``; every module of the recipe's ``state``), optimizer moments (``optim.*``), the torch
   RNG state, and in the safetensors metadata a JSON record (epoch, history, best, optimizer
   hyper-parameters, config fingerprint). A rerun resumes from it and gives bitwise the weights of
   an uninterrupted run: each epoch's crops come from ``default_rng([seed, epoch, item])`` and each
@@ -65,7 +62,7 @@ from .data import (
     channel_names,
     usable_frames,
 )
-from .losses import critic_loss, generator_loss, log_radiance, smape
+from .losses import smape
 from .model import AffinityDenoiser
 
 FORMAT = "mcdenoise-affinity"
@@ -73,9 +70,13 @@ FORMAT = "mcdenoise-affinity"
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
     """``pipeline.runs.run_dir`` by this module's mode names (``baseline``: the Isik baseline)."""
-    if mode not in ("cleaner", "baseline", "afgsa"):
-        raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
+    _check_mode(mode)
     return runs.run_dir(cfg, "isik" if mode == "baseline" else mode, spp)
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in ("cleaner", "baseline"):
+        raise ValueError(f"mode must be 'cleaner' or 'baseline', got {mode!r}")
 
 
 def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
@@ -116,11 +117,11 @@ def build_model_hparams(cfg: Config) -> dict:
 
 @dataclass
 class Recipe:
-    """What one trainer optimises; ``train`` runs any of them."""
+    """What one trainer optimises; ``train_recipe`` runs any of them."""
     mode: str
     spp: object                   # int, "any" or None (the cleaner)
-    settings: object              # cfg.clean or cfg.afgsa: epochs, batch_size, crop, crops_per_frame,
-    #                               grad_clip, nan_limit, time_budget_s, tile, device
+    settings: object              # a config section (cfg.clean, ...): epochs, batch_size, crop,
+    #                               crops_per_frame, grad_clip, nan_limit, time_budget_s, tile, device
     model: torch.nn.Module        # validated, saved as model.safetensors
     state: torch.nn.Module        # saved in last.safetensors (the model, or the model and its critic)
     optimizers: object            # an optimizer, or a dict name -> optimizer
@@ -129,6 +130,7 @@ class Recipe:
     fmt: str
     title: str
     loss_label: str
+    folder: Path                  # the run folder
     target: str = "gt_clean"
     meta: dict = field(default_factory=dict)
 
@@ -147,57 +149,13 @@ def affinity_recipe(cfg: Config, mode: str, spp: int | None, device) -> Recipe:
 
     title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
     return Recipe(mode, spp, c, model, model, opt, step, fingerprint(cfg, mode, spp), FORMAT, title, "SMAPE",
-                  meta={"smape_eps": c.smape_eps, "clean": vars(c).copy()})
-
-
-def afgsa_hparams(cfg: Config) -> dict:
-    a = cfg.afgsa
-    return {"in_channels": IN_CHANNELS, "channels": a.channels, "extractor_channels": a.extractor_channels,
-            "blocks": a.blocks, "heads": a.heads, "block_size": a.block_size, "halo": a.halo}
-
-
-def afgsa_recipe(cfg: Config, spp, device) -> Recipe:
-    """AFGSA: per batch one WGAN-GP critic step, then one generator step on L1 (log space) +
-    adv_weight x the adversarial term (the authors' order); adv_weight 0 trains the generator on L1
-    alone and never touches the critic."""
-    from .afgsa import FORMAT as AFGSA_FORMAT, AFGSANet, PatchCritic
-
-    a = cfg.afgsa
-    torch.manual_seed(cfg.seed)
-    generator = AFGSANet(**afgsa_hparams(cfg)).to(device)
-    critic = PatchCritic(a.critic_channels, a.critic_levels).to(device)
-    opts = {"generator": torch.optim.Adam(generator.parameters(), lr=a.lr),
-            "critic": torch.optim.Adam(critic.parameters(), lr=a.lr_critic)}
-    g_params, d_params = list(generator.parameters()), list(critic.parameters())
-    adversarial = a.adv_weight > 0
-
-    def step(batch: dict, rng: torch.Generator) -> tuple[dict, bool]:
-        fake, real = generator.log_forward(batch["inputs"]), log_radiance(batch["target"])
-        ok, terms = True, {}
-        if adversarial:
-            d_loss, terms = critic_loss(critic, real, fake, a.gp_weight, rng)
-            ok = apply_update(d_loss, opts["critic"], d_params, a.grad_clip)
-        g_loss, g_terms = generator_loss(fake, real, critic if adversarial else None, a.adv_weight)
-        ok = apply_update(g_loss, opts["generator"], g_params, a.grad_clip) and ok
-        return {"loss": g_terms.pop("l1"), **g_terms, **terms}, ok
-
-    fp = {"mode": "afgsa", "spp": spp, "seed": cfg.seed, "hparams": afgsa_hparams(cfg), "critic": critic.hparams,
-          **{k: getattr(a, k) for k in ("target", "batch_size", "crop", "crops_per_frame", "lr", "lr_critic",
-                                         "adv_weight", "gp_weight", "grad_clip")}}
-    title = f"AFGSA, {spp} spp -> {a.target} (adv. weight {a.adv_weight:g})"
-    state = torch.nn.ModuleDict({"generator": generator, "critic": critic})
-    return Recipe("afgsa", spp, a, generator, state, opts, step, fp, AFGSA_FORMAT, title, "L1 (log1p)",
-                  target=a.target, meta={"smape_eps": cfg.clean.smape_eps, "target": a.target, "afgsa": vars(a).copy()})
+                  run_dir(cfg, mode, spp), meta={"smape_eps": c.smape_eps, "clean": vars(c).copy()})
 
 
 def make_recipe(cfg: Config, mode: str, spp) -> Recipe:
-    if mode in ("baseline", "afgsa") and not spp:
-        model = "isik" if mode == "baseline" else "afgsa"
-        raise TrainError(f"the {model} model needs an spp (make train MODEL={model} SPP=4)")
-    if mode == "afgsa":
-        return afgsa_recipe(cfg, spp, pick_device(cfg.afgsa.device))
-    if mode not in ("cleaner", "baseline"):
-        raise ValueError(f"mode must be 'cleaner', 'baseline' or 'afgsa', got {mode!r}")
+    if mode == "baseline" and not spp:
+        raise TrainError("the isik model needs an spp (make train MODEL=isik SPP=4)")
+    _check_mode(mode)
     return affinity_recipe(cfg, mode, spp, pick_device(cfg.clean.device))
 
 
@@ -271,7 +229,7 @@ def validate(model: torch.nn.Module, ds, tile: int, eps: float, device) -> dict[
 
 
 def _step_generator(seed: int, epoch: int, step: int) -> torch.Generator:
-    """The random draws of one step (AFGSA's gradient-penalty mix), a pure function of its position."""
+    """The random draws of one step (e.g. a gradient penalty's mix), a pure function of its position."""
     return torch.Generator().manual_seed(int(np.random.default_rng([seed, epoch, step]).integers(2 ** 62)))
 
 
@@ -283,7 +241,7 @@ class RecipeTask(Task):
 
     def __init__(self, cfg: Config, recipe: Recipe):
         s = recipe.settings
-        self.cfg, self.recipe, self.folder = cfg, recipe, run_dir(cfg, recipe.mode, recipe.spp)
+        self.cfg, self.recipe, self.folder = cfg, recipe, recipe.folder
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, s.epochs, s.time_budget_s, s.nan_limit
         self.fingerprint, self.fmt, self.state, self.optimizers = recipe.fingerprint, recipe.fmt, recipe.state, recipe.optimizers
         self.device = pick_device(s.device)
@@ -356,9 +314,16 @@ class RecipeTask(Task):
 
 
 def train(cfg: Config, mode: str = "cleaner", spp: int | str | None = None, quiet: bool = False) -> dict:
-    """Train (or resume) and return a summary dict; the best weights end up in ``run_dir``."""
+    """Train (or resume) the cleaner or the Isik baseline and return a summary dict; the best weights
+    end up in ``run_dir``."""
     started = time.perf_counter()
-    return fit(RecipeTask(cfg, make_recipe(cfg, mode, spp)), quiet=quiet, started=started)
+    return train_recipe(cfg, make_recipe(cfg, mode, spp), quiet=quiet, started=started)
+
+
+def train_recipe(cfg: Config, recipe: Recipe, quiet: bool = False, started: float | None = None) -> dict:
+    """Train (or resume) ``recipe`` through the shared loop and return a summary dict; the best weights
+    end up in ``recipe.folder``. ``started``: when the run began (default: now), for its wall time."""
+    return fit(RecipeTask(cfg, recipe), quiet=quiet, started=started)
 
 
 def _write_history(folder: Path, recipe: Recipe, history: list, best, only_if_changed: bool = False) -> None:

@@ -19,7 +19,7 @@ Names (``eval.methods``):
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
-- ``afgsa``: AFGSA (Yu et al. 2021, ``clean.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
+- ``afgsa``: AFGSA (Yu et al. 2021, ``train.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
   all-spp run ``afgsa_sppany`` (``make train MODEL=afgsa SPP=N|any``); Isik and AFGSA both run
   through ``clean.apply.denoise`` (tiled).
 - ``oidn_isik``: the per-pixel mean of ``oidn`` and ``isik``, the first estimate ours refines by
@@ -215,7 +215,7 @@ class OIDNFineTuned(Method):
 
 @dataclass
 class CleanNet(Method):
-    """A network of ``clean`` (the Isik baseline, AFGSA) on ``frame_inputs``, tiled by ``clean.apply``."""
+    """A network on ``clean.data.frame_inputs`` (the Isik baseline, AFGSA), tiled by ``clean.apply``."""
 
     model: object = None
     tile: int = 512
@@ -361,9 +361,10 @@ class Loader:
         return OIDNFineTuned(weights=self._models[key], aux=family == "oidn_ft", name=family, checkpoint=folder.name)
 
     def _clean_net(self, family: str, spp: int) -> Method:
-        from mcdenoise.clean.model import load_model
+        from mcdenoise.clean.model import load_model as load_isik
         from mcdenoise.clean.train import baseline_checkpoint, run_dir
         from mcdenoise.pipeline.runs import find_run, run_candidates
+        from mcdenoise.train.afgsa import load_model as load_afgsa
 
         if family == "isik":
             folder = baseline_checkpoint(self.cfg, spp)
@@ -371,17 +372,17 @@ class Loader:
                 raise MethodUnavailable(f"no Isik checkpoint in {run_dir(self.cfg, 'baseline', spp)}, and "
                                         f"{run_dir(self.cfg, 'baseline', 'any')} has none trained at {spp} spp: run "
                                         f"`make train MODEL=isik SPP={spp}` (or SPP=any)")
-            tile = self.cfg.clean.tile
+            tile, load = self.cfg.clean.tile, load_isik
         else:
             folder = find_run(self.cfg, "afgsa", spp, "model.safetensors")
             if folder is None:
                 searched = " or ".join(map(str, run_candidates(self.cfg, "afgsa", spp)))
                 raise MethodUnavailable(f"no AFGSA checkpoint in {searched}: run "
                                         f"`make train MODEL=afgsa SPP={spp}` (or SPP=any)")
-            tile = self.cfg.afgsa.tile
+            tile, load = self.cfg.afgsa.tile, load_afgsa
         # One spp-conditioned model serves every spp: load it once.
         if folder not in self._models:
-            self._models[folder] = load_model(folder, self.device())[0]
+            self._models[folder] = load(folder, self.device())[0]
         return CleanNet(model=self._models[folder], tile=tile, name=family, device=self.device(),
                         checkpoint=folder.name)
 

@@ -5,7 +5,10 @@ No module of the core imports a stage (render, clean, train, evaluate) except th
 exchange data through the store and the config defined here. Importing this package is cheap:
 Mitsuba and torch load on demand.
 
-- ``pipeline.__main__``: ``python -m pipeline <stage>``: parses the flags, dispatches to the stages.
+- ``pipeline.__main__``: ``python -m pipeline <stage>``: builds the parser from every package's
+  ``commands`` module, parses the flags, dispatches.
+- ``pipeline.commands``: the options the stages' subcommands share (``--config``, ``key=value``,
+  ``--quiet``, ``--spp``) and the core's own subcommands (``inspect``, ``config``, ``verify``).
 - ``pipeline.config``: the typed config (YAML → dataclasses, ``key=value`` overrides, validation).
 - ``pipeline.errors``: the errors a user can act on, under ``PipelineError``.
 - ``pipeline.schema``: every buffer the renderer produces, its EXR channels and storage type.

@@ -1,5 +1,5 @@
-"""AFGSA (clean.afgsa, clean.losses, the afgsa recipe of clean.train): attention against a naive
-reference, finite output on the stability suite's inputs, the L1-only ablation, exact resume."""
+"""AFGSA (train.afgsa: the network, its losses, its recipe on clean.train's loop): attention against a
+naive reference, finite output on the stability suite's inputs, the L1-only ablation, exact resume."""
 import json
 import os
 
@@ -7,16 +7,27 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.clean.afgsa import AFGSANet, GuidedAttention, PatchCritic, branch_channels, window_attention
-from mcdenoise.clean.afgsa_report import fine_energy
 from mcdenoise.clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
-from mcdenoise.clean.losses import critic_loss, generator_loss, log_radiance
-from mcdenoise.clean.model import load_model
-from mcdenoise.clean.train import make_recipe, run_dir, save_best, train
+from mcdenoise.clean.train import save_best
 from mcdenoise.evaluate.methods import Loader, MethodUnavailable, label
 from mcdenoise.evaluate.stability import run_stability
 from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.runs import run_dir
 from mcdenoise.pipeline.store import Store
+from mcdenoise.train.afgsa import (
+    AFGSANet,
+    GuidedAttention,
+    PatchCritic,
+    afgsa_recipe,
+    branch_channels,
+    critic_loss,
+    generator_loss,
+    load_model,
+    log_radiance,
+    train,
+    window_attention,
+)
+from mcdenoise.train.afgsa_report import fine_energy
 from tests.helpers import TINY, make_clean_store
 
 # A network that runs in a fraction of a second on the tiny store.
@@ -104,7 +115,7 @@ def test_output_is_at_most_twice_the_brightest_noisy_pixel_nearby():
     """An overshooting network (head bias +5 in log space, x150) is held to 2 m + 1, m the brightest
     noisy colour within BOUND_RADIUS of the pixel; the raw log-space output (what the losses see)
     is not clamped."""
-    from mcdenoise.clean.afgsa import BOUND_RADIUS
+    from mcdenoise.train.afgsa import BOUND_RADIUS
 
     torch.manual_seed(7)
     net = AFGSANet(IN_CHANNELS, channels=8, extractor_channels=4, blocks=1, block_size=4, halo=1).eval()
@@ -140,8 +151,8 @@ def test_weight_zero_step_is_an_l1_step_and_leaves_the_critic(tmp_path):
     """One recipe step at adv_weight 0 moves the generator exactly as Adam on the L1 loss alone does
     and never touches the critic."""
     cfg = load_config(None, [*TINY_NET, "afgsa.adv_weight=0", "afgsa.device=cpu", f"runs={tmp_path}"])
-    recipe = make_recipe(cfg, "afgsa", 4)
-    twin = make_recipe(cfg, "afgsa", 4)                            # same seed: same initial weights
+    recipe = afgsa_recipe(cfg, 4)
+    twin = afgsa_recipe(cfg, 4)                            # same seed: same initial weights
     critic_before = {k: v.clone() for k, v in recipe.state["critic"].state_dict().items()}
     torch.manual_seed(5)
     batch = {"inputs": torch.rand(2, IN_CHANNELS, 8, 8), "radiance": torch.rand(2, 3, 8, 8),
@@ -202,11 +213,11 @@ def _linked(tmp_path, store_root, name):
 
 def test_training_writes_a_loadable_run_and_resumes_exactly(tmp_path, store_root):
     """Two epochs in one go and 1 + 1 epochs (a rerun resuming the checkpoint) give bitwise the same
-    generator, critic and optimizer state; the best weights load through clean.model.load_model."""
+    generator, critic and optimizer state; the best weights load through train.afgsa.load_model."""
     a, b = _linked(tmp_path, store_root, "a"), _linked(tmp_path, store_root, "b")
-    train(afgsa_cfg(a), "afgsa", 4, quiet=True)
-    train(afgsa_cfg(b, epochs=1), "afgsa", 4, quiet=True)
-    assert train(afgsa_cfg(b), "afgsa", 4, quiet=True)["trained_epochs"] == 1
+    train(afgsa_cfg(a), 4, quiet=True)
+    train(afgsa_cfg(b, epochs=1), 4, quiet=True)
+    assert train(afgsa_cfg(b), 4, quiet=True)["trained_epochs"] == 1
     from safetensors.torch import load_file
     folder = run_dir(afgsa_cfg(a), "afgsa", 4)
     assert folder.name == "afgsa_gt1_spp4"
@@ -236,7 +247,7 @@ def test_a_non_finite_target_is_skipped_then_stops_the_run(tmp_path, store_root,
 
     monkeypatch.setattr(BaselinePairs, "__getitem__", poisoned)
     with pytest.raises(RuntimeError, match="2 steps in a row had a non-finite loss"):
-        train(afgsa_cfg(d, nan_limit=2), "afgsa", 4, quiet=True)
+        train(afgsa_cfg(d, nan_limit=2), 4, quiet=True)
     assert not (run_dir(afgsa_cfg(d), "afgsa", 4) / "last.safetensors").exists()
 
 
@@ -302,8 +313,8 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
     and the crop grid is a picture. The tiny store's gt_clean is written here: the mean of GT1 and GT2."""
     from PIL import Image
 
-    from mcdenoise.clean.afgsa_report import run_afgsa_report
     from mcdenoise.pipeline.metrics import all_metrics
+    from mcdenoise.train.afgsa_report import run_afgsa_report
 
     root = _linked(tmp_path, store_root, "report")
     store = Store(root / "store")
@@ -313,7 +324,7 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
             store.write_image(key.scene, key.frame, "gt_clean", {"color": (g1 + g2) / 2, "color.variance": 0 * g1},
                               meta={"image": "gt_clean", "scene": key.scene, "frame": key.frame})
     for target in ("gt_clean", "gt1"):
-        train(afgsa_cfg(root, epochs=1, target=target), "afgsa", 4, quiet=True)
+        train(afgsa_cfg(root, epochs=1, target=target), 4, quiet=True)
     cfg = load_config(None, [f"store={root / 'store'}", f"runs={root / 'runs'}", "eval.split=val", "afgsa.device=cpu"])
     r = run_afgsa_report(cfg, spp=4, out=str(tmp_path / "out"), crops=2)
     keys = store.frames("val")
@@ -332,7 +343,7 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
 
 def test_spp_any_trains_one_run_for_every_count(tmp_path, store_root):
     d = _linked(tmp_path, store_root, "any")
-    summary = train(afgsa_cfg(d, epochs=1), "afgsa", "any", quiet=True)
+    summary = train(afgsa_cfg(d, epochs=1), "any", quiet=True)
     assert summary["folder"].endswith("afgsa_gt1_sppany") and summary["epochs"] == 1
     assert json.loads((d / "runs" / "afgsa_gt1_sppany" / "model.json").read_text())["spp"] == "any"
 

@@ -13,6 +13,8 @@
 - Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
   never by importing another test module (its module-scoped fixtures would run once more there).
 - Each package's docstring names every module of the package.
+- Each package declares its subcommands of ``python -m pipeline`` in its ``commands`` module; every
+  call builds every parser, so those modules load no torch, numpy or Mitsuba.
 - No import cycle between project modules, counting the imports inside functions: a function-level
   import only defers the cycle to the first call, and two modules that need each other are one
   idea cut in two (move what both need to where it belongs). ``from package import module`` is an
@@ -229,6 +231,18 @@ def test_the_cycle_check_sees_imports_inside_functions(tmp_path):
     assert import_cycles(graph) == [["clean.a", "clean.b"]]
     (tmp_path / "b.py").write_text("def f():\n    from .c import X\n    return X\n")
     assert import_cycles(import_graph(mods)) == []
+
+
+def test_the_command_line_builds_its_parser_without_torch():
+    """Each package's ``commands`` module declares its subcommands, and every call builds every parser:
+    none of them loads torch, numpy or Mitsuba (a handler imports what its command runs)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from mcdenoise.pipeline.__main__ import build_parser; build_parser(); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'numpy', 'mitsuba', 'drjit'}))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert proc.stdout.strip() == "[]"
 
 
 def package_graph() -> dict[str, dict[str, int]]:

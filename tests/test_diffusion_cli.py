@@ -255,8 +255,9 @@ def test_default_formulation_end_to_end(setup, tmp_path):
 
 def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
     """Everything of the GPU recipe but the GPU: crop packs, further training of an exported model, the
-    bench, and an output folder that fits the device tool (at most 8 files under 16 MiB)."""
-    from mcdenoise.train.gpu_recipe import crop_pack, main
+    bench, and an output folder that fits the device tool (at most 8 files under 16 MiB). Run as
+    train/gpu_recipe.sh runs it: ``python -m mcdenoise gpu-recipe``."""
+    from mcdenoise.train.gpu_recipe import crop_pack
 
     tmp, keys = setup
     run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
@@ -265,9 +266,9 @@ def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
     crop_pack(tmp / "runs" / "pack" / "train_oidn.safetensors", tmp_path / "train.safetensors", 6, 16)
     crop_pack(tmp / "runs" / "pack" / "val_oidn.safetensors", tmp_path / "val.safetensors", 2, 16, seed=1)
     out = tmp_path / "out"
-    assert main(["--model", str(tmp_path / "model"), "--train", str(tmp_path / "train.safetensors"),
-                 "--val", str(tmp_path / "val.safetensors"), "--out", str(out), "--minutes", "0.02",
-                 "--device", "cpu", "--batch", "2", "--sizes", "32x24"]) == 0
+    run("gpu-recipe", "--model", tmp_path / "model", "--train", tmp_path / "train.safetensors",
+        "--val", tmp_path / "val.safetensors", "--out", out, "--minutes", "0.02",
+        "--device", "cpu", "--batch", "2", "--sizes", "32x24", module=("-m", "mcdenoise"))
     files = list(out.iterdir())
     assert len(files) <= 8 and all(f.stat().st_size < 16 * 2**20 for f in files)
     result = json.loads((out / "result.json").read_text())
@@ -276,11 +277,25 @@ def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
     assert {"base_fp16.safetensors", "control_fp16.safetensors", "report.md"} <= {f.name for f in files}
 
 
+def test_gpu_recipe_flags_match_what_they_configure():
+    """gpu-recipe's --loss-norm offers the formulation's own choices (spelled out where the flags are
+    declared: that module loads no torch), and the flags are the recipe's settings, one for one."""
+    import dataclasses
+
+    from mcdenoise.pipeline.__main__ import build_parser
+    from mcdenoise.train import commands
+    from mcdenoise.train.formulation import LOSS_NORMS
+    from mcdenoise.train.gpu_recipe import Settings
+
+    assert commands.LOSS_NORMS == LOSS_NORMS
+    args = build_parser().parse_args(["gpu-recipe", "--out", "x"])
+    assert set(vars(args)) - {"command", "fn"} == {f.name for f in dataclasses.fields(Settings)}
+
+
 def test_gpu_recipe_dry_run_of_the_oidn_based_model(cleaned, tmp_path):
     """The recipe for a model on OIDN's network: OIDN crop packs, further training of the exported model from
     its own base.tza (no pyoidn needed), the bench at 1 and 3 steps, an output that fits the device tool."""
     from mcdenoise.pipeline.store import Store
-    from mcdenoise.train.gpu_recipe import main
     from mcdenoise.train.oidn_pack import crop_pack, ensure_pack, load_pack
 
     store, _ = cleaned
@@ -293,9 +308,9 @@ def test_gpu_recipe_dry_run_of_the_oidn_based_model(cleaned, tmp_path):
         pack = load_pack(ensure_pack(s, s.frames(split), tmp_path / f"{split}_pack.safetensors", quiet=True))
         crop_pack(pack, tmp_path / f"{split}.safetensors", n, 16, seed=1 if split == "val" else 0)
     out = tmp_path / "out"
-    assert main(["--model", str(tmp_path / "model"), "--oidn-train", str(tmp_path / "train.safetensors"),
-                 "--oidn-val", str(tmp_path / "val.safetensors"), "--out", str(out), "--minutes", "0.02",
-                 "--device", "cpu", "--batch", "2", "--sizes", "32x24"]) == 0
+    run("gpu-recipe", "--model", tmp_path / "model", "--oidn-train", tmp_path / "train.safetensors",
+        "--oidn-val", tmp_path / "val.safetensors", "--out", out, "--minutes", "0.02",
+        "--device", "cpu", "--batch", "2", "--sizes", "32x24", module=("-m", "mcdenoise"))
     files = list(out.iterdir())
     assert len(files) <= 8 and all(f.stat().st_size < 16 * 2**20 for f in files)
     result = json.loads((out / "result.json").read_text())

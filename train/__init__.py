@@ -1,6 +1,6 @@
 """Stage 3: the diffusion denoiser, a pixel-space diffusion base (DeepFloyd IF stage II's layout, or
-OIDN's network) with a trainable Control Module (paper Fig. 1); and ``oidn_ft``, OIDN's own network
-fine-tuned on the store.
+OIDN's network) with a trainable Control Module (paper Fig. 1); and the other trained competitors:
+``oidn_ft``, OIDN's own network fine-tuned on the store, and AFGSA.
 
 - ``train.base``: the base UNet (load, build, the stand-in in ``train/base_model_paper``);
   ``train.pretrain``: a stand-in base's training run (``PretrainTask``, ``make pretrain``).
@@ -21,6 +21,13 @@ fine-tuned on the store.
   buffer-group dropout) and its training pack of augmented crops.
 - ``train.oidn_refine``: the OIDN-based denoiser's training run (``RefineTask``, loss relative to
   OIDN), sampler and denoiser (``diffusion.base: oidn``).
-- ``train.cli``, ``train.bench``, ``train.gpu_recipe``: ``python -m pipeline`` entry points,
-  inference timing, the GPU recipe.
+- ``train.afgsa``: AFGSA (Yu et al. 2021): block-wise self-attention guided by the auxiliary
+  buffers, predicting log radiance, the patch critic and WGAN-GP losses of its adversarial training,
+  its recipe on ``clean.train``'s loop and its checkpoint loader; ``train.afgsa_report``:
+  ``afgsa-report``: AFGSA trained against GT_clean vs against GT1.
+- ``train.cli``, ``train.bench``, ``train.gpu_recipe``: the diffusion stage's command-line entry
+  points, inference timing, the GPU recipe (``gpu-prepare`` here, ``gpu-recipe`` on a GPU machine).
+- ``train.commands``: the subcommands ``train`` (every model, Isik's through ``clean.cli``),
+  ``pretrain``, ``export``, ``gpu-prepare``, ``gpu-recipe``, ``pack``, ``denoise``, ``afgsa-report``
+  and ``bench-denoise`` of ``python -m pipeline``.
 """

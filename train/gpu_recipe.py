@@ -7,14 +7,15 @@ does not travel). Run there, as one command of the device tool (``carry: [".gpu"
 
     bash train/gpu_recipe.sh                  # MINUTES=6 OUT=$OUT by default
 
-which installs the wheels and runs ``python -m mcdenoise.train.gpu_recipe``: it loads ``train/shipped``,
-trains base and Control Module on the carried crops for ``--minutes`` (bf16 autocast, the shipped
-model's formulation and objective, the same loop as ``make train``), scores the 1-step output
-against the crops' first estimate on the carried validation crops, times the network at 256² and
-1920×1080 for 1, 4, 9 and 27 steps, and writes into ``--out`` at most 8 files under 16 MiB:
+which installs the wheels and runs ``python -m mcdenoise gpu-recipe`` (``run``; ``train.commands``
+declares its flags): it loads ``train/shipped`` (or ``--model``), trains base and Control Module on
+the carried crops for ``--minutes`` (bf16 autocast, the shipped model's formulation and objective,
+the same loop as ``make train``), scores the 1-step output against the crops' first estimate on
+the carried validation crops, times the network at 256² and 1920×1080 for 1, 4, 9 and 27 steps,
+and writes into ``--out`` at most 8 files under 16 MiB:
 ``base_fp16.safetensors``, ``control_fp16.safetensors`` (the trained weights, float16 for the
 trip), ``model.json``, ``report.md``, ``result.json``, ``loss.png``. ``--device cpu --minutes
-0.2`` is the dry run the tests do.
+0.02`` is the dry run the tests do.
 
 A shipped model on OIDN's network (``diffusion.base: oidn``, ``train.oidn_refine``) takes the same
 command: ``gpu-prepare`` then cuts crops of the config's OIDN packs (``oidn_{train,val}_crops``),
@@ -24,7 +25,6 @@ times 1 and 3 steps.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import platform
@@ -46,6 +46,23 @@ from .train import Job, autocast_dtype, fit
 
 STEPS = (1, 4, 9, PAPER_STEPS)
 SIZES = {"256x256": (256, 256), "1920x1080": (1080, 1920)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """One run of the recipe: the flags of ``python -m pipeline gpu-recipe`` (defaults and help there)."""
+    out: str                 # the output folder (at most 8 files under 16 MiB)
+    model: str | None        # the model folder to train further; None: the shipped model
+    train: str               # the carried crop packs (gpu-prepare)
+    val: str
+    minutes: float           # training time budget
+    batch: int
+    lr: float
+    device: str
+    loss_norm: str           # diffusion.loss_norm of the training
+    sizes: str               # bench frame sizes, WxH comma-separated
+    oidn_train: str          # a model on OIDN's network: its crop packs
+    oidn_val: str
 
 
 def _validator(model, val: PackPairs, form, device, autocast):
@@ -89,7 +106,7 @@ def bench(model, form, device, autocast, aux_channels: int, sizes: dict | None =
     return rows
 
 
-def run_refine(args, sizes: dict) -> int:
+def run_refine(args: Settings, sizes: dict) -> int:
     """The recipe for a model on OIDN's network (``diffusion.base: oidn``): its own training run
     (``train.oidn_refine.RefineTask``, the shipped model's settings) on the carried OIDN crop packs, from
     the shipped base and Control Module; the trained Control Module and the timings into ``--out``."""
@@ -151,27 +168,20 @@ def run_refine(args, sizes: dict) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default=str(SHIPPED_MODEL))
-    ap.add_argument("--train", default=".gpu/train_crops.safetensors")
-    ap.add_argument("--val", default=".gpu/val_crops.safetensors")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--minutes", type=float, default=6.0)
-    ap.add_argument("--batch", type=int, default=64)
-    ap.add_argument("--lr", type=float, default=1e-4)
-    ap.add_argument("--device", default="auto")
-    ap.add_argument("--loss-norm", default="crop", choices=LOSS_NORMS,
-                    help="diffusion.loss_norm of the training (train/formulation.py)")
-    ap.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
-    ap.add_argument("--oidn-train", default=".gpu/oidn_train_crops.safetensors",
-                    help="a model on OIDN's network: its training crops (gpu-prepare writes them)")
-    ap.add_argument("--oidn-val", default=".gpu/oidn_val_crops.safetensors")
-    args = ap.parse_args(argv)
-    sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
+def run(settings: Settings) -> int:
+    """The recipe: ``run_refine`` for a model on OIDN's network, else ``run_diffusion``; exit status 0."""
     from .oidn_refine import FORMAT as REFINE
+
+    args = dataclasses.replace(settings, model=settings.model or str(SHIPPED_MODEL))
+    sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
     if json.loads((Path(args.model) / "model.json").read_text()).get("format") == REFINE:
         return run_refine(args, sizes)
+    return run_diffusion(args, sizes)
+
+
+def run_diffusion(args: Settings, sizes: dict) -> int:
+    """The recipe for a model on the IF-II-layout diffusion base: base and Control Module trained
+    further on the carried crop packs, the weights and the timings into ``--out``."""
     t0 = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -226,10 +236,6 @@ def report(r: dict) -> str:
              "| frame | steps | network seconds |", "| --- | --- | --- |"]
     lines += [f"| {b['size']} | {b['steps']} | {b['seconds']} |" for b in r["bench"]]
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
 
 
 # ---- preparation, on this machine ------------------------------------------------------------------

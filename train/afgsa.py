@@ -1,5 +1,10 @@
 """AFGSA: Monte Carlo denoising via auxiliary feature guided self-attention (Yu et al. 2021, ACM TOG
-40(6)), the third competitor of the paper's Table 1, after the paper and its authors' public code.
+40(6)), the third competitor of the paper's Table 1, after the paper and its authors' public code:
+the network, its patch critic, their losses, the training recipe and the checkpoint loader.
+
+    afgsa.train(cfg, spp=4)     → runs/<...>/afgsa_spp4/   (afgsa.target=gt1: afgsa_gt1_spp4/;
+                                  spp="any": afgsa_sppany/, crops drawn at 4, 8, ... 64 spp)
+    afgsa.load_model(folder)    → (AFGSANet, its model.json)
 
     noisy radiance (log) ──► multi-scale extractor (1×1, 3×3, 5×5 convs) ──► x ─┐
     auxiliary buffers    ──► multi-scale extractor ─────────────────────────► a ─┤
@@ -33,20 +38,36 @@ plus 1, ``BOUND_RADIUS``), with the Isik network's signature
 Sizes (``afgsa`` config section), ours vs the paper's: 32 vs 256 transformer channels, 32 vs 256
 channels per extractor branch, 2 vs 5 transformer blocks, 2 vs 4 heads; block 8 and halo 3 as the
 paper. ``PatchCritic`` is the adversarial loss's discriminator: a small fully convolutional patch
-critic (the paper uses a VGG-style critic on 128² crops; the WGAN-GP formulation is the same,
-``clean.losses``).
+critic (the paper uses a VGG-style critic on 128² crops; the WGAN-GP formulation is the same).
+
+**Training** (``afgsa_recipe``, run by ``clean.train``'s loop: crops, validation, checkpoints, exact
+resume): the generator G learns with L1 in log1p space plus a WGAN-GP adversarial term (the
+authors' code: weight 5e-3, gradient penalty 10), the critic D with the WGAN-GP loss:
+
+    L_D = E[D(G(x))] − E[D(y)] + λ_gp E[(‖∇D(x̂)‖₂ − 1)²],   x̂ = α y + (1 − α) G(x), α ~ U(0, 1)
+    L_G = ‖G(x) − y‖₁ + w_adv (−E[D(G(x))])
+
+with y the target (``afgsa.target``: GT_clean, or GT1 for the experiment of ``train.afgsa_report``)
+in log1p space; per batch one critic step, then one generator step (Adam, as the paper).
+w_adv = 0 is the L1-only ablation: the critic is not used.
 """
 from __future__ import annotations
 
 import math
+import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mcdenoise.pipeline import schema
-
-from .data import CHANNELS, INPUT_CLAMP, RADIANCE
+from mcdenoise.clean.data import CHANNELS, IN_CHANNELS, INPUT_CLAMP, RADIANCE
+from mcdenoise.clean.model import load_model as load_network
+from mcdenoise.clean.train import Recipe, train_recipe
+from mcdenoise.pipeline import runs, schema
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.fit import apply_update
 
 # Output clamp in log1p space: expm1(25) ≈ 7e10 is far above any radiance we render (1e5 in the
 # stability suite) and keeps the HDR output finite whatever the weights predict.
@@ -248,3 +269,97 @@ class PatchCritic(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x).mean(dim=(1, 2, 3))
+
+
+# ---- losses --------------------------------------------------------------------------------
+
+
+def log_radiance(hdr: torch.Tensor) -> torch.Tensor:
+    """HDR radiance → the log1p space AFGSA predicts and is trained in (negatives clamped to 0)."""
+    return torch.log1p(hdr.clamp(min=0.0))
+
+
+def gradient_penalty(critic, real: torch.Tensor, fake: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """E[(‖∇D(x̂)‖₂ − 1)²] at random points x̂ between real and fake (one α per crop)."""
+    alpha = torch.rand(real.shape[0], 1, 1, 1, generator=generator).to(real)
+    mixed = (alpha * real + (1 - alpha) * fake).requires_grad_(True)
+    grad, = torch.autograd.grad(critic(mixed).sum(), mixed, create_graph=True)
+    return ((grad.flatten(1).norm(dim=1) - 1.0) ** 2).mean()
+
+
+def critic_loss(critic, real: torch.Tensor, fake: torch.Tensor, gp_weight: float,
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """WGAN-GP loss of the critic (``fake`` is detached here); terms: the Wasserstein estimate
+    E[D(y)] − E[D(G(x))] and the penalty."""
+    fake = fake.detach()
+    wasserstein = critic(real).mean() - critic(fake).mean()
+    gp = gradient_penalty(critic, real, fake, generator)
+    loss = -wasserstein + gp_weight * gp
+    return loss, {"wasserstein": float(wasserstein.detach()), "gp": float(gp.detach())}
+
+
+def generator_loss(fake: torch.Tensor, real: torch.Tensor, critic, adv_weight: float
+                   ) -> tuple[torch.Tensor, dict[str, float]]:
+    """L1 (log space) + adv_weight · (−E[D(fake)]); with adv_weight 0 the critic is never called."""
+    rec = (fake - real).abs().mean()
+    if adv_weight == 0:
+        return rec, {"l1": float(rec.detach())}
+    adv = -critic(fake).mean()
+    return rec + adv_weight * adv, {"l1": float(rec.detach()), "adv": float(adv.detach())}
+
+
+# ---- training and loading --------------------------------------------------------------------
+
+
+def afgsa_hparams(cfg: Config) -> dict:
+    a = cfg.afgsa
+    return {"in_channels": IN_CHANNELS, "channels": a.channels, "extractor_channels": a.extractor_channels,
+            "blocks": a.blocks, "heads": a.heads, "block_size": a.block_size, "halo": a.halo}
+
+
+def afgsa_recipe(cfg: Config, spp) -> Recipe:
+    """AFGSA as a ``clean.train`` recipe: per batch one WGAN-GP critic step, then one generator step on
+    L1 (log space) + adv_weight x the adversarial term (the authors' order); adv_weight 0 trains the
+    generator on L1 alone and never touches the critic."""
+    a = cfg.afgsa
+    device = runs.pick_device(a.device)
+    torch.manual_seed(cfg.seed)
+    generator = AFGSANet(**afgsa_hparams(cfg)).to(device)
+    critic = PatchCritic(a.critic_channels, a.critic_levels).to(device)
+    opts = {"generator": torch.optim.Adam(generator.parameters(), lr=a.lr),
+            "critic": torch.optim.Adam(critic.parameters(), lr=a.lr_critic)}
+    g_params, d_params = list(generator.parameters()), list(critic.parameters())
+    adversarial = a.adv_weight > 0
+
+    def step(batch: dict, rng: torch.Generator) -> tuple[dict, bool]:
+        fake, real = generator.log_forward(batch["inputs"]), log_radiance(batch["target"])
+        ok, terms = True, {}
+        if adversarial:
+            d_loss, terms = critic_loss(critic, real, fake, a.gp_weight, rng)
+            ok = apply_update(d_loss, opts["critic"], d_params, a.grad_clip)
+        g_loss, g_terms = generator_loss(fake, real, critic if adversarial else None, a.adv_weight)
+        ok = apply_update(g_loss, opts["generator"], g_params, a.grad_clip) and ok
+        return {"loss": g_terms.pop("l1"), **g_terms, **terms}, ok
+
+    fp = {"mode": "afgsa", "spp": spp, "seed": cfg.seed, "hparams": afgsa_hparams(cfg), "critic": critic.hparams,
+          **{k: getattr(a, k) for k in ("target", "batch_size", "crop", "crops_per_frame", "lr", "lr_critic",
+                                         "adv_weight", "gp_weight", "grad_clip")}}
+    title = f"AFGSA, {spp} spp -> {a.target} (adv. weight {a.adv_weight:g})"
+    state = torch.nn.ModuleDict({"generator": generator, "critic": critic})
+    return Recipe("afgsa", spp, a, generator, state, opts, step, fp, FORMAT, title, "L1 (log1p)",
+                  runs.run_dir(cfg, "afgsa", spp), target=a.target,
+                  meta={"smape_eps": cfg.clean.smape_eps, "target": a.target, "afgsa": vars(a).copy()})
+
+
+def train(cfg: Config, spp, quiet: bool = False) -> dict:
+    """Train (or resume) AFGSA from the ``spp`` (or 'any': 4/16/64) low-spp buffers to ``afgsa.target``;
+    a summary dict. The best weights end up in ``pipeline.runs.run_dir(cfg, "afgsa", spp)``."""
+    started = time.perf_counter()
+    if not spp:
+        raise TrainError("the afgsa model needs an spp (make train MODEL=afgsa SPP=4)")
+    return train_recipe(cfg, afgsa_recipe(cfg, spp), quiet=quiet, started=started)
+
+
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[AFGSANet, dict]:
+    """An AFGSA run's ``model.safetensors`` (the run folder or the file) and its ``model.json``."""
+    return load_network(path, device, network=AFGSANet)

@@ -23,16 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
+from mcdenoise.clean.apply import denoise
+from mcdenoise.clean.data import frame_inputs
+from mcdenoise.clean.train import wall_seconds
 from mcdenoise.pipeline import figures
 from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.metrics import all_metrics
-from mcdenoise.pipeline.runs import pick_device
+from mcdenoise.pipeline.runs import pick_device, run_dir
 from mcdenoise.pipeline.store import Store
 
-from .data import frame_inputs
-from .model import load_model
-from .train import TrainError, run_dir, wall_seconds
+from .afgsa import load_model
 
 DIFF_GAIN = 20.0          # the two outputs differ by ~1e-3 on the x/(1+x) scale: invisible unscaled
 
@@ -88,8 +90,6 @@ def run_afgsa_report(cfg: Config, spp: int = 4, out: str = "reports/afgsa", runs
     keys = store.frames_with(cfg.eval.split)
     if not keys:
         raise TrainError(f"{store.root}: no {cfg.eval.split} frame with gt_clean")
-    from .apply import denoise
-
     per_frame, grid = [], []
     for key in keys:
         buffers = store.read(key.scene, key.frame, spp)

@@ -1,0 +1,218 @@
+"""The denoisers' subcommands of ``python -m pipeline``: ``train`` (every model: the diffusion denoiser,
+oidn_ft, and the Isik and AFGSA baselines), ``pretrain``, ``export``, ``gpu-prepare``, ``gpu-recipe``,
+``pack``, ``denoise``, ``afgsa-report`` and ``bench-denoise``.
+
+``add_commands`` declares them (see ``pipeline.commands``); each handler imports what it runs
+(``train.cli`` and the trainers load torch, this module does not).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from mcdenoise.pipeline.commands import config, spp, with_config, with_quiet
+from mcdenoise.pipeline.config import ConfigError
+
+# train.formulation.LOSS_NORMS, spelled out: that module loads torch (tests/test_diffusion_cli.py
+# checks that the two agree).
+LOSS_NORMS = ("none", "crop")
+
+
+def add_commands(sub) -> None:
+    """The denoisers' subcommands, in the order of their --help: training, its preparation, export,
+    the GPU recipe, packs, inference, then AFGSA's report and the inference benchmark."""
+    _training_commands(sub)
+    _gpu_commands(sub)
+    _inference_commands(sub)
+    _report_commands(sub)
+
+
+def _training_commands(sub) -> None:
+    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), oidn_ft (OIDN "
+                                                 "fine-tuned), isik or afgsa (baselines); diffusion runs under "
+                                                 "torchrun for DDP"))
+    p.add_argument("--model", default="diffusion", choices=["diffusion", "oidn_ft", "isik", "afgsa"],
+                   help="which denoiser")
+    p.add_argument("--spp", type=spp, required=True,
+                   help="sample count of the noisy input (4, 16, 64), or 'any': one diffusion or AFGSA model "
+                        "for all")
+    with_quiet(p)
+    p.set_defaults(fn=_train)
+
+    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
+    with_quiet(p)
+    p.set_defaults(fn=_pretrain)
+
+    p = with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
+                                                  "(the shipped model: train/shipped), or (--format oidn) an "
+                                                  "oidn_ft run into a .tza file OIDN loads as its weights"))
+    p.add_argument("--format", default="model", choices=["model", "oidn"],
+                   help="model: the diffusion run as a model folder; oidn: the oidn_ft run of oidn_ft.network as "
+                        "float16 OIDN weights (.tza)")
+    p.add_argument("--spp", type=spp, default=None, help="the diffusion run (diffusion_spp<N> or any); --format model")
+    p.add_argument("--out", default=None, help="the model folder to write (default train/shipped); --format oidn: a "
+                                               ".tza file or a folder (default <runs>/oidn_ft_<network>.tza)")
+    with_quiet(p)
+    p.set_defaults(fn=_export)
+
+
+def _gpu_commands(sub) -> None:
+    p = with_config(sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe (gpu-recipe): crop packs "
+                                                       "from the training packs and the wheels a bare GPU machine "
+                                                       "lacks"))
+    p.add_argument("--out", default=".gpu")
+    p.add_argument("--train-crops", type=int, default=48)
+    p.add_argument("--val-crops", type=int, default=12)
+    p.add_argument("--side", type=int, default=48)
+    p.add_argument("--no-wheels", action="store_true", help="crop packs only")
+    p.set_defaults(fn=_gpu_prepare)
+
+    p = sub.add_parser("gpu-recipe", help="on a lent GPU machine (bash train/gpu_recipe.sh): train the shipped "
+                                          "model further on the crops of gpu-prepare and time it",
+                       description="The GPU recipe: one short run on a lent GPU machine that trains the shipped "
+                                   "model further and times it.")
+    p.add_argument("--model", default=None, help="the model folder to train further (default: train/shipped)")
+    p.add_argument("--train", default=".gpu/train_crops.safetensors")
+    p.add_argument("--val", default=".gpu/val_crops.safetensors")
+    p.add_argument("--out", required=True)
+    p.add_argument("--minutes", type=float, default=6.0)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--loss-norm", default="crop", choices=LOSS_NORMS,
+                   help="diffusion.loss_norm of the training (train/formulation.py)")
+    p.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
+    p.add_argument("--oidn-train", default=".gpu/oidn_train_crops.safetensors",
+                   help="a model on OIDN's network: its training crops (gpu-prepare writes them)")
+    p.add_argument("--oidn-val", default=".gpu/oidn_val_crops.safetensors")
+    p.set_defaults(fn=_gpu_recipe)
+
+
+def _inference_commands(sub) -> None:
+    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
+    p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
+    with_quiet(p)
+    p.set_defaults(fn=_pack)
+
+    p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
+    p.add_argument("--spp", type=spp, default=None,
+                   help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
+                        "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
+    p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000")
+    p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
+    p.add_argument("--out", required=True, help="output EXR")
+    p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
+    p.add_argument("--steps", type=int, default=None, help="sampler steps, refine formulation (default: the run's)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
+    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_ft"],
+                   help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_ft: the oidn_ft run "
+                        "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself")
+    p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
+                   help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
+    with_quiet(p)
+    p.set_defaults(fn=_denoise)
+
+
+def _report_commands(sub) -> None:
+    p = with_config(sub.add_parser("afgsa-report", help="AFGSA trained against GT_clean vs against GT1, both "
+                                                        "scored against GT_clean: table and crop grid"))
+    p.add_argument("--spp", type=int, default=4)
+    p.add_argument("--out", default="reports/afgsa")
+    p.add_argument("--run", action="append", default=None, metavar="LABEL=FOLDER", dest="runs",
+                   help="another AFGSA run folder to compare (e.g. the adv_weight=0 ablation); repeatable")
+    p.set_defaults(fn=_afgsa_report)
+
+    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP; OIDN "
+                                                         "(built-in, exported weights, PyTorch twin) per 128² and 1080p"))
+    p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
+    p.add_argument("--side", type=int, default=128, help="frame side of the per-frame timing")
+    p.add_argument("--out", default="reports/bench")
+    p.set_defaults(fn=_bench_denoise)
+
+
+# ---- handlers: parsed flags -> one call ----------------------------------------------------------
+
+
+def _train(args) -> int:
+    cfg = config(args)
+    if args.model == "isik":
+        from mcdenoise.clean.cli import cmd_train_isik
+        return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
+    if args.model == "afgsa":
+        from .afgsa import train as train_afgsa
+        train_afgsa(cfg, args.spp, quiet=args.quiet)
+        return 0
+    if args.model == "oidn_ft":
+        from .oidn_ft import train as train_oidn_ft
+        train_oidn_ft(cfg, args.spp, quiet=args.quiet)
+        return 0
+    from .cli import cmd_train
+    return cmd_train(cfg, args.spp, quiet=args.quiet)
+
+
+def _pretrain(args) -> int:
+    from .cli import cmd_pretrain
+    return cmd_pretrain(config(args), quiet=args.quiet)
+
+
+def _export(args) -> int:
+    from .export import export, export_oidn
+    if args.format == "oidn":
+        export_oidn(config(args), Path(args.out) if args.out else None, quiet=args.quiet, config=args.config,
+                    overrides=args.overrides)
+        return 0
+    if args.spp is None:
+        raise ConfigError("export --format model needs --spp (the diffusion run: 4, 16, 64 or any)")
+    export(config(args), args.spp, Path(args.out or "train/shipped"), quiet=args.quiet, config=args.config,
+           overrides=args.overrides)
+    return 0
+
+
+def _gpu_prepare(args) -> int:
+    from .gpu_recipe import prepare
+    prepare(config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels)
+    return 0
+
+
+def _gpu_recipe(args) -> int:
+    import dataclasses
+
+    from .gpu_recipe import Settings, run
+    return run(Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)}))
+
+
+def _pack(args) -> int:
+    from .cli import cmd_pack
+    return cmd_pack(config(args), args.split or ["train", "val"], quiet=args.quiet)
+
+
+def _denoise(args) -> int:
+    from .cli import cmd_denoise, cmd_denoise_oidn
+    if args.method != "ours" or args.oidn_weights:
+        return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
+                                spp=args.spp, quiet=args.quiet)
+    return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
+                       base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples)
+
+
+def _afgsa_report(args) -> int:
+    from .afgsa_report import default_runs, run_afgsa_report
+    cfg = config(args)
+    runs = default_runs(cfg, args.spp)
+    for text in args.runs or []:
+        label, sep, folder = text.partition("=")
+        if not sep or not label or not folder:
+            raise ConfigError(f"--run {text!r}: expected LABEL=FOLDER")
+        runs[label] = Path(folder)
+    run_afgsa_report(cfg, spp=args.spp, out=args.out, runs=runs, crops=cfg.eval.crops)
+    return 0
+
+
+def _bench_denoise(args) -> int:
+    from .bench import run, run_oidn
+    cfg = config(args)
+    run(cfg, spp=args.spp, side=args.side, out=args.out)
+    run_oidn(cfg, out=args.out)
+    return 0
