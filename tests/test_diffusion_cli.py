@@ -253,41 +253,18 @@ def test_default_formulation_end_to_end(setup, tmp_path):
     assert (folder / "base_init" / "config.json").exists()
 
 
-def test_gpu_recipe_dry_run_on_the_cpu(setup, tmp_path):
-    """Everything of the GPU recipe but the GPU: crop packs, further training of an exported model, the
-    bench, and an output folder that fits the device tool (at most 8 files under 16 MiB). Run as
-    train/gpu_recipe.sh runs it: ``python -m mcdenoise gpu-recipe``."""
-    from mcdenoise.train.gpu_recipe import crop_pack
-
-    tmp, keys = setup
-    run("train", "--model", "diffusion", "--spp", "4", *keys, "diffusion.epochs=2")
-    run("export", "--spp", "4", "--out", tmp_path / "model", *keys)
-    run("pack", *keys, "--quiet")
-    crop_pack(tmp / "runs" / "pack" / "train_oidn.safetensors", tmp_path / "train.safetensors", 6, 16)
-    crop_pack(tmp / "runs" / "pack" / "val_oidn.safetensors", tmp_path / "val.safetensors", 2, 16, seed=1)
-    out = tmp_path / "out"
-    run("gpu-recipe", "--model", tmp_path / "model", "--train", tmp_path / "train.safetensors",
-        "--val", tmp_path / "val.safetensors", "--out", out, "--minutes", "0.02",
-        "--device", "cpu", "--batch", "2", "--sizes", "32x24", module=("-m", "mcdenoise"))
-    files = list(out.iterdir())
-    assert len(files) <= 8 and all(f.stat().st_size < 16 * 2**20 for f in files)
-    result = json.loads((out / "result.json").read_text())
-    assert [b["steps"] for b in result["bench"]] == [1, 4, 9, 27] and all(b["seconds"] > 0 for b in result["bench"])
-    assert result["epochs"] >= 1 and result["history"][0]["epoch"] == 0 and result["train_images_per_s"] > 0
-    assert {"base_fp16.safetensors", "control_fp16.safetensors", "report.md"} <= {f.name for f in files}
-
-
-def test_gpu_recipe_flags_match_what_they_configure():
-    """gpu-recipe's --loss-norm offers the formulation's own choices (spelled out where the flags are
-    declared: that module loads no torch), and the flags are the recipe's settings, one for one."""
+def test_gpu_recipe_continues_only_a_model_on_oidn_and_its_flags_are_its_settings(tmp_path):
+    """Another model folder gets one line naming it (exit 2), not a traceback; every flag is a setting."""
     import dataclasses
 
     from mcdenoise.pipeline.__main__ import build_parser
-    from mcdenoise.train import commands
-    from mcdenoise.train.formulation import LOSS_NORMS
     from mcdenoise.train.gpu_recipe import Settings
 
-    assert commands.LOSS_NORMS == LOSS_NORMS
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "model.json").write_text(json.dumps({"format": "mcdenoise-control"}))
+    proc = run("gpu-recipe", "--model", tmp_path / "model", "--out", tmp_path / "out", "--device", "cpu", check=False)
+    assert proc.returncode == 2 and "OIDN's network" in proc.stderr and str(tmp_path / "model") in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
     args = build_parser().parse_args(["gpu-recipe", "--out", "x"])
     assert set(vars(args)) - {"command", "fn"} == {f.name for f in dataclasses.fields(Settings)}
 
@@ -308,8 +285,8 @@ def test_gpu_recipe_dry_run_of_the_oidn_based_model(cleaned, tmp_path):
         pack = load_pack(ensure_pack(s, s.frames(split), tmp_path / f"{split}_pack.safetensors", quiet=True))
         crop_pack(pack, tmp_path / f"{split}.safetensors", n, 16, seed=1 if split == "val" else 0)
     out = tmp_path / "out"
-    run("gpu-recipe", "--model", tmp_path / "model", "--oidn-train", tmp_path / "train.safetensors",
-        "--oidn-val", tmp_path / "val.safetensors", "--out", out, "--minutes", "0.02",
+    run("gpu-recipe", "--model", tmp_path / "model", "--train", tmp_path / "train.safetensors",
+        "--val", tmp_path / "val.safetensors", "--out", out, "--minutes", "0.02",
         "--device", "cpu", "--batch", "2", "--sizes", "32x24", module=("-m", "mcdenoise"))
     files = list(out.iterdir())
     assert len(files) <= 8 and all(f.stat().st_size < 16 * 2**20 for f in files)

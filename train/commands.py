@@ -12,10 +12,6 @@ from pathlib import Path
 from mcdenoise.pipeline.commands import config, spp, with_config, with_quiet
 from mcdenoise.pipeline.config import ConfigError
 
-# train.formulation.LOSS_NORMS, spelled out: that module loads torch (tests/test_diffusion_cli.py
-# checks that the two agree).
-LOSS_NORMS = ("none", "crop")
-
 
 def add_commands(sub) -> None:
     """The denoisers' subcommands, in the order of their --help: training, its preparation, export,
@@ -71,19 +67,14 @@ def _gpu_commands(sub) -> None:
                        description="The GPU recipe: one short run on a lent GPU machine that trains the shipped "
                                    "model further and times it.")
     p.add_argument("--model", default=None, help="the model folder to train further (default: train/shipped)")
-    p.add_argument("--train", default=".gpu/train_crops.safetensors")
-    p.add_argument("--val", default=".gpu/val_crops.safetensors")
+    p.add_argument("--train", default=".gpu/train_crops.safetensors", help="the training crops (gpu-prepare)")
+    p.add_argument("--val", default=".gpu/val_crops.safetensors", help="the validation crops (gpu-prepare)")
     p.add_argument("--out", required=True)
     p.add_argument("--minutes", type=float, default=6.0)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--device", default="auto")
-    p.add_argument("--loss-norm", default="crop", choices=LOSS_NORMS,
-                   help="diffusion.loss_norm of the training (train/formulation.py)")
     p.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
-    p.add_argument("--oidn-train", default=".gpu/oidn_train_crops.safetensors",
-                   help="a model on OIDN's network: its training crops (gpu-prepare writes them)")
-    p.add_argument("--oidn-val", default=".gpu/oidn_val_crops.safetensors")
     p.set_defaults(fn=_gpu_recipe)
 
 

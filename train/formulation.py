@@ -151,7 +151,7 @@ class Formulation:
         return torch.where(use, picked, uniform)
 
     def objective(self, focus_steps: list[int]):
-        """The refine formulation's training step (``train.train.fit``'s ``objective``): y = target(x, x_est),
+        """The refine formulation's training step (``train.train.ControlTask``'s ``objective``): y = target(x, x_est),
         t from ``draw_t``, z_t = add_noise(y, ε, t), weighted loss of model(z_t, x_est, F, t)."""
         sched = self.scheduler("ddpm")
         focus = self.train_timesteps(focus_steps)
