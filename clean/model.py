@@ -281,28 +281,21 @@ class AffinityDenoiser(nn.Module):
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu",
-               network: type[nn.Module] = AffinityDenoiser) -> tuple[nn.Module, dict]:
-    """Load ``model.safetensors`` and its sidecar ``model.json`` (format, hparams, epoch, metrics, ...)
-    as ``network(**hparams)``: an ``AffinityDenoiser``, or the class of another network that
-    ``clean.train`` trained (a recipe's model).
-
-    ``path`` is the .safetensors file or the run folder holding ``model.safetensors``.
-    """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
+               network: type[nn.Module] = AffinityDenoiser, kind: str = "affinity") -> tuple[nn.Module, dict]:
+    """A trained run's ``model.safetensors`` and its ``model.json`` (``pipeline.weights``: a ``kind`` model;
+    hparams, epoch, metrics, ...) as ``network(**hparams)``: an ``AffinityDenoiser``, or the class of
+    another network that ``clean.train`` trained (a recipe's model). ``path``: the run folder or its
+    ``model.safetensors``."""
+    from mcdenoise.pipeline import weights
     from mcdenoise.pipeline.errors import CheckpointError
-    from mcdenoise.pipeline.exr import read_json
 
     path = Path(path)
-    if path.is_dir():
-        path = path / "model.safetensors"
-    meta = read_json(path.with_suffix(".json"), "model sidecar")
+    path = path / "model.safetensors" if path.is_dir() else path
+    meta = weights.read_record(path.parent, kind, "train it first (make gt-clean, or make train MODEL=isik|afgsa)")
     try:
         model = network(**meta["hparams"])
-        # safetensors only: a pickle (torch.save) checkpoint is refused here, never unpickled.
-        model.load_state_dict(load_file(str(path), device=str(device)))
-    except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as exc:
+        model.load_state_dict(weights.load_tensors(path, device))
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CheckpointError(f"{path}: not a usable safetensors checkpoint of this model ({first})") from None
     return model.to(device).eval(), meta

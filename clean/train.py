@@ -43,8 +43,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from mcdenoise.pipeline import runs
-from mcdenoise.pipeline.checkpoint import plot_curves, save_safetensors
+from mcdenoise.pipeline import runs, weights
+from mcdenoise.pipeline.checkpoint import plot_curves
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
@@ -64,8 +64,6 @@ from .data import (
 )
 from .losses import smape
 from .model import AffinityDenoiser
-
-FORMAT = "mcdenoise-affinity"
 
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
@@ -127,7 +125,7 @@ class Recipe:
     optimizers: object            # an optimizer, or a dict name -> optimizer
     step: Callable                # (batch on the device, torch.Generator) -> ({"loss": ..., terms}, finite)
     fingerprint: dict
-    fmt: str
+    kind: str                     # its kind of weight file (pipeline.weights.FORMATS)
     title: str
     loss_label: str
     folder: Path                  # the run folder
@@ -148,7 +146,7 @@ def affinity_recipe(cfg: Config, mode: str, spp: int | None, device) -> Recipe:
         return {"loss": float(loss.detach())}, apply_update(loss, opt, params, c.grad_clip)
 
     title = "GT cleaner (GT1 <-> GT2)" if mode == "cleaner" else f"Isik baseline, {spp} spp -> GT_clean"
-    return Recipe(mode, spp, c, model, model, opt, step, fingerprint(cfg, mode, spp), FORMAT, title, "SMAPE",
+    return Recipe(mode, spp, c, model, model, opt, step, fingerprint(cfg, mode, spp), "affinity", title, "SMAPE",
                   run_dir(cfg, mode, spp), meta={"smape_eps": c.smape_eps, "clean": vars(c).copy()})
 
 
@@ -191,9 +189,8 @@ def datasets(cfg: Config, recipe: Recipe):
 # ---- checkpoints -----------------------------------------------------------------------------
 
 
-def save_best(folder: Path, model: torch.nn.Module, record: dict, fmt: str = FORMAT) -> None:
-    save_safetensors(folder / "model.safetensors", model.state_dict(), {"format": fmt})
-    atomic_write_json(folder / "model.json", record)
+def save_best(folder: Path, model: torch.nn.Module, record: dict, kind: str = "affinity") -> None:
+    weights.save(folder, kind, model.state_dict(), record)
 
 
 def plot_curve(path: Path, history: list[dict], title: str, loss_label: str = "SMAPE") -> None:
@@ -243,7 +240,8 @@ class RecipeTask(Task):
         s = recipe.settings
         self.cfg, self.recipe, self.folder = cfg, recipe, recipe.folder
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, s.epochs, s.time_budget_s, s.nan_limit
-        self.fingerprint, self.fmt, self.state, self.optimizers = recipe.fingerprint, recipe.fmt, recipe.state, recipe.optimizers
+        self.fingerprint, self.state, self.optimizers = recipe.fingerprint, recipe.state, recipe.optimizers
+        self.fmt = weights.FORMATS[recipe.kind]
         self.device = pick_device(s.device)
         self.output = str(self.folder / "model.safetensors")
         self.train_ds = self.val_ds = None
@@ -283,11 +281,11 @@ class RecipeTask(Task):
 
     def save_best(self, entry: dict) -> None:
         r, cfg = self.recipe, self.cfg
-        save_best(self.folder, r.model, {"format": r.fmt, "mode": r.mode, "spp": r.spp,
+        save_best(self.folder, r.model, {"mode": r.mode, "spp": r.spp,
                                          "spp_choices": getattr(self.train_ds, "spps", None),
                                          "hparams": r.model.hparams, "input_channels": channel_names(),
                                          "epoch": entry["epoch"], "metrics": entry["val"],
-                                         "train_loss": entry["train_loss"], "store": str(cfg.store), **r.meta}, r.fmt)
+                                         "train_loss": entry["train_loss"], "store": str(cfg.store), **r.meta}, r.kind)
 
     def write_history(self, history: list, best: dict | None) -> None:
         _write_history(self.folder, self.recipe, history, best)

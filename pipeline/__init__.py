@@ -25,6 +25,7 @@ Mitsuba and torch load on demand.
 - ``pipeline.features``: how every network's input channels encode the buffers, in one table.
 - ``pipeline.fit``: the training loop every trainer runs (resume, best/last checkpoint, time budget).
 - ``pipeline.checkpoint``: safetensors checkpoints (the resumable state) and training curves.
+- ``pipeline.weights``: trained models on disk: format tags, save, load, the checks of what they were built on.
 - ``pipeline.runs``: the run folder of each model, and the device it runs on.
 - ``pipeline.oidn``: Intel Open Image Denoise, the one call every stage uses (its own or given weights).
 - ``pipeline.oidn_net``: OIDN's network in PyTorch, equal to pyoidn's output (what trains).

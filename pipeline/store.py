@@ -208,6 +208,16 @@ class Store:
             return []
         return [k for k in self.frames(split) if all(self.image_path(k.scene, k.frame, n).exists() for n in images)]
 
+    def training_frames(self) -> tuple[list[FrameKey], list[FrameKey]]:
+        """(train, val) frames with gt_clean, what a denoiser trains and validates on; StoreError naming the
+        store and what to run when it has no dataset or no train frame with gt_clean."""
+        if not self.manifest_path.exists():
+            raise StoreError(f"{self.root}: no dataset; run `make dataset` first")
+        train = self.frames_with("train")
+        if not train:
+            raise StoreError(f"{self.root}: no training frame with gt_clean; run `make gt-clean`")
+        return train, self.frames_with("val")
+
     def is_frame_complete(self, scene: str, frame: int, images: list[str]) -> bool:
         """True when frame.json lists every expected image and each file is on disk."""
         try:

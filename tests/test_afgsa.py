@@ -268,7 +268,7 @@ def test_any_spp_draws_every_count_and_validates_each(store_root):
 def _save_untrained(folder):
     torch.manual_seed(0)
     model = AFGSANet(IN_CHANNELS, channels=8, extractor_channels=4, blocks=1, block_size=4, halo=1)
-    save_best(folder, model, {"format": "mcdenoise-afgsa", "hparams": model.hparams}, "mcdenoise-afgsa")
+    save_best(folder, model, {"hparams": model.hparams}, "afgsa")
 
 
 def test_eval_loads_afgsa_and_says_why_it_cannot(tmp_path):

@@ -77,7 +77,6 @@ LOG_MAX = 25.0
 # network otherwise extrapolates in log space (1e5 everywhere came out as 3e6). The radius stays
 # inside clean.apply's tile margin, so tiling does not change the bound.
 BOUND_RADIUS = 8
-FORMAT = "mcdenoise-afgsa"
 
 
 def branch_channels() -> tuple[list[int], list[int], slice]:
@@ -346,7 +345,7 @@ def afgsa_recipe(cfg: Config, spp) -> Recipe:
                                          "adv_weight", "gp_weight", "grad_clip")}}
     title = f"AFGSA, {spp} spp -> {a.target} (adv. weight {a.adv_weight:g})"
     state = torch.nn.ModuleDict({"generator": generator, "critic": critic})
-    return Recipe("afgsa", spp, a, generator, state, opts, step, fp, FORMAT, title, "L1 (log1p)",
+    return Recipe("afgsa", spp, a, generator, state, opts, step, fp, "afgsa", title, "L1 (log1p)",
                   runs.run_dir(cfg, "afgsa", spp), target=a.target,
                   meta={"smape_eps": cfg.clean.smape_eps, "target": a.target, "afgsa": vars(a).copy()})
 
@@ -362,4 +361,4 @@ def train(cfg: Config, spp, quiet: bool = False) -> dict:
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[AFGSANet, dict]:
     """An AFGSA run's ``model.safetensors`` (the run folder or the file) and its ``model.json``."""
-    return load_network(path, device, network=AFGSANet)
+    return load_network(path, device, network=AFGSANet, kind="afgsa")

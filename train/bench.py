@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcdenoise.pipeline import schema
+from mcdenoise.pipeline import schema, weights
 from mcdenoise.pipeline.config import PAPER_STEPS, Config
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json
 from mcdenoise.pipeline.runs import pick_device
@@ -114,7 +114,7 @@ def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((
     from mcdenoise.pipeline.runs import run_dir as model_dir
 
     from .oidn_ft import export_blob, load_run
-    from .oidn_refine import FORMAT as REFINE, OIDNRefiner, load as load_refine
+    from .oidn_refine import OIDNRefiner, load as load_refine
 
     folder = model_dir(cfg, "oidn_ft", variant="rt_hdr_alb_nrm")
     if (folder / "model.safetensors").exists():
@@ -125,8 +125,7 @@ def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((
     refiner = None
     try:
         run = find_run(cfg, "any")
-        from mcdenoise.pipeline.exr import read_json
-        if read_json(run / "model.json", "model record").get("format") == REFINE:
+        if weights.kind(run) == "oidn_control":
             refiner = OIDNRefiner(*load_refine(run), torch.device("cpu"))
     except StoreError:
         pass

@@ -85,22 +85,8 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     f = cfg.diffusion
     den = load_denoiser(find_run(cfg, spp), f.device, base_only, f.tile, f.tile_overlap, f.precision)
-    rotation = None
-    if frame is not None:
-        store = Store(cfg.store)
-        try:
-            scene, idx = frame.split("/")
-            key = FrameKey(scene, int(idx))
-        except ValueError:
-            raise TrainError(f"--frame {frame!r}: expected SCENE/FRAME, e.g. s00000/000") from None
-        buffers = store.read(key.scene, key.frame, int(spp))
-        rotation = frame_rotation(store, key)
-        source = f"{store.root}/{frame}"
-    else:
-        from mcdenoise.pipeline.exr import read_layers
-        buffers = read_layers(Path(exr))
-        source = exr
-        _warn_if_correlated(exr, buffers["color"])
+    buffers, source = _read_input(cfg, frame, exr, spp)
+    rotation = frame_rotation(Store(cfg.store), _frame_key(frame)) if frame is not None else None
     samples = f.samples if samples is None else int(samples)
     if samples < 1:
         raise TrainError(f"--samples {samples}: expected at least 1")
@@ -185,13 +171,17 @@ def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None
         return buffers, exr
     if spp is None:
         raise TrainError("--frame needs --spp (which of the store's sample counts to denoise)")
-    store = Store(cfg.store)
+    store, key = Store(cfg.store), _frame_key(frame)
+    return store.read(key.scene, key.frame, int(spp)), f"{store.root}/{frame}"
+
+
+def _frame_key(frame: str) -> FrameKey:
+    """``--frame SCENE/FRAME`` as a store key."""
     try:
         scene, idx = frame.split("/")
-        key = FrameKey(scene, int(idx))
+        return FrameKey(scene, int(idx))
     except ValueError:
         raise TrainError(f"--frame {frame!r}: expected SCENE/FRAME, e.g. s00000/000") from None
-    return store.read(key.scene, key.frame, int(spp)), f"{store.root}/{frame}"
 
 
 def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:

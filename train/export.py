@@ -23,29 +23,24 @@ import shlex
 import shutil
 from pathlib import Path
 
-from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline import weights
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.exr import StoreError, atomic_write_json, read_json
+from mcdenoise.pipeline.exr import StoreError, atomic_write_json
 from mcdenoise.pipeline.store import sha256
 
 from . import base as base_lib
 from .estimate import KINDS
-from .model import FORMAT, formulation, run_dir
+from .model import formulation, run_dir
 
 
 def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None,
            overrides: list[str] | tuple = ()) -> Path:
-    from safetensors.torch import load_file
 
     folder = run_dir(cfg, spp)
-    meta_path = folder / "model.json"
-    if not meta_path.exists():
-        raise StoreError(f"{folder}: no trained run to export (run `make train SPP={spp}` first)")
-    meta = read_json(meta_path, "model record")
-    from .oidn_refine import FORMAT as REFINE
-    if meta.get("format") == REFINE:
+    meta = weights.read_record(folder, ("control", "oidn_control"), f"run `make train SPP={spp}` first")
+    if weights.kind(folder) == "oidn_control":
         return export_refine(cfg, folder, meta, out, quiet, config, overrides)
-    state = load_file(str(folder / "control.safetensors"))
+    state = weights.load_tensors(folder / "control.safetensors")
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -55,9 +50,8 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
         shutil.copytree(Path(meta["isik"]), tmp / "isik", ignore=shutil.ignore_patterns("last.safetensors", "*.png"))
         record.update(isik="isik", isik_sha256=sha256(tmp / "isik" / "model.safetensors"))
     control = {k: _half(v) for k, v in state.items() if k.startswith("control.")}
-    save_safetensors(tmp / "control.safetensors", control, {"format": FORMAT})
     record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
-    atomic_write_json(tmp / "model.json", record)
+    weights.save(tmp, "control", control, record, weights="control.safetensors")
     (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
     return _publish(tmp, out, folder, quiet)
 
@@ -83,9 +77,9 @@ def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
     src = Path(meta["base"])
     src = src if src.is_absolute() else (run / src).resolve()
     shutil.copytree(src, dest, ignore=shutil.ignore_patterns("*.train", base_lib.WEIGHTS))
-    weights = ({k[5:]: v for k, v in state.items() if k.startswith("base.")} if meta.get("train_base")
+    trained = ({k[5:]: v for k, v in state.items() if k.startswith("base.")} if meta.get("train_base")
                else load_file(str(src / base_lib.WEIGHTS)))
-    save_file({k: _half(v) for k, v in weights.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
+    save_file({k: _half(v) for k, v in trained.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
 
 
 def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", out: Path | None = None,
@@ -221,7 +215,6 @@ def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool 
     """A run of the diffusion denoiser on OIDN (``diffusion.base: oidn``) as a model folder: model.json,
     control.safetensors (float16), base.tza (the frozen OIDN weights), README.md; an ``oidn_ft/`` folder
     already in ``out`` (OIDN fine-tuned for inputs without albedo or normal) is kept."""
-    from safetensors.torch import load_file
 
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -229,10 +222,9 @@ def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool 
     if (out / "oidn_ft").is_dir():
         shutil.copytree(out / "oidn_ft", tmp / "oidn_ft")
     shutil.copy(folder / "base.tza", tmp / "base.tza")
-    state = load_file(str(folder / "control.safetensors"))
-    save_safetensors(tmp / "control.safetensors", {k: _half(v) for k, v in state.items()}, {"format": meta["format"]})
+    state = weights.load_tensors(folder / "control.safetensors")
     record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
-    atomic_write_json(tmp / "model.json", record)
+    weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
     (tmp / "README.md").write_text(refine_card(cfg, record, folder, config or "<config>", out, overrides))
     return _publish(tmp, out, folder, quiet)
 

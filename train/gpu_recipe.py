@@ -112,15 +112,12 @@ def run_refine(args: Settings, sizes: dict) -> int:
 
 def run(settings: Settings) -> int:
     """The recipe (``run_refine``) on ``settings.model`` (default: the shipped model); exit status 0."""
-    from mcdenoise.pipeline.exr import read_json
-
-    from .oidn_refine import FORMAT as REFINE
+    from mcdenoise.pipeline import weights
 
     args = dataclasses.replace(settings, model=settings.model or str(SHIPPED_MODEL))
     sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
-    if read_json(Path(args.model) / "model.json", "model record").get("format") != REFINE:
-        raise TrainError(f"{args.model}: the GPU recipe continues a model on OIDN's network ({REFINE}); train "
-                         "another model with `make train` on the GPU machine")
+    weights.read_record(Path(args.model), "oidn_control", "the GPU recipe continues a model on OIDN's network; "
+                        "train another model with `make train` on the GPU machine")
     return run_refine(args, sizes)
 
 

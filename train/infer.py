@@ -114,10 +114,10 @@ def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = Fa
                   overlap: int = 32, precision: str = "auto") -> Denoiser:
     """A trained run (``train.model.run_dir``); ``base_only`` drops the Control Module (the ablation). A run on
     OIDN's network (``diffusion.base: oidn``) is ``train.oidn_refine``'s denoiser, with the same interface."""
-    from mcdenoise.pipeline.exr import read_json
+    from mcdenoise.pipeline import weights
 
     from . import oidn_refine
-    if read_json(Path(folder) / "model.json", "model record").get("format") == oidn_refine.FORMAT:
+    if weights.kind(Path(folder)) == "oidn_control":
         return oidn_refine.load_refiner(folder, device, base_only)
     dev = pick_device(device)
     model, meta = load(folder, dev)

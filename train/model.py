@@ -15,11 +15,9 @@ from pathlib import Path
 
 import torch
 
-from mcdenoise.pipeline import runs
-from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline import runs, weights
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import CheckpointError, StoreError, TrainError
-from mcdenoise.pipeline.exr import atomic_write_json, read_json
 from mcdenoise.pipeline.store import sha256
 
 from . import base as base_lib
@@ -29,7 +27,7 @@ from .estimate import KINDS, Estimator, load as load_estimator
 from .formulation import Formulation
 from .sampler import PAPER
 
-FORMAT = "mcdenoise-control"
+FORMAT = weights.FORMATS["control"]
 # The denoiser shipped with the repository (base + Control Module + model card), used when a config
 # has no trained run of its own (train/shipped/README.md says how it was made).
 SHIPPED_MODEL = Path(__file__).resolve().parent / "shipped"
@@ -126,25 +124,23 @@ def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict
     isik = {}
     if "isik" in KINDS[form.estimate]:
         isik = {"isik": str(isik_folder(cfg).resolve()), "isik_sha256": sha256(isik_folder(cfg) / "model.safetensors")}
-    save_safetensors(folder / "control.safetensors", trainable_state(model), {"format": FORMAT})
-    atomic_write_json(folder / "model.json", {
-        "format": FORMAT, "spp": spp, "base": str(base.resolve()),
+    weights.save(folder, "control", trainable_state(model), {
+        "spp": spp, "base": str(base.resolve()),
         "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(form.estimate), **isik,
         "control": model.control is not None, "train_base": model.train_base,
         "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
         "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance,
-        "formulation": Formulation.from_config(cfg.diffusion).record(), **record})
+        "formulation": Formulation.from_config(cfg.diffusion).record(), **record}, weights="control.safetensors")
 
 
-def _checked(folder: Path, meta: dict, key: str, weights: str) -> Path:
+def _checked(folder: Path, meta: dict, key: str, file: str) -> Path:
     """The folder ``meta[key]`` names (relative to ``folder`` for shipped runs), its weights unchanged."""
     where = Path(meta[key])
     where = where if where.is_absolute() else (folder / where).resolve()
-    if not (where / weights).exists():
+    if not (where / file).exists():
         raise CheckpointError(f"{folder / 'model.json'}: its {key} {where} is missing; retrain, or restore that folder")
-    if sha256(where / weights) != meta[f"{key}_sha256"]:
-        raise CheckpointError(f"{where / weights}: the {key} changed since {folder} was trained (SHA-256 differs); "
-                              f"retrain the Control Module for it")
+    weights.check_sha256(where / file, meta[f"{key}_sha256"], f"{where / file}: the {key} of {folder}",
+                         "retrain the Control Module for it")
     return where
 
 
@@ -163,16 +159,9 @@ def formulation(meta: dict) -> Formulation:
 
 def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[ControlledDenoiser, dict]:
     """(model in eval mode, model.json) of a trained run; refuses a changed base or channel layout."""
-    from safetensors.torch import load_file
-
     folder = Path(folder)
-    meta_path, weights = folder / "model.json", folder / "control.safetensors"
-    if not meta_path.exists() or not weights.exists():
-        raise CheckpointError(f"{folder}: no trained diffusion denoiser (model.json/control.safetensors missing); "
-                              "run `make train SPP=<n>`")
-    meta = read_json(meta_path, "model record")
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{meta_path}: not a {FORMAT} record")
+    meta_path = folder / "model.json"
+    meta = weights.read_record(folder, "control", "run `make train SPP=<n>`")
     names = aux_names(formulation(meta).estimate)
     if meta.get("aux_channels") != names:
         raise CheckpointError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
@@ -181,7 +170,7 @@ def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[Contro
     unet, prompt = base_lib.load(base)
     control = ControlModule(unet, len(names)) if meta["control"] else None
     model = ControlledDenoiser(unet, prompt, control, train_base=False)
-    state = load_file(str(weights))
+    state = weights.load_tensors(folder / "control.safetensors")
     if control is not None:
         control.load_state_dict({k[8:]: v for k, v in state.items() if k.startswith("control.")})
     if meta.get("train_base"):

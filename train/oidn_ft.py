@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import json
 import math
 import time
 from pathlib import Path
@@ -35,16 +34,16 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, Dataset
 
-from mcdenoise.pipeline import oidn_net, oidn_weights, runs, tza
-from mcdenoise.pipeline.checkpoint import plot_curves, save_safetensors
+from mcdenoise.pipeline import oidn_net, oidn_weights, runs, tza, weights
+from mcdenoise.pipeline.checkpoint import plot_curves
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.errors import CheckpointError, TrainError
+from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
 from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 
-FORMAT = "mcdenoise-oidn-ft"
+FORMAT = weights.FORMATS["oidn_ft"]
 AUX = ("albedo", "normal")
 
 
@@ -228,11 +227,7 @@ class OIDNFineTune(Task):
     def __init__(self, cfg: Config, spp="any"):
         o = self.o = cfg.oidn_ft
         self.cfg, self.store = cfg, Store(cfg.store)
-        if not self.store.manifest_path.exists():
-            raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
-        self.train_keys, self.val_keys = self.store.frames_with("train"), self.store.frames_with("val")
-        if not self.train_keys:
-            raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
+        self.train_keys, self.val_keys = self.store.training_frames()
         self.spps = self.store.spp_choices(spp)
         self.aux = network_aux(o.network)
         self.folder = runs.run_dir(cfg, "oidn_ft")
@@ -345,9 +340,8 @@ class OIDNFineTune(Task):
         return entry["val"]["psnr"] if entry["val"] else None
 
     def save_best(self, entry: dict) -> None:
-        save_safetensors(self.folder / "model.safetensors", self.net.state_dict(), {"format": FORMAT})
-        atomic_write_json(self.folder / "model.json", {
-            "format": FORMAT, "network": self.o.network, "prior_sha256": self.prior_sha, "spp": self.spps,
+        weights.save(self.folder, "oidn_ft", self.net.state_dict(), {
+            "network": self.o.network, "prior_sha256": self.prior_sha, "spp": self.spps,
             "widths": self.net.widths, "epoch": entry["epoch"], "metrics": entry["val"],
             "train_loss": entry["train_loss"], "store": str(self.cfg.store), "settings": self.fingerprint})
 
@@ -400,22 +394,14 @@ def load_run(folder: Path, cfg: Config, blend: float | None = None) -> tuple[oid
     ``oidn_ft.blend``), and its model.json with the blend used. The prior must be the one the run
     started from."""
     folder = Path(folder)
-    try:
-        record = json.loads((folder / "model.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise CheckpointError(f"{folder}/model.json: no oidn_ft run here ({exc}); run "
-                              "`make train MODEL=oidn_ft SPP=any`") from None
-    if record.get("format") != FORMAT:
-        raise CheckpointError(f"{folder}/model.json: format {record.get('format')!r}, not an oidn_ft run ({FORMAT})")
+    record = weights.read_record(folder, "oidn_ft", "run `make train MODEL=oidn_ft SPP=any`")
     name = record["network"]
-    from safetensors.torch import load_file
     blob = oidn_weights.load(name, oidn_weights.source(name, cfg.oidn.weights))
-    if hashlib.sha256(blob).hexdigest() != record["prior_sha256"]:
-        raise CheckpointError(f"{folder}: trained from other {name} weights than oidn.weights gives "
-                              f"({cfg.oidn.weights or 'pyoidn built-in'}); set oidn.weights to the run's prior")
+    weights.check_sha256(blob, record["prior_sha256"], f"{folder}: the {name} prior "
+                         f"({cfg.oidn.weights or 'pyoidn built-in'})", "set oidn.weights to the run's prior")
     base = oidn_net.UNet.from_tza(tza.read(blob, name))
     net = oidn_net.UNet(record["widths"])
-    net.load_state_dict(load_file(str(folder / "model.safetensors")))
+    net.load_state_dict(weights.load_tensors(folder / "model.safetensors"))
     a = cfg.oidn_ft.blend if blend is None else float(blend)
     if a == 0.0:      # OIDN's own weights exactly (the formula below would turn its -0.0 into +0.0)
         net.load_state_dict(base.state_dict())

@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from mcdenoise.pipeline import oidn_net, oidn_weights, tza
-from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves, save_safetensors
+from mcdenoise.pipeline import oidn_net, oidn_weights, tza, weights
+from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves
 from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import CheckpointError, TrainError
@@ -52,7 +52,7 @@ from .oidn_control import ControlledOIDN
 from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path
 from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
 
-FORMAT = "mcdenoise-oidn-control"
+FORMAT = weights.FORMATS["oidn_control"]
 NETWORK = "rt_hdr_alb_nrm"      # the base reads colour, albedo and normal
 FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tonemap, L1 in PU)
 
@@ -143,11 +143,7 @@ class StoreSource:
 
     def __init__(self, cfg: Config):
         self.cfg, self.store = cfg, Store(cfg.store)
-        if not self.store.manifest_path.exists():
-            raise TrainError(f"{self.store.root}: no dataset; run `make dataset` first")
-        self.train_keys, self.val_keys = self.store.frames_with("train"), self.store.frames_with("val")
-        if not self.train_keys:
-            raise TrainError(f"{self.store.root}: no training frame with gt_clean; run `make gt-clean`")
+        self.train_keys, self.val_keys = self.store.training_frames()
 
     def spps(self, spp) -> list[int]:
         return self.store.spp_choices(spp)
@@ -410,29 +406,22 @@ def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, form: Form
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
         atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
-    save_safetensors(folder / "control.safetensors", model.control.state_dict(), {"format": FORMAT})
-    atomic_write_json(folder / "model.json", {
-        "format": FORMAT, "base": "base.tza", "base_network": NETWORK, "base_what": what,
-        "base_sha256": hashlib.sha256(blob).hexdigest(), "cond_channels": cond_names(), "spp": spps,
-        "formulation": form.record(), **record})
+    weights.save(folder, "oidn_control", model.control.state_dict(), {
+        "base": "base.tza", "base_network": NETWORK, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
+        "cond_channels": cond_names(), "spp": spps, "formulation": form.record(), **record}, weights="control.safetensors")
 
 
 def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
     """(the controlled model in eval mode, model.json) of a run or an exported model folder."""
-    from safetensors.torch import load_file
-
     folder = Path(folder)
-    meta = read_json(folder / "model.json", "model record")
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{folder / 'model.json'}: not a {FORMAT} record")
+    meta = weights.read_record(folder, "oidn_control", "run `make train SPP=any diffusion.base=oidn`")
     blob = (folder / meta["base"]).read_bytes()
-    if hashlib.sha256(blob).hexdigest() != meta["base_sha256"]:
-        raise CheckpointError(f"{folder / meta['base']}: the base changed since the run trained (SHA-256 differs)")
+    weights.check_sha256(blob, meta["base_sha256"], f"{folder / meta['base']}: the base", "restore it or retrain")
     if meta["cond_channels"] != cond_names():
         raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
                               f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names())}); retrain")
     model = ControlledOIDN(oidn_net.UNet.from_tza(tza.read(blob, str(folder / meta["base"]))), len(cond_names()))
-    model.control.load_state_dict({k: v.float() for k, v in load_file(str(folder / "control.safetensors")).items()})
+    model.control.load_state_dict({k: v.float() for k, v in weights.load_tensors(folder / "control.safetensors").items()})
     return model.to(device).eval(), meta
 
 

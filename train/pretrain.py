@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
+from mcdenoise.pipeline import weights
 from mcdenoise.pipeline.color import srgb_to_linear
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.exr import StoreError
@@ -185,7 +186,7 @@ def pretrain(cfg: Config, quiet: bool = False) -> dict | None:
 class PretrainTask(ControlTask):
     """A new IF-II-layout base trained alone on ``RestorationPairs`` (no Control Module); written to ``out``."""
 
-    fmt = "mcdenoise-base"
+    fmt = weights.FORMATS["base"]
     # Not epoch 0: a zero last layer is the identity, and a frozen identity base would give the Control
     # Module no gradient (its residuals only reach the output through the base's last layer).
     validate_initial = False

@@ -247,12 +247,8 @@ class ControlTask(Task):
 def _training_store(cfg: Config, spp) -> tuple[Store, list[int]]:
     """The config's store and the sample counts a run for ``spp`` trains on; a clear error without frames."""
     store = Store(cfg.store)
-    if not store.manifest_path.exists():
-        raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    choices = store.spp_choices(spp)
-    if not store.frames_with("train"):
-        raise TrainError(f"{store.root}: no training frame with gt_clean; run `make gt-clean`")
-    return store, choices
+    store.training_frames()
+    return store, store.spp_choices(spp)
 
 
 def frame_sides(store: Store) -> list[int]:
