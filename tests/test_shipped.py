@@ -84,3 +84,23 @@ def test_denoise_exr_warns_when_a_wide_reconstruction_filter_correlated_the_nois
                               text=True, env=env)
         assert proc.returncode == 0 and dst.exists(), proc.stderr
         assert ("spatially correlated" in proc.stderr and 'rfilter type="box"' in proc.stderr) == warned, proc.stderr
+
+
+def test_denoise_self_ensemble_is_recorded_and_averages_flipped_copies(tmp_path):
+    """`denoise --ensemble 4`: the mean over flipped/transposed copies, still a denoised image, not the plain output."""
+    from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.exr import read_header
+    from mcdenoise.train.cli import cmd_denoise
+
+    truth = synthetic_buffers(32, 40, seed=8, noise=0.0)["color"]
+    noisy = synthetic_buffers(32, 40, seed=8, noise=0.7)["color"]
+    write_rgb_exr(tmp_path / "in.exr", noisy)
+    cfg = load_config(None, [f"runs={tmp_path / 'no_runs'}", "diffusion.device=cpu"])
+    outs = {}
+    for n in (1, 4):
+        assert cmd_denoise(cfg, 4, None, str(tmp_path / "in.exr"), str(tmp_path / f"out{n}.exr"), None, None,
+                           quiet=True, ensemble=n) == 0
+        outs[n] = read_image(tmp_path / f"out{n}.exr")[0]["color"]
+        assert read_header(tmp_path / f"out{n}.exr")["ensemble"] == n
+    assert np.isfinite(outs[4]).all() and _mse(outs[4], truth) < 0.5 * _mse(noisy, truth)
+    assert not np.array_equal(outs[1], outs[4]) and _mse(outs[1], outs[4]) < 0.1 * _mse(noisy, truth)

@@ -7,11 +7,13 @@
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.ensemble import ensemble as ensemble_mean
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import StoreError, write_image
 from mcdenoise.pipeline.store import FrameKey, Store
@@ -70,9 +72,10 @@ def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
 
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
-                samples: int | None = None) -> int:
+                samples: int | None = None, ensemble: int = 1) -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
-    mean of ``samples`` samples, and ``std``, their per-pixel standard deviation)."""
+    mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
+    both over that many flipped and transposed copies (``pipeline.ensemble``)."""
     from .infer import load_denoiser
 
     if (frame is None) == (exr is None):
@@ -90,20 +93,26 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
     samples = f.samples if samples is None else int(samples)
     if samples < 1:
         raise TrainError(f"--samples {samples}: expected at least 1")
-    hdr, std = den.denoise(buffers, int(spp), skip=skip, seed=cfg.seed if seed is None else seed, rotation=rotation,
-                           variance=f.variance, steps=steps, samples=samples, with_std=True)
+    def run(b):   # colour and std side by side, so that one self-ensemble turns both back
+        return np.concatenate(den.denoise(b, int(spp), skip=skip, seed=cfg.seed if seed is None else seed,
+                                          rotation=rotation, variance=f.variance, steps=steps, samples=samples,
+                                          with_std=True), axis=2)
+    t0 = time.perf_counter()
+    out6 = ensemble_mean(run, buffers, ensemble)
+    hdr, std, seconds = out6[..., :3], out6[..., 3:], time.perf_counter() - t0
     meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name, "variance": f.variance,
             "skip": den.meta.get("skip") if skip is None else skip, "steps": steps, "samples": samples,
             "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
             "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
-            "seconds": round(den.last_seconds, 3)}
+            "ensemble": ensemble, "seconds": round(seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:
         fallback = getattr(den, "fallback", "")
         alone = (f"; no albedo/normal layers: {fallback} on the colour{' and albedo' if 'albedo' in buffers else ''}"
                  if fallback else "; no variance/albedo/normal layers: the first estimate (OIDN) alone")
-        print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}) in {den.last_seconds:.1f} s"
+        print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}"
+              f"{f', self-ensemble of {ensemble}' if ensemble > 1 else ''}) in {seconds:.1f} s"
               f" -> {out}" + (f"; {den.last_repaired} non-finite input values replaced by 0" if den.last_repaired
                               else "") + (alone if den.last_estimate_only else ""), flush=True)
     return 0
@@ -124,12 +133,10 @@ def oidn_weights_for(cfg: Config, network: str) -> tuple[bytes, str]:
 
 
 def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, method: str,
-                     weights_file: str | None, spp: int | None = None, quiet: bool = False) -> int:
+                     weights_file: str | None, spp: int | None = None, quiet: bool = False, ensemble: int = 1) -> int:
     """Denoise a store frame or an EXR with OIDN itself: its built-in network (``oidn``), an oidn_ft
     run (``oidn_ft``) or the weights of ``weights_file``, on the layers the input has (colour; +albedo;
     +albedo+normal), at OIDN's speed."""
-    import time
-
     from mcdenoise.pipeline import oidn, oidn_weights as ow, tza
     from mcdenoise.pipeline.oidn_net import UNet
 
@@ -151,10 +158,11 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     elif method == "oidn_ft":
         blob, origin = oidn_weights_for(cfg, network)
     t = time.perf_counter()
-    hdr = oidn.denoise({"color": buffers["color"], **{a: buffers[a] for a in layers}}, aux=bool(layers), weights=blob)
+    hdr = ensemble_mean(lambda b: oidn.denoise(b, aux=bool(layers), weights=blob),
+                        {"color": buffers["color"], **{a: buffers[a] for a in layers}}, ensemble)
     seconds = time.perf_counter() - t
     meta = {"image": "denoised", "source": source, "method": method, "weights": origin,
-            "inputs": ["color", *layers], "seconds": round(seconds, 3)}
+            "inputs": ["color", *layers], "ensemble": ensemble, "seconds": round(seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta)
     if not quiet:
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}; {', '.join(['colour', *layers])}) with OIDN "

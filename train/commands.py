@@ -102,6 +102,9 @@ def _inference_commands(sub) -> None:
                         "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself")
     p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
                    help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
+    p.add_argument("--ensemble", type=int, default=1, choices=(1, 2, 4, 8),
+                   help="average the denoiser's outputs on N flipped/transposed copies of the input (N times its "
+                        "time; see docs/evaluation.md for what it gains)")
     with_quiet(p)
     p.set_defaults(fn=_denoise)
 
@@ -183,9 +186,10 @@ def _denoise(args) -> int:
     from .cli import cmd_denoise, cmd_denoise_oidn
     if args.method != "ours" or args.oidn_weights:
         return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
-                                spp=args.spp, quiet=args.quiet)
+                                spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
     return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
-                       base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples)
+                       base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples,
+                       ensemble=args.ensemble)
 
 
 def _afgsa_report(args) -> int:
