@@ -296,6 +296,9 @@ class SelfEnsemble(Method):
 
     inner: Method = None
     n: int = 8
+    name: str = ""
+    device: str = "cpu"
+    checkpoint: str = ""
 
     def __post_init__(self):
         self.device, self.checkpoint = self.inner.device, self.inner.checkpoint

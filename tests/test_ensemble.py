@@ -50,3 +50,17 @@ def test_method_names_take_the_ensemble_last():
     for bad in ("ours_x8_s3", "oidn_x3", "oidn_s3", "isik_x16"):
         with pytest.raises(ConfigError, match="eval.methods"):
             parse(bad)
+
+
+def test_the_evaluator_runs_a_self_ensemble_row():
+    from mcdenoise.evaluate.methods import Loader, SelfEnsemble
+    from mcdenoise.evaluate.stability import synthetic_buffers
+    from mcdenoise.pipeline.config import load_config
+
+    loader = Loader(load_config(None, ["eval.device=cpu"]))
+    x2, plain = loader.load("oidn_x2", 4), loader.load("oidn", 4)
+    assert isinstance(x2, SelfEnsemble) and x2.name == "oidn_x2" and x2.n == 2
+    noisy = synthetic_buffers(24, 40, seed=3, noise=0.7)
+    out, ref = x2.denoise(noisy), plain.denoise(noisy)
+    flipped = plain.denoise({k: np.ascontiguousarray(v[:, ::-1]) for k, v in noisy.items()})[:, ::-1]
+    np.testing.assert_allclose(out, (ref + flipped) / 2, rtol=1e-5, atol=1e-7)
