@@ -585,10 +585,11 @@ class EvalConfig(Section):
                         "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
                         "steps), skipN, kN (mean of N samples), small (paper formulation: fixed posterior variance), "
                         "noise/render/estimate (start), e.g. ours_s3_k4 or ours_paper_skip24 (run "
-                        "diffusion_spp<N>_paper; see evaluate/methods.py). A method whose model is missing is listed "
-                        "as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_color", "oidn_ft", "oidn_ft_color", "isik", "afgsa",
-                                         "oidn_isik", "ours", "ours_s3_k4", "base_only"])
+                        "diffusion_spp<N>_paper; see evaluate/methods.py). Any method takes _xN last: its self-ensemble "
+                        "over N (2, 4, 8) flipped/transposed copies of the frame at N times its time (oidn_x8, "
+                        "ours_x8). A method whose model is missing is listed as not available.",
+                        factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_color", "oidn_ft", "oidn_ft_color", "isik",
+                                         "afgsa", "oidn_isik", "ours", "ours_x8", "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",
