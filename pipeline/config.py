@@ -373,6 +373,9 @@ class DiffusionConfig(TrainingConfig):
                     "in train/base_model_paper, for the refine formulation a new IF-II-layout base with a zero last "
                     "layer written into the run folder (it returns the first estimate exactly and must train: "
                     "diffusion.train_base=true).", "")
+    init: str = doc("Base oidn: a trained model folder (a run folder or an exported one such as train/shipped) "
+                    "the run starts from: its frozen base replaces diffusion.base and its Control Module trains "
+                    "on (a warm start, e.g. on new data); empty: a new, zero-initialised Control Module.", "")
     tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
                        "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
     epochs: int = override("epochs", 100, "An epoch: crops_per_frame crops of every train frame, at most "
@@ -473,6 +476,8 @@ class DiffusionConfig(TrainingConfig):
             bad("threshold_ratio", "must be in (0, 1]")
         if self.tile_overlap < 0 or self.tile <= 2 * self.tile_overlap:
             bad("tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
+        if self.init and not (Path(self.init) / "model.json").is_file():
+            bad("init", f"{self.init}: not a trained model folder (no model.json there)")
 
 
 @dataclass

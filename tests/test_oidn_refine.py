@@ -125,12 +125,35 @@ def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path
     # an input without albedo and normal gets OIDN on its colour, said so, not a crash
     rgb = exported.denoise({"color": buf["color"]}, spp=4)
     assert exported.last_estimate_only and exported.fallback == "OIDN rt_hdr" and rgb.shape == buf["color"].shape
-    # a changed base is refused
-    blob = bytearray((folder / "base.tza").read_bytes())
+    # a changed base is refused (the file is put back: the module's other tests read this run)
+    intact = (folder / "base.tza").read_bytes()
+    blob = bytearray(intact)
     blob[-1000] ^= 1
     (folder / "base.tza").write_bytes(bytes(blob))
-    with pytest.raises(CheckpointError, match="base changed"):
-        oidn_refine.load(folder)
+    try:
+        with pytest.raises(CheckpointError, match="base changed"):
+            oidn_refine.load(folder)
+    finally:
+        (folder / "base.tza").write_bytes(intact)
+
+
+@pytest.mark.slow
+def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
+    """diffusion.init: the new run's epoch 0 is the given model (its base and Control Module), not OIDN."""
+    store, runs, _ = trained
+    folder = runs / "diffusion_sppany"
+    _, meta = oidn_refine.load(folder)
+    cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={tmp_path}",
+        *REFINE_TINY, "diffusion.epochs=1", "diffusion.base=", f"diffusion.init={folder}")
+    hist = json.loads((tmp_path / "diffusion_sppany" / "train.json").read_text())["history"]
+    assert hist[0]["val"]["psnr"] == pytest.approx(meta["metrics"]["psnr"], abs=1e-9)
+    assert hist[0]["val"]["estimate_psnr"] == pytest.approx(meta["metrics"]["estimate_psnr"], abs=1e-9)
+    warm = json.loads((tmp_path / "diffusion_sppany" / "model.json").read_text())
+    assert warm["base_sha256"] == meta["base_sha256"] and warm["settings"]["init"] == str(folder)
+    # a folder that is no trained model is a config error naming the key
+    proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
+               f"runs={tmp_path / 'bad'}", *REFINE_TINY, f"diffusion.init={tmp_path / 'nothing'}", check=False)
+    assert proc.returncode != 0 and "diffusion.init" in proc.stderr and not (tmp_path / "bad").exists()
 
 
 @pytest.mark.slow

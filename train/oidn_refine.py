@@ -75,7 +75,7 @@ def base_blob(cfg: Config) -> tuple[bytes, str]:
 
 
 def is_oidn_base(cfg: Config) -> bool:
-    return cfg.diffusion.base in ("oidn", "oidn_ft") or cfg.diffusion.base.endswith(".tza")
+    return bool(cfg.diffusion.init) or cfg.diffusion.base in ("oidn", "oidn_ft") or cfg.diffusion.base.endswith(".tza")
 
 
 # ---- the loss ----------------------------------------------------------------------------------
@@ -207,9 +207,12 @@ class RefineTask(Task):
             raise TrainError("diffusion.base=oidn trains the refine formulation with x0 prediction "
                              "(diffusion.prediction=sample)")
 
-        # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module.
+        # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module, or both
+        # from a trained model folder (``init`` / diffusion.init: a warm start).
+        init = init or (Path(d.init) if d.init else None)
         if init is not None:
-            self.blob, self.base_what = (Path(init) / "base.tza").read_bytes(), f"{init}/base.tza"
+            start, meta = load(init, self.device)
+            self.blob, self.base_what = (Path(init) / meta["base"]).read_bytes(), f"{init}/{meta['base']}"
         else:
             self.blob, self.base_what = base_blob(cfg)
         torch.manual_seed(cfg.seed)
@@ -218,13 +221,14 @@ class RefineTask(Task):
         if self.model.control is None:
             raise TrainError("diffusion.control=false with diffusion.base=oidn is OIDN itself: nothing to train")
         if init is not None:
-            self.model.control.load_state_dict(load(init, self.device)[0].control.state_dict())
+            self.model.control.load_state_dict(start.control.state_dict())
         self.state = self.model.control
         self.params = self.model.trainable_parameters()
         self.optimizers = torch.optim.AdamW(self.params, lr=d.lr, weight_decay=d.weight_decay)
         self.ema = make_ema(self.state, d.ema)
         self.fmt = FORMAT
         self.fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": hashlib.sha256(self.blob).hexdigest(),
+                            **({"init": str(init)} if init is not None else {}),
                             "formulation": self.form.record(), "train_steps": list(d.train_steps),
                             **{k: getattr(d, k) for k in ("crop", "batch_size", "crops_per_frame", "epoch_steps", "lr",
                                                            "weight_decay", "warmup_steps", "grad_clip", "ema", "epochs",
