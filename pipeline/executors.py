@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator
@@ -21,12 +23,23 @@ from .config import ExecutorConfig
 from .errors import TaskFailed
 
 
+def _die_with_parent() -> None:
+    """Worker initializer (Linux): the kernel kills the worker when the process that started it dies, so a
+    run killed on its own (``kill PID``, a scheduler's time limit) leaves no orphan rendering on; the frame
+    it was on is not written (files appear by rename) and the next run renders it."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)   # 1: PR_SET_PDEATHSIG
+        if os.getppid() == 1:        # the parent died before the line above
+            os._exit(1)
+
+
 def run_local(tasks: list, fn: Callable, cfg: ExecutorConfig) -> Iterator[tuple[Any, Any, BaseException | None]]:
     pending = list(enumerate(tasks))[::-1]   # pop() from the end keeps the original order
     crashes: dict[int, int] = {}
     ctx = multiprocessing.get_context("spawn")
     while pending:
-        pool = ProcessPoolExecutor(max_workers=cfg.workers, mp_context=ctx)
+        pool = ProcessPoolExecutor(max_workers=cfg.workers, mp_context=ctx, initializer=_die_with_parent)
         in_flight: dict = {}
         broken = False
         try:

@@ -197,6 +197,29 @@ def test_dataset_killed_at_random_moments(tiny_store, tmp_path, capsys):
     assert_verified(root)
 
 
+def test_killing_the_dataset_process_alone_stops_its_workers(tmp_path):
+    """``kill PID`` of a run (not its process group): its render workers die with it, no orphan renders on."""
+    root = tmp_path / "store"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "dataset", "--config", str(TINY), f"store={root}",
+                             "executor.workers=2", "--quiet"], cwd=ROOT, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and count(root, "*.exr")() == 0:    # the workers are rendering
+            time.sleep(0.05)
+        workers = set(session_processes(proc.pid)) - {proc.pid}
+        assert workers, "no worker processes seen"
+        proc.kill()
+        proc.wait()
+        deadline = time.time() + 30
+        while time.time() < deadline and set(session_processes(proc.pid)) & workers:
+            time.sleep(0.1)
+        assert not set(session_processes(proc.pid)) & workers, session_processes(proc.pid)
+    finally:
+        for pid in session_processes(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+
+
 # ---- gt-clean --------------------------------------------------------------------------------
 
 def test_gt_clean_killed_at_random_moments(tiny_store, cleaned, tmp_path, capsys):
