@@ -239,6 +239,7 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
                        key=lambda k: int(k[8:]))
     extra = "".join(f" {shlex.quote(o)}" for o in overrides)
     v = best.get("val") or {}
+    init = cfg.diffusion.init
     lines = [
         "# The shipped denoiser: a Control Module on OIDN's network", "",
         f"Exported from `{run}` on {record['exported']['date']}; loaded by `python -m pipeline denoise --exr IN.exr "
@@ -269,12 +270,13 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
         f"{st.get('lr')}, batch {st.get('batch_size')}, crop {st.get('crop')}, EMA {st.get('ema')}, buffer-group "
         f"dropout {st.get('dropout')}, loss: tonemapped MSE over OIDN's + {st.get('hdr_weight')} x PU L1 over OIDN's, "
         f"per crop; t_focus {f.get('t_focus')} on {st.get('train_steps')}-step samplers. Best epoch "
-        f"{best.get('epoch')} by validation PSNR: {v.get('psnr', float('nan')):.3f} dB against OIDN's "
-        f"{v.get('estimate_psnr', float('nan')):.3f} dB (epoch 0 is OIDN itself).", "",
+        f"{best.get('epoch')} by validation PSNR: {v.get('psnr', float('nan')):.3f} dB against its base's "
+        f"{v.get('estimate_psnr', float('nan')):.3f} dB " + (f"(epoch 0 is the model it started from, `{init}`)."
+                                                             if init else "(epoch 0 is the base itself)."), "",
         f"Machine: {m.get('cuda') or m.get('processor', '?')}, {m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, "
         f"{m.get('torch_threads', '?')} torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, "
         f"device {m.get('device', '?')}.", "",
-        "| epoch | val PSNR dB | OIDN dB | gain dB | " + " | ".join(f"gain {k[8:]} spp" for k in gain_keys)
+        "| epoch | val PSNR dB | base dB | gain dB | " + " | ".join(f"gain {k[8:]} spp" for k in gain_keys)
         + " | seconds |", "| --- | --- | --- | --- |" + " --- |" * len(gain_keys) + " --- |"]
     for h in hist:
         hv = h.get("val") or {}
@@ -287,7 +289,7 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
               *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
               *([f"python -m pipeline train --model oidn_ft --spp any --config {config}{extra}"]
-                if cfg.diffusion.base == "oidn_ft" else []),     # the base: OIDN fine-tuned, then blended
+                if cfg.diffusion.base == "oidn_ft" and not init else []),   # the base: OIDN fine-tuned, blended
               f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
               f"python -m pipeline export --config {config} --spp {spp} --out {out}{extra}", "```", "",
               "Evaluation against OIDN, oidn_ft, Isik and the noisy input on the default test set: "
