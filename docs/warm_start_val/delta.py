@@ -1,5 +1,8 @@
 """Δ (ours − oidn) per spp: mean PSNR, worst frame, Δ HDR-FLIP, for each eval folder given."""
-import csv, sys, collections
+import collections
+import csv
+import sys
+
 for folder in sys.argv[1:]:
     rows = list(csv.DictReader(open(f"{folder}/eval_frames.csv")))
     by = collections.defaultdict(dict)
