@@ -8,7 +8,7 @@ import torch
 from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import CheckpointError
-from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.store import Store, sha256
 from mcdenoise.train import oidn_pack, oidn_refine
 from mcdenoise.train.formulation import Formulation
 from mcdenoise.train.oidn_control import ControlledOIDN
@@ -150,6 +150,7 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     assert hist[0]["val"]["estimate_psnr"] == pytest.approx(meta["metrics"]["estimate_psnr"], abs=1e-9)
     warm = json.loads((tmp_path / "diffusion_sppany" / "model.json").read_text())
     assert warm["base_sha256"] == meta["base_sha256"] and warm["settings"]["init"] == str(folder)
+    assert warm["settings"]["init_sha256"] == sha256(folder / "control.safetensors")
     # a folder that is no trained model is a config error naming the key
     proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
                f"runs={tmp_path / 'bad'}", *REFINE_TINY, f"diffusion.init={tmp_path / 'nothing'}", check=False)

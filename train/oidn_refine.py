@@ -45,7 +45,7 @@ from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.numerics import repair_nonfinite
 from mcdenoise.pipeline.runs import pick_device, run_dir
-from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.store import Store, sha256
 
 from .formulation import Formulation, snr_weight
 from .oidn_control import ControlledOIDN
@@ -228,7 +228,9 @@ class RefineTask(Task):
         self.ema = make_ema(self.state, d.ema)
         self.fmt = FORMAT
         self.fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": hashlib.sha256(self.blob).hexdigest(),
-                            **({"init": str(init)} if init is not None else {}),
+                            # the start by content, not only by path: a replaced folder must not resume this run
+                            **({"init": str(init), "init_sha256": sha256(Path(init) / "control.safetensors")}
+                               if init is not None else {}),
                             "formulation": self.form.record(), "train_steps": list(d.train_steps),
                             **{k: getattr(d, k) for k in ("crop", "batch_size", "crops_per_frame", "epoch_steps", "lr",
                                                            "weight_decay", "warmup_steps", "grad_clip", "ema", "epochs",
