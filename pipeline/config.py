@@ -157,6 +157,9 @@ class SceneConfig(Section):
     mesh_dirs: list = doc("Folders of user meshes (OBJ/PLY/STL/OFF/GLB, e.g. ShapeNet) mixed into the scenes.", factory=list)
     mesh_probability: float = doc("Probability that an object is drawn from mesh_dirs (when any are given).", 0.5)
     texture_probability: float = doc("Probability that a material's base colour is a procedural texture.", 0.5)
+    polished_probability: float = doc("Probability that the ground (and, in a room, the walls) is polished: a "
+                                      "smooth plastic or principled coat reflecting the scene sharply; 0: matte-ish "
+                                      "surfaces only (the scenes made before this key existed).", 0.0)
     group_probability: float = doc("Probability that an object is a grouped composition of primitives.", 0.2)
     materials: dict = doc("Relative weights of material families: principled, diffuse, plastic, roughplastic, "
                           "conductor, roughconductor, dielectric, roughdielectric.",

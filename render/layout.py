@@ -68,15 +68,25 @@ def _size(obj: dict) -> float:
     return float(np.max(obj["transform"]["scale"]))
 
 
-def surface_material(rng: np.random.Generator, texture_probability: float, size: float, tile: float) -> dict:
-    """A matte-ish material for ground and walls; a texture repeats every ``tile`` units."""
+def surface_material(rng: np.random.Generator, texture_probability: float, size: float, tile: float,
+                     polished_probability: float = 0.0) -> dict:
+    """A matte-ish material for ground and walls; a texture repeats every ``tile`` units. With
+    ``polished_probability`` it is polished instead (a smooth plastic or principled coat: sharp
+    reflections of the lights and objects across a large plane, as floors and tiles of real interiors);
+    at 0 no extra number is drawn, so scenes made before it existed are made the same."""
+    polished = polished_probability > 0 and rng.uniform() < polished_probability
     family = ("diffuse", "roughplastic", "principled")[int(rng.choice(3, p=[0.5, 0.25, 0.25]))]
+    if polished:
+        family = "roughplastic" if family != "principled" else family
     mat = random_material(rng, family, 0.0)
     key = {"diffuse": "reflectance", "roughplastic": "diffuse_reflectance", "principled": "base_color"}[family]
     if family == "principled":
-        mat.update(metallic=0.0, spec_trans=0.0, roughness=_r(rng.uniform(0.3, 1.0)))
+        rough = rng.uniform(0.02, 0.15) if polished else rng.uniform(0.3, 1.0)
+        mat.update(metallic=0.0, spec_trans=0.0, roughness=_r(rough))
         for k in ("clearcoat", "clearcoat_gloss", "sheen", "anisotropic"):
             mat.pop(k, None)
+    elif polished:
+        mat["alpha"] = _r(rng.uniform(0.005, 0.06))
     if rng.uniform() < texture_probability:
         tex = random_texture_params(rng)
         tex["uv_scale"] = _r(size / tile)

@@ -72,13 +72,14 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
         tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
         height = max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
         ceiling = bool(rng.uniform() < 0.25)
-        wall_mat = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0))
+        wall_mat = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0),
+                                    cfg.polished_probability)
         walls = room_walls(center, room_half, height, sides, wall_mat, ceiling)
         ground_size = 2 * room_half
     else:
         ground_size = max(40.0 * radius, 4 * room_half)
     floor = ground(center, ground_size, surface_material(rng, cfg.texture_probability, ground_size,
-                                                         radius * rng.uniform(1.0, 4.0)))
+                                                         radius * rng.uniform(1.0, 4.0), cfg.polished_probability))
     return {
         "version": DESC_VERSION, "seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
         "cluster": {"center": center, "radius": radius},

@@ -145,3 +145,28 @@ def test_build_sensor(mi):
     assert tuple(int(v) for v in sensor.film().size()) == (48, 32)
     with pytest.raises(IndexError):
         build_sensor(mi, desc, 2, 48, 32)
+
+
+def _roughness(material):
+    return material.get("alpha", material.get("roughness", 1.0)) if material["family"] != "diffuse" else 1.0
+
+
+def test_polished_surfaces_only_when_asked():
+    """scene.polished_probability: at 1 every ground and wall is a smooth coat (sharp reflections), at 0 the
+    ground is never smoother than the matte-ish palette allows."""
+    polished = dataclasses.replace(SceneConfig(), polished_probability=1.0)
+    for index in range(12):
+        desc = random_scene(polished, 0, index, 1)
+        for surface in [desc["ground"], *desc["walls"]]:
+            assert surface["material"]["family"] in ("roughplastic", "principled")
+            assert _roughness(surface["material"]) <= 0.15
+    plain = [random_scene(SceneConfig(), 0, i, 1) for i in range(12)]
+    assert all(d["ground"]["material"]["family"] == "diffuse" or _roughness(d["ground"]["material"]) >= 0.03
+               for d in plain)
+
+
+@pytest.mark.slow
+def test_a_polished_ground_renders(mi):
+    desc = random_scene(dataclasses.replace(SceneConfig(), polished_probability=1.0), 0, 5, 1)
+    img = _render(mi, desc)
+    assert np.isfinite(img).all() and img.mean() > 0
