@@ -181,6 +181,9 @@ class SceneConfig(Section):
             rng = getattr(self, key)
             if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
                 bad(key, f"expected a range [min, max], got {rng!r}")
+        for f in dataclasses.fields(self):
+            if f.name.endswith("_probability") and not 0 <= getattr(self, f.name) <= 1:
+                bad(f.name, f"expected a probability in [0, 1], got {getattr(self, f.name)!r}")
 
 
 @dataclass

@@ -210,3 +210,10 @@ def test_a_formulation_error_is_a_config_error_naming_the_key():
         load_config(None, ["diffusion.prediction=epsilon"])
     with pytest.raises(ConfigError, match=r"diffusion\.estimate: the paper formulation"):
         load_config(None, ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false"])
+
+
+@pytest.mark.parametrize("key", ["polished_probability", "texture_probability", "walls_probability"])
+def test_a_scene_probability_outside_zero_one_is_named(key):
+    with pytest.raises(ConfigError, match=rf"scene\.{key}: expected a probability in \[0, 1\], got 1\.5"):
+        load_config(None, [f"scene.{key}=1.5"])
+    assert getattr(load_config(None, [f"scene.{key}=1"]).scene, key) == 1
