@@ -572,9 +572,13 @@ class OidnFtConfig(TrainingConfig):
                        "exported: w = w_oidn + blend (w_trained - w_oidn); 1: the trained weights.", 1.0)
     val_frames: int = doc("Validation frames scored after every epoch (each at every sample count of the run); 0: "
                           "the whole val split.", 0)
+    target: str = doc("Training target: 'gt_clean' (the cleaned reference, as every denoiser here) or 'gt1' (the "
+                      "raw reference, unbiased but noisy); validation scores against GT_clean either way, as make "
+                      "eval does.", "gt_clean")
 
     def check(self, bad: Bad) -> None:
         super().check(bad)
+        self.one_of(bad, "target", ("gt_clean", "gt1"))
         if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?", self.network):
             bad("network", f"expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), got {self.network!r}")
         self.at_least(bad, 1, "crops_per_frame")

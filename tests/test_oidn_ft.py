@@ -153,6 +153,17 @@ def test_wrong_settings_are_named():
         load_config(None, ["oidn_ft.network=rt_ldr"])
     with pytest.raises(PipelineError, match="oidn_ft.trainable"):
         load_config(None, ["oidn_ft.trainable=encoder"])
+    with pytest.raises(PipelineError, match="oidn_ft.target"):
+        load_config(None, ["oidn_ft.target=gt2"])
+
+
+def test_the_target_is_gt_clean_or_the_raw_gt1(cleaned):
+    store = Store(cleaned[0])
+    key = store.frames_with("train")[0]
+    read = {name: store.read_image(key.scene, key.frame, name, ["color"])[0]["color"] for name in ("gt_clean", "gt1")}
+    assert not np.array_equal(read["gt_clean"], read["gt1"])
+    for name in ("gt_clean", "gt1"):
+        np.testing.assert_array_equal(oidn_ft.Frame(store, key, oidn_ft.AUX, name).target, read[name])
 
 
 def _first(store):

@@ -56,9 +56,10 @@ def network_aux(network: str) -> tuple[str, ...]:
 
 
 class Frame:
-    """One store frame in memory: its stacks' colour and aux (K, H, W, 3) and its GT_clean (H, W, 3)."""
+    """One store frame in memory: its stacks' colour and aux (K, H, W, 3) and its training target (H, W, 3):
+    GT_clean, or the raw GT1 (``oidn_ft.target``)."""
 
-    def __init__(self, store: Store, key: FrameKey, aux: tuple[str, ...]):
+    def __init__(self, store: Store, key: FrameKey, aux: tuple[str, ...], target: str = "gt_clean"):
         sm = store.scene_manifest(key.scene)
         self.key, self.stack_spp = key, int(sm["stack_spp"])
         stacks = [store.read_image(key.scene, key.frame, stack_name(k), ["color", *aux])[0]
@@ -66,7 +67,7 @@ class Frame:
         self.color = np.stack([s["color"] for s in stacks]).astype(np.float32)
         # aux buffers a reader left out (e.g. a constant one) are what the schema says: zeros
         self.aux = {a: np.stack([s.get(a, np.zeros_like(s["color"])) for s in stacks]).astype(np.float16) for a in aux}
-        self.target = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"].astype(np.float32)
+        self.target = store.read_image(key.scene, key.frame, target, ["color"])[0]["color"].astype(np.float32)
 
     def pooled(self, stacks: list[int]) -> dict[str, np.ndarray]:
         """The frame at len(stacks) × stack_spp samples: the mean of those stacks (as ``Store.read``)."""
@@ -250,6 +251,8 @@ class OIDNFineTune(Task):
                                                            "lr", "lr_end", "warmup_steps", "weight_decay", "grad_clip",
                                                            "loss", "l2sp", "distill", "diversify", "trainable", "augment",
                                                            "epochs")}}
+        if o.target != "gt_clean":   # left out at its default: runs made before the key keep their fingerprint
+            self.fingerprint["target"] = o.target
         self.output = str(self.folder / "model.safetensors")
         self.crops = self.val = None
 
@@ -260,7 +263,7 @@ class OIDNFineTune(Task):
     # ---- data
     def prepare(self) -> None:
         t = time.perf_counter()
-        frames = [Frame(self.store, k, self.aux) for k in self.train_keys]
+        frames = [Frame(self.store, k, self.aux, self.o.target) for k in self.train_keys]
         self.crops = FrameCrops(frames, self.spps, self.o.crop, self.o.crops_per_frame, self.cfg.seed, self.aux,
                                 self.o.augment, self.o.distill, self.o.diversify)
         self.val = self._validation_items()

@@ -1,0 +1,75 @@
+"""Methods − OIDN on every noise realization the store holds, not only the first.
+
+``make eval`` reads each frame at 4 spp from its first stack; a store frame has 16 stacks of 4 spp,
+so 16 independent 4-spp inputs (and 4 at 16 spp). One realization's per-scene gain carries that
+realization's noise (single scenes move by up to ±0.3 dB between realizations); the mean over all
+of them says what the method does on the scene. Methods are loaded and run exactly as ``make eval``
+runs them (``evaluate.methods.Loader``); PSNR is eval's (Reinhard tonemap, against GT1).
+
+    python docs/oidn_guards/realizations.py --methods oidn_ft ours [--store data/external]
+        [--prefix ext_val] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
+"""
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from mcdenoise.evaluate.methods import Loader
+from mcdenoise.pipeline.config import load_config
+from mcdenoise.pipeline.metrics import psnr
+from mcdenoise.pipeline.store import Store
+
+
+def realization_psnrs(methods, store, sid, spp):
+    """{method: [PSNR on each disjoint group of stacks that makes ``spp``]} for frame 0 of ``sid``."""
+    sm = store.scene_manifest(sid)
+    k, total = spp // int(sm["stack_spp"]), int(sm["stacks"])
+    ref = store.read_image(sid, 0, "gt1", ["color"])[0]["color"]
+    key = next(key for key in store.frames("external") if key.scene == sid)
+    out = {name: [] for name in methods}
+    for g in range(total // k):
+        buffers = store.read(sid, 0, spp, stacks=list(range(g * k, (g + 1) * k)))
+        for name, method in methods.items():
+            method.set_frame(store, key)
+            out[name].append(psnr(np.asarray(method.denoise(buffers), np.float32), ref))
+    return out
+
+
+def main(argv):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--methods", nargs="+", required=True)
+    ap.add_argument("--store", default="data/external")
+    ap.add_argument("--prefix", default="ext_val")
+    ap.add_argument("--spp", nargs="+", type=int, default=[4, 16])
+    ap.add_argument("--config", default="configs/default.yaml")
+    ap.add_argument("--json", default="")
+    ap.add_argument("overrides", nargs="*")
+    a = ap.parse_args(argv)
+    cfg = load_config(a.config, a.overrides)
+    store = Store(a.store)
+    scenes = sorted(p.name for p in (store.root / "scenes").iterdir() if p.name.startswith(a.prefix))
+    loader, result = Loader(cfg), {}
+    for spp in a.spp:
+        methods = {name: loader.load(name, spp) for name in ["oidn", *a.methods]}
+        result[spp] = {sid: realization_psnrs(methods, store, sid, spp) for sid in scenes}
+    for name in a.methods:
+        print(f"{name} − oidn, dB, the mean over realizations ± its standard error (first realization; range):")
+        for spp in a.spp:
+            means = {}
+            for sid, r in result[spp].items():
+                d = np.subtract(r[name], r["oidn"])
+                means[sid] = d.mean()
+                se = d.std(ddof=1) / len(d) ** 0.5 if len(d) > 1 else float("nan")
+                print(f"  {spp:3d} spp {sid:28s} {d.mean():+.3f} ± {se:.3f} ({d[0]:+.2f}; {d.min():+.2f} … "
+                      f"{d.max():+.2f}; {len(d)} realizations)")
+            worst = min(means, key=means.get)
+            print(f"  {spp:3d} spp mean over {len(means)} scenes {np.mean(list(means.values())):+.3f}, "
+                  f"worst {means[worst]:+.3f} ({worst})")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({str(s): v for s, v in result.items()}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
