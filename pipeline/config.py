@@ -160,6 +160,10 @@ class SceneConfig(Section):
     polished_probability: float = doc("Probability that the ground (and, in a room, the walls) is polished: a "
                                       "smooth plastic or principled coat reflecting the scene sharply; 0: matte-ish "
                                       "surfaces only (the scenes made before this key existed).", 0.0)
+    enclosed_probability: float = doc("Probability that the scene is a closed room (four walls and a ceiling) "
+                                      "lit through one or two windows by a sky outside, half the time with no "
+                                      "light inside: interiors lit mostly indirectly; 0: open sets only (the "
+                                      "scenes made before this key existed).", 0.0)
     group_probability: float = doc("Probability that an object is a grouped composition of primitives.", 0.2)
     materials: dict = doc("Relative weights of material families: principled, diffuse, plastic, roughplastic, "
                           "conductor, roughconductor, dielectric, roughdielectric.",

@@ -15,7 +15,7 @@ import numpy as np
 from mcdenoise.render import camera as cam, lights as lt
 from mcdenoise.render.buffers import make_sensor
 from mcdenoise.render.geometry import list_mesh_files, mesh_arrays
-from mcdenoise.render.layout import ground, place_objects, room_walls, surface_material
+from mcdenoise.render.layout import enclosed_room, ground, place_objects, room_walls, surface_material
 from mcdenoise.render.materials import TextureCache, bsdf_dict
 from mcdenoise.render.stress import STRESS_PRESETS, stress_description
 
@@ -80,12 +80,36 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
         ground_size = max(40.0 * radius, 4 * room_half)
     floor = ground(center, ground_size, surface_material(rng, cfg.texture_probability, ground_size,
                                                          radius * rng.uniform(1.0, 4.0), cfg.polished_probability))
+    # Closed rooms lit through windows draw from their own stream, so that the scenes of a config without
+    # them (enclosed_probability 0) are exactly what they were before the key existed.
+    enclosed = np.random.default_rng([int(seed), int(index), 1])
+    if cfg.enclosed_probability > 0 and enclosed.uniform() < cfg.enclosed_probability:
+        walls, floor, lights, environment = _enclose(enclosed, cfg, camera, c, radius, room_half, lights, total)
     return {
         "version": DESC_VERSION, "seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
         "cluster": {"center": center, "radius": radius},
         "objects": objects, "ground": floor, "walls": walls, "lights": lights, "environment": environment,
         "camera": camera,
     }
+
+
+def _enclose(rng, cfg, camera, c, radius, room_half, lights, total):
+    """Walls, floor, lights and sky of the scene moved into a closed room lit through its windows: a sky
+    (with a sun 70 % of the time) ten times the scene's light budget outside, and half the time none of
+    the drawn lights inside (daylight only), else the drawn lights as well."""
+    tops = [p["origin"][1] for p in camera["frames"]]
+    tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
+    height = max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
+    center = [float(c[0]), 0.0, float(c[2])]
+    material = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0),
+                                cfg.polished_probability)
+    walls = enclosed_room(rng, center, room_half, height, material)
+    floor = ground(center, 2 * room_half, surface_material(rng, cfg.texture_probability, 2 * room_half,
+                                                            radius * rng.uniform(1.0, 4.0), cfg.polished_probability))
+    sky = lt.random_environment(rng, 10.0 * total)
+    while sky["type"] != "sky" or (sky["sun"] is None and rng.uniform() < 0.36):   # 70 % with a sun
+        sky = lt.random_environment(rng, 10.0 * total)
+    return walls, floor, (lights if rng.uniform() < 0.5 else []), sky
 
 
 def stress_scene(name: str, seed: int, frames: int) -> dict:

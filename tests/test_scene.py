@@ -170,3 +170,63 @@ def test_a_polished_ground_renders(mi):
     desc = random_scene(dataclasses.replace(SceneConfig(), polished_probability=1.0), 0, 5, 1)
     img = _render(mi, desc)
     assert np.isfinite(img).all() and img.mean() > 0
+
+
+def _inside(point, rect) -> bool:
+    """Whether ``point`` (on the rectangle's plane) lies within the rectangle."""
+    n, up = np.asarray(rect["normal"], float), np.asarray(rect["up"], float)
+    across = np.cross(up, n)
+    d = np.asarray(point, float) - np.asarray(rect["center"], float)
+    return abs(d @ across) < rect["size"][0] / 2 and abs(d @ up) < rect["size"][1] / 2
+
+
+def test_a_wall_with_a_window_covers_the_wall_but_the_window():
+    from mcdenoise.render.layout import wall_with_window
+
+    material = {"family": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
+    pieces = wall_with_window([3.0, 0.0, 1.0], [-1, 0, 0], 6.0, 2.5, (-1.0, 0.5, 0.8, 1.9), material)
+    area = sum(p["size"][0] * p["size"][1] for p in pieces)
+    assert area == pytest.approx(6.0 * 2.5 - 1.5 * 1.1)
+    across = np.cross([0, 1, 0], [-1, 0, 0])
+    wall_point = lambda u, v: np.array([3.0, v, 1.0]) + across * u  # noqa: E731
+    assert not any(_inside(wall_point(-0.25, 1.35), p) for p in pieces)          # the window's centre: open
+    for u, v in [(-2.5, 1.0), (2.5, 2.4), (0.0, 0.4), (0.0, 2.2)]:                 # beside, below and above it
+        assert sum(_inside(wall_point(u, v), p) for p in pieces) == 1
+    # a window reaching the floor leaves no zero-height piece below it
+    assert len(wall_with_window([0, 0, 0], [0, 0, 1], 4.0, 2.0, (-1.0, 1.0, 0.0, 1.5), material)) == 3
+
+
+def test_enclosed_rooms_only_when_asked():
+    """scene.enclosed_probability: at 1 every scene is a closed room around its camera path, lit by a sky
+    through 1-2 windows, with the same objects and camera as at 0 (the room draws from its own stream)."""
+    closed = dataclasses.replace(SceneConfig(), enclosed_probability=1.0)
+    no_light_inside = 0
+    for index in range(10):
+        desc, plain = random_scene(closed, 0, index, 2), random_scene(SceneConfig(), 0, index, 2)
+        assert desc["objects"] == plain["objects"] and desc["camera"] == plain["camera"]
+        assert desc["environment"]["type"] == "sky"
+        no_light_inside += not desc["lights"]
+        sides = [w for w in desc["walls"] if w["normal"][1] == 0]
+        height = max(w["center"][1] + w["size"][1] / 2 for w in sides)
+        ceiling = [w for w in desc["walls"] if w["normal"] == [0.0, -1.0, 0.0]]
+        assert len(ceiling) == 1 and ceiling[0]["center"][1] == pytest.approx(height, abs=1e-3)   # 4 decimals
+        half = desc["ground"]["size"][0] / 2
+        for pose in desc["camera"]["frames"]:
+            offset = np.subtract(pose["origin"], desc["ground"]["center"])
+            assert max(abs(offset[0]), abs(offset[2])) < half and 0 < pose["origin"][1] < height
+        openings = sum(1 for w in sides if w["size"][1] < height - 1e-6)
+        assert openings >= 1   # a window: wall pieces below or above it are lower than the room
+    assert 0 < no_light_inside < 10
+    plain = [random_scene(SceneConfig(), 0, i, 1) for i in range(10)]
+    assert not any(w["size"][1] < max(v["center"][1] + v["size"][1] / 2 for v in d["walls"] if v["normal"][1] == 0) - 1e-6
+                   for d in plain for w in d["walls"] if w["normal"][1] == 0)
+
+
+@pytest.mark.slow
+def test_daylight_reaches_a_closed_room_through_its_window(mi):
+    closed = dataclasses.replace(SceneConfig(), enclosed_probability=1.0)
+    desc = next(d for d in (random_scene(closed, 0, i, 1) for i in range(20)) if not d["lights"])
+    img = _render(mi, desc, spp=16)
+    assert np.isfinite(img).all() and img.mean() > 0
+    dark = dict(desc, environment={**desc["environment"], "scale": 0.0, "irradiance": 0.0})
+    assert _render(mi, dark, spp=4).max() == 0     # the sky is the only light
