@@ -7,7 +7,7 @@ of them says what the method does on the scene. Methods are loaded and run exact
 runs them (``evaluate.methods.Loader``); PSNR is eval's (Reinhard tonemap, against GT1).
 
     python docs/oidn_guards/realizations.py --methods oidn_ft ours [--store data/external]
-        [--prefix ext_val] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
+        [--prefix ext_val] [--exclude P] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
 """
 import argparse
 import json
@@ -40,7 +40,8 @@ def main(argv):
     ap = argparse.ArgumentParser()
     ap.add_argument("--methods", nargs="+", required=True)
     ap.add_argument("--store", default="data/external")
-    ap.add_argument("--prefix", default="ext_val")
+    ap.add_argument("--prefix", default="ext_val", help="score the store's scenes whose id starts with this")
+    ap.add_argument("--exclude", default="", help="... and does not start with this")
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 16])
     ap.add_argument("--config", default="configs/default.yaml")
     ap.add_argument("--json", default="")
@@ -48,7 +49,8 @@ def main(argv):
     a = ap.parse_args(argv)
     cfg = load_config(a.config, a.overrides)
     store = Store(a.store)
-    scenes = sorted(p.name for p in (store.root / "scenes").iterdir() if p.name.startswith(a.prefix))
+    scenes = sorted(p.name for p in (store.root / "scenes").iterdir()
+                    if p.name.startswith(a.prefix) and not (a.exclude and p.name.startswith(a.exclude)))
     loader, result = Loader(cfg), {}
     for spp in a.spp:
         methods = {name: loader.load(name, spp) for name in ["oidn", *a.methods]}
