@@ -106,8 +106,10 @@ def ground(center, size: float, material: dict) -> dict:
     return rect([center[0], 0.0, center[2]], [0, 1, 0], [0, 0, 1], [size, size], material)
 
 
-def room_walls(center, half: float, height: float, sides, material: dict, ceiling: bool = False) -> list:
-    """Walls of a square room around ``center`` (sides among +x, -x, +z, -z), facing inwards."""
+def room_walls(center, half: float, height: float, sides, material: dict, ceiling: bool = False,
+               windows: dict | None = None) -> list:
+    """Walls of a square room around ``center`` (sides among +x, -x, +z, -z), facing inwards; a side in
+    ``windows`` has that opening (u0, u1, v0, v1) cut out of it (``wall_with_window``)."""
     cx, cz = center[0], center[2]
     walls = []
     for side in sides:
@@ -116,14 +118,17 @@ def room_walls(center, half: float, height: float, sides, material: dict, ceilin
             c, n = [cx + sign * half, height / 2, cz], [-sign, 0, 0]
         else:
             c, n = [cx, height / 2, cz + sign * half], [0, 0, -sign]
-        walls.append(rect(c, n, [0, 1, 0], [2 * half, height], material))
+        if windows and side in windows:
+            walls += wall_with_window(c, n, 2 * half, height, windows[side], material)
+        else:
+            walls.append(rect(c, n, [0, 1, 0], [2 * half, height], material))
     if ceiling:
         walls.append(rect([cx, height, cz], [0, -1, 0], [0, 0, 1], [2 * half, 2 * half], material))
     return walls
 
 
 def wall_with_window(center, normal, width: float, height: float, window, material: dict) -> list:
-    """A wall of ``width`` × ``height`` standing on y = 0 (``center``'s x, z; facing ``normal``, horizontal)
+    """A wall of ``width`` × ``height`` standing on y = 0 (at ``center``'s x, z; facing ``normal``, horizontal)
     with a rectangular opening ``window`` = (u0, u1, v0, v1): u across the wall from its centre, v up from
     the floor. Four rectangles around the opening (the ones of zero size left out)."""
     n = np.asarray(normal, float)
@@ -142,18 +147,11 @@ def enclosed_room(rng: np.random.Generator, center, half: float, height: float, 
     """A closed room around ``center`` (four walls and a ceiling, facing inwards) whose only openings
     are one or two windows, each in its own wall: daylight from outside reaches the inside through
     them, mostly after bouncing off the walls and floor."""
-    sides = [("+x", [-1, 0, 0]), ("-x", [1, 0, 0]), ("+z", [0, 0, -1]), ("-z", [0, 0, 1])]
-    windows = set(rng.choice(4, size=int(rng.integers(1, 3)), replace=False).tolist())
-    walls = []
-    for k, (side, normal) in enumerate(sides):
-        sign = 1.0 if side.startswith("+") else -1.0
-        c = [center[0] + (sign * half if "x" in side else 0.0), 0.0, center[2] + (sign * half if "z" in side else 0.0)]
-        if k in windows:
-            w, h = 2 * half * rng.uniform(0.2, 0.6), height * rng.uniform(0.3, 0.6)
-            u = rng.uniform(-half + w / 2, half - w / 2)
-            sill = rng.uniform(0.05, 0.9) * (height - h)
-            walls += wall_with_window(c, normal, 2 * half, height, (u - w / 2, u + w / 2, sill, sill + h), material)
-        else:
-            walls.append(rect([c[0], height / 2, c[2]], normal, [0, 1, 0], [2 * half, height], material))
-    walls.append(rect([center[0], height, center[2]], [0, -1, 0], [0, 0, 1], [2 * half, 2 * half], material))
-    return walls
+    sides = ["+x", "-x", "+z", "-z"]
+    windows = {}
+    for k in sorted(rng.choice(4, size=int(rng.integers(1, 3)), replace=False).tolist()):
+        w, h = 2 * half * rng.uniform(0.2, 0.6), height * rng.uniform(0.3, 0.6)
+        u = rng.uniform(-half + w / 2, half - w / 2)
+        sill = rng.uniform(0.05, 0.9) * (height - h)
+        windows[sides[k]] = (u - w / 2, u + w / 2, sill, sill + h)
+    return room_walls(center, half, height, sides, material, ceiling=True, windows=windows)

@@ -68,9 +68,7 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     walls: list = []
     if rng.uniform() < cfg.walls_probability:
         sides = [s for s in ("+x", "-x", "+z", "-z") if rng.uniform() < 0.6] or ["+x"]
-        tops = [p["origin"][1] for p in camera["frames"]]
-        tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
-        height = max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
+        height = _room_height(rng, camera, lights, c, radius)
         ceiling = bool(rng.uniform() < 0.25)
         wall_mat = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0),
                                     cfg.polished_probability)
@@ -93,13 +91,18 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     }
 
 
+def _room_height(rng, camera, lights, c, radius) -> float:
+    """A ceiling height above every camera position and light, and above the objects."""
+    tops = [p["origin"][1] for p in camera["frames"]]
+    tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
+    return max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
+
+
 def _enclose(rng, cfg, camera, c, radius, room_half, lights, total):
     """Walls, floor, lights and sky of the scene moved into a closed room lit through its windows: a sky
     (with a sun 70 % of the time) ten times the scene's light budget outside, and half the time none of
     the drawn lights inside (daylight only), else the drawn lights as well."""
-    tops = [p["origin"][1] for p in camera["frames"]]
-    tops += [light.get("center", light.get("position", [0, 0, 0]))[1] for light in lights]
-    height = max(max(tops) * rng.uniform(1.15, 1.6), c[1] + 2 * radius) + 0.2 * radius
+    height = _room_height(rng, camera, lights, c, radius)
     center = [float(c[0]), 0.0, float(c[2])]
     material = surface_material(rng, cfg.texture_probability, 2 * room_half, radius * rng.uniform(1.0, 4.0),
                                 cfg.polished_probability)
