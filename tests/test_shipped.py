@@ -104,3 +104,42 @@ def test_denoise_self_ensemble_is_recorded_and_averages_flipped_copies(tmp_path)
         assert read_header(tmp_path / f"out{n}.exr")["ensemble"] == n
     assert np.isfinite(outs[4]).all() and _mse(outs[4], truth) < 0.5 * _mse(noisy, truth)
     assert not np.array_equal(outs[1], outs[4]) and _mse(outs[1], outs[4]) < 0.1 * _mse(noisy, truth)
+
+
+def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module(tmp_path):
+    """export --base-blend: OIDN + b x what fine-tuning changed, from a base recorded at blend a."""
+    from mcdenoise.pipeline import oidn_weights, tza
+    from tests.helpers import cli
+
+    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
+    a = meta["base_blend"]
+    same = tmp_path / "same"
+    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(a), "--out", same, "--quiet")
+    assert (same / "base.tza").read_bytes() == (SHIPPED_MODEL / "base.tza").read_bytes()
+    half = tmp_path / "half"
+    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(a / 2), "--out", half, "--quiet")
+    stock = tza.read(oidn_weights.load("rt_hdr_alb_nrm"))
+    old, new = tza.read((SHIPPED_MODEL / "base.tza").read_bytes()), tza.read((half / "base.tza").read_bytes())
+    moved = 0
+    for name, t in new.items():
+        s, o = stock[name].array.astype(np.float32), old[name].array.astype(np.float32)
+        assert t.array.dtype == np.float16 and t.layout == old[name].layout
+        np.testing.assert_allclose(t.array.astype(np.float32), s + 0.5 * (o - s), rtol=2e-3, atol=1e-4)
+        moved += int((t.array != old[name].array).sum())
+    assert moved > 0
+    record = json.loads((half / "model.json").read_text())
+    assert record["base_blend"] == a / 2 and record["base_sha256"] == sha256(half / "base.tza")
+    assert (half / "control.safetensors").read_bytes() == (SHIPPED_MODEL / "control.safetensors").read_bytes()
+    assert "--base-blend" in (half / "README.md").read_text()
+    # back to OIDN itself (blend 0): stock OIDN's weights exactly, and the folder still loads
+    zero = tmp_path / "zero"
+    cli("export", "--from", half, "--base-blend", "0", "--out", zero, "--quiet")
+    back = tza.read((zero / "base.tza").read_bytes())
+    assert all(np.array_equal(back[k].array, stock[k].array) for k in stock)
+    oidn_refine.load(zero)
+    proc = cli("export", "--from", zero, "--base-blend", "0.3", "--out", tmp_path / "never", check=False)
+    assert proc.returncode != 0 and "base_blend 0, its base is OIDN itself" in proc.stderr
+    # a base whose blend is not recorded cannot be moved: a one-line error naming the file, nothing written
+    (zero / "model.json").write_text(json.dumps({k: v for k, v in record.items() if k != "base_blend"}))
+    proc = cli("export", "--from", zero, "--base-blend", "0.3", "--out", tmp_path / "never", check=False)
+    assert proc.returncode != 0 and "model.json: no base_blend" in proc.stderr and not (tmp_path / "never").exists()

@@ -47,6 +47,10 @@ def _training_commands(sub) -> None:
     p.add_argument("--spp", type=spp, default=None, help="the diffusion run (diffusion_spp<N> or any); --format model")
     p.add_argument("--out", default=None, help="the model folder to write (default train/shipped); --format oidn: a "
                                                ".tza file or a folder (default <runs>/oidn_ft_<network>.tza)")
+    p.add_argument("--base-blend", type=float, default=None,
+                   help="instead: move the base of an exported model (--from) to OIDN + this x what fine-tuning "
+                        "changed (oidn_ft.blend's knob, after training), written to --out (default: --from)")
+    p.add_argument("--from", dest="from_model", default="train/shipped", help="the model folder --base-blend moves")
     with_quiet(p)
     p.set_defaults(fn=_export)
 
@@ -152,7 +156,11 @@ def _pretrain(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export, export_oidn
+    from .export import export, export_oidn, rebase
+    if args.base_blend is not None:
+        rebase(Path(args.from_model), args.base_blend, Path(args.out) if args.out else None,
+               config(args).oidn.weights, quiet=args.quiet)
+        return 0
     if args.format == "oidn":
         export_oidn(config(args), Path(args.out) if args.out else None, quiet=args.quiet, config=args.config,
                     overrides=args.overrides)

@@ -23,8 +23,11 @@ import shlex
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from mcdenoise.pipeline import weights
 from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.errors import CheckpointError
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json
 from mcdenoise.pipeline.store import sha256
 
@@ -227,6 +230,54 @@ def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool 
     weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
     (tmp / "README.md").write_text(refine_card(cfg, record, folder, config or "<config>", out, overrides))
     return _publish(tmp, out, folder, quiet)
+
+
+def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file: str = "", quiet: bool = False) -> Path:
+    """An exported model on OIDN's network whose base is OIDN + ``base_blend`` × what an oidn_ft run
+    changed (model.json), with that base moved to OIDN + ``blend`` × the same change (``oidn_ft.blend``'s
+    WiSE-FT knob, after training) and everything else kept: a new model to validate, since its Control
+    Module was trained on the old base. ``out`` (default: ``model`` itself) is replaced by a rename."""
+    import hashlib
+
+    from mcdenoise.pipeline import oidn_weights, tza
+
+    from .oidn_ft import blended
+
+    model = Path(model)
+    out = Path(out) if out else model
+    meta = weights.read_record(model, "oidn_control", "give a model folder exported from a run on OIDN's network")
+    old = meta.get("base_blend")
+    if old is None:
+        raise CheckpointError(f"{model / 'model.json'}: no base_blend (how far its base is from OIDN): only a base "
+                              f"made from an oidn_ft run at a known blend can be moved; base: {meta.get('base_what')}")
+    if not old:
+        raise CheckpointError(f"{model / 'model.json'}: base_blend 0, its base is OIDN itself: no fine-tuning to move "
+                              "along (train on a fine-tuned base: diffusion.base=oidn_ft)")
+    name = meta["base_network"]
+    stock = tza.read(oidn_weights.load(name, oidn_weights.source(name, oidn_weights_file)), name)
+    base = tza.read((model / meta["base"]).read_bytes(), str(model / meta["base"]))
+    moved = blended({k: t.array.astype(np.float32) for k, t in stock.items()},
+                    {k: t.array.astype(np.float32) for k, t in base.items()}, float(blend) / float(old))
+    blob = tza.write({k: tza.Tensor(moved[k].astype(np.float16), t.layout) for k, t in base.items()})
+    tmp = out.parent / (out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(model, tmp)
+    (tmp / meta["base"]).write_bytes(blob)
+    what = f"{meta.get('base_what')}, moved from blend {old:g} to {blend:g} after training"
+    record = {**meta, "base_blend": float(blend), "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
+              "rebased": {"from": old, "to": float(blend), "date": datetime.date.today().isoformat()}}
+    atomic_write_json(tmp / weights.RECORD, record)
+    card = tmp / "README.md"
+    if card.exists():
+        card.write_text(card.read_text().rstrip("\n") + "\n\n" + _rebase_note(model, out, old, blend))
+    return _publish(tmp, out, model, quiet)
+
+
+def _rebase_note(model: Path, out: Path, old: float, new: float) -> str:
+    return (f"## Base moved after training ({datetime.date.today().isoformat()})\n\nThe base is now OIDN + {new:g} "
+            f"x what fine-tuning changed (it was {old:g} in training and in the tables above); the Control "
+            "Module is unchanged. Made by:\n\n```sh\n"
+            f"python -m pipeline export --from {model} --base-blend {new:g} --out {out}\n```\n")
 
 
 def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:

@@ -406,9 +406,15 @@ def load_run(folder: Path, cfg: Config, blend: float | None = None) -> tuple[oid
     net = oidn_net.UNet(record["widths"])
     net.load_state_dict(weights.load_tensors(folder / "model.safetensors"))
     a = cfg.oidn_ft.blend if blend is None else float(blend)
-    if a == 0.0:      # OIDN's own weights exactly (the formula below would turn its -0.0 into +0.0)
-        net.load_state_dict(base.state_dict())
-    elif a != 1.0:
-        trained, prior_sd = net.state_dict(), base.state_dict()
-        net.load_state_dict({k: prior_sd[k] + a * (trained[k] - prior_sd[k]) for k in trained})
+    net.load_state_dict(blended(base.state_dict(), net.state_dict(), a))
     return net.eval(), {**record, "blend": a}
+
+
+def blended(prior: dict, trained: dict, a: float) -> dict:
+    """WiSE-FT: ``prior + a × (trained − prior)`` per tensor (torch or numpy); ``a`` 0 is the prior
+    exactly (the formula would turn its −0.0 into +0.0), 1 the trained weights exactly."""
+    if a == 0.0:
+        return dict(prior)
+    if a == 1.0:
+        return dict(trained)
+    return {k: prior[k] + a * (trained[k] - prior[k]) for k in trained}

@@ -213,8 +213,10 @@ class RefineTask(Task):
         if init is not None:
             start, meta = load(init, self.device)
             self.blob, self.base_what = (Path(init) / meta["base"]).read_bytes(), f"{init}/{meta['base']}"
+            self.base_blend = meta.get("base_blend")
         else:
             self.blob, self.base_what = base_blob(cfg)
+            self.base_blend = {"oidn": 0.0, "oidn_ft": cfg.oidn_ft.blend}.get(cfg.diffusion.base)
         torch.manual_seed(cfg.seed)
         base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
         self.model = ControlledOIDN(base, len(cond_names()), control=d.control).to(self.device)
@@ -329,7 +331,9 @@ class RefineTask(Task):
     def save_best(self, entry: dict) -> None:
         save(self.folder, self.model, self.blob, self.base_what, self.form, self.spps,
              {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
-              "store": str(self.cfg.store), "settings": self.fingerprint})
+              "store": str(self.cfg.store), "settings": self.fingerprint,
+              # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
+              **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
 
     def write_history(self, history: list, best: dict | None) -> None:
         atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,

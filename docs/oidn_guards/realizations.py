@@ -7,7 +7,7 @@ of them says what the method does on the scene. Methods are loaded and run exact
 runs them (``evaluate.methods.Loader``); PSNR is eval's (Reinhard tonemap, against GT1).
 
     python docs/oidn_guards/realizations.py --methods oidn_ft ours [--store data/external]
-        [--prefix ext_val] [--exclude P] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
+        [--split external] [--prefix ext_val] [--exclude P] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
 """
 import argparse
 import json
@@ -21,15 +21,16 @@ from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
 
 
-def realization_psnrs(methods, store, sid, spp):
-    """{method: [PSNR on each disjoint group of stacks that makes ``spp``]} for frame 0 of ``sid``."""
-    sm = store.scene_manifest(sid)
+def realization_psnrs(methods, store, key, spp):
+    """{method: [PSNR on each disjoint group of stacks that makes ``spp``]} for the frame ``key``,
+    against the reference eval reads (GT_clean where the frame has one, else GT1)."""
+    sm = store.scene_manifest(key.scene)
     k, total = spp // int(sm["stack_spp"]), int(sm["stacks"])
-    ref = store.read_image(sid, 0, "gt1", ["color"])[0]["color"]
-    key = next(key for key in store.frames("external") if key.scene == sid)
+    ref_name = "gt_clean" if store.image_path(key.scene, key.frame, "gt_clean").exists() else "gt1"
+    ref = store.read_image(key.scene, key.frame, ref_name, ["color"])[0]["color"]
     out = {name: [] for name in methods}
     for g in range(total // k):
-        buffers = store.read(sid, 0, spp, stacks=list(range(g * k, (g + 1) * k)))
+        buffers = store.read(key.scene, key.frame, spp, stacks=list(range(g * k, (g + 1) * k)))
         for name, method in methods.items():
             method.set_frame(store, key)
             out[name].append(psnr(np.asarray(method.denoise(buffers), np.float32), ref))
@@ -40,7 +41,8 @@ def main(argv):
     ap = argparse.ArgumentParser()
     ap.add_argument("--methods", nargs="+", required=True)
     ap.add_argument("--store", default="data/external")
-    ap.add_argument("--prefix", default="ext_val", help="score the store's scenes whose id starts with this")
+    ap.add_argument("--split", default="external", help="the store split whose frames are scored")
+    ap.add_argument("--prefix", default="ext_val", help="score the split's scenes whose id starts with this")
     ap.add_argument("--exclude", default="", help="... and does not start with this")
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 16])
     ap.add_argument("--config", default="configs/default.yaml")
@@ -49,12 +51,13 @@ def main(argv):
     a = ap.parse_args(argv)
     cfg = load_config(a.config, a.overrides)
     store = Store(a.store)
-    scenes = sorted(p.name for p in (store.root / "scenes").iterdir()
-                    if p.name.startswith(a.prefix) and not (a.exclude and p.name.startswith(a.exclude)))
+    keys = sorted((key for key in store.frames(a.split) if key.scene.startswith(a.prefix)
+                   and not (a.exclude and key.scene.startswith(a.exclude))), key=str)
+    label = (lambda key: key.scene) if a.split == "external" else str   # external scenes: one frame each
     loader, result = Loader(cfg), {}
     for spp in a.spp:
         methods = {name: loader.load(name, spp) for name in ["oidn", *a.methods]}
-        result[spp] = {sid: realization_psnrs(methods, store, sid, spp) for sid in scenes}
+        result[spp] = {label(key): realization_psnrs(methods, store, key, spp) for key in keys}
     for name in a.methods:
         print(f"{name} − oidn, dB, the mean over realizations ± its standard error (first realization; range):")
         for spp in a.spp:
