@@ -275,8 +275,8 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
 
 def _rebase_note(model: Path, out: Path, old: float, new: float) -> str:
     return (f"## Base moved after training ({datetime.date.today().isoformat()})\n\nThe base is now OIDN + {new:g} "
-            f"x what fine-tuning changed (it was {old:g} in training and in the tables above); the Control "
-            "Module is unchanged. Made by:\n\n```sh\n"
+            f"x what fine-tuning changed (it was {old:g} before this move; the training record above is the model "
+            "it was trained as); the Control Module is unchanged. Made by:\n\n```sh\n"
             f"python -m pipeline export --from {model} --base-blend {new:g} --out {out}\n```\n")
 
 
