@@ -265,6 +265,12 @@ def uncertainty_lines(entry: dict) -> list[str]:
     return lines + [""]
 
 
+def _realizations_note(meta: dict) -> str:
+    n = meta.get("config", {}).get("eval", {}).get("realizations", 1)
+    return (f" Each frame's metrics are the mean over up to {n} noise realizations (disjoint groups of its stacks; "
+            "eval.realizations), its crops the first." if n > 1 else "")
+
+
 def format_markdown(result: dict) -> str:
     meta = result["meta"]
     names = result["metrics"]
@@ -274,7 +280,7 @@ def format_markdown(result: dict) -> str:
              f"{meta.get('seconds', 0):.1f} s. Metrics against the reference image; means over frames "
              "± half-width of the 95 % Student-t interval of the mean. "
              "Bold: best mean of the column. s/frame: median denoise wall time on this machine. Per-frame "
-             "numbers: eval_frames.csv; per scene: per_scene_<group>_spp<N>.png.", ""]
+             "numbers: eval_frames.csv; per scene: per_scene_<group>_spp<N>.png." + _realizations_note(meta), ""]
     for what, why in result.get("metrics_missing", {}).items():
         lines.append(f"- Not in the tables: {what}: {why}.")
     lines.append("")

@@ -5,7 +5,8 @@ split against GT_clean; the store's ``external`` split, e.g. scenes given with `
 against GT_clean where it exists, else GT1 — the paper does not post-process its external test
 scenes) and each spp of ``eval.spp``:
 
-1. every method of ``eval.methods`` denoises the first stacks pooled to that spp
+1. every method of ``eval.methods`` denoises the first stacks pooled to that spp, or each of
+   ``eval.realizations`` disjoint groups of stacks, the frame's metrics their mean
    (``evaluate.harness``: inputs repaired and counted, denoise wall time measured, output
    checked); a method that cannot run is a row with its reason;
 2. metrics against the reference (``evaluate.scoring``), means over frames with 95 % intervals,
@@ -180,35 +181,75 @@ def _load_methods(loader: Loader, names, spp: int) -> tuple[dict, dict]:
     return methods, rows
 
 
+def realization_stacks(store: Store, key: FrameKey, spp: int, n: int) -> list[list[int]]:
+    """The disjoint groups of the frame's stacks that each pool to ``spp`` (independent noise
+    realizations), at most ``n`` of them, the first stacks first."""
+    sm = store.scene_manifest(key.scene)
+    k, total = spp // int(sm["stack_spp"]), int(sm["stacks"])
+    return [list(range(g * k, (g + 1) * k)) for g in range(min(n, total // k))]
+
+
 def _run_frames(e, store: Store, keys: list[FrameKey], spp: int, methods: dict, rows: dict, refs: dict,
                 metric_names: list[str], opts: dict, bar) -> tuple[list, dict]:
-    """Every method on every frame, each frame's record appended to its row's ``per_frame``.
+    """Every method on every frame (on ``eval.realizations`` noise realizations of it), each frame's
+    record appended to its row's ``per_frame``.
 
-    Returns the crop grid's rows (the first ``eval.crops`` frames) and, per method that predicts its
-    uncertainty, the (predicted std, actual error) pixel pairs of all frames."""
+    Returns the crop grid's rows (the first ``eval.crops`` frames, first realization) and, per method
+    that predicts its uncertainty, the (predicted std, actual error) pixel pairs of all frames."""
     crops, pooled = [], {}
     for i, key in enumerate(keys):
-        buffers = store.read(key.scene, key.frame, spp)
         ref = refs[key][1]
-        outputs = {}
-        for name, method in methods.items():
-            method.set_frame(store, key)
-            oc = run_method(method, buffers)
-            rec = {"frame": str(key), "seconds": oc.seconds, "status": oc.status(),
-                   "input_repaired": int(sum(oc.input_repaired.values())), "output_nonfinite": oc.output_nonfinite}
-            if oc.output is not None:
-                outputs[name] = finite_output(oc)
-                rec["metrics"] = score(outputs[name], ref, metric_names, opts)
-                std = method.uncertainty()
-                if std is not None:
-                    s, err = uncertainty.pixel_pairs(std, outputs[name], ref)
-                    rec["uncertainty"] = {"spearman": uncertainty.rank_correlation(s, err)}
-                    pooled.setdefault(name, []).append((s, err))
-            rows[name]["per_frame"].append(rec)
-        if i < e.crops:
-            crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
+        recs = {name: [] for name in methods}
+        for r, stacks in enumerate(realization_stacks(store, key, spp, e.realizations)):
+            buffers = store.read(key.scene, key.frame, spp, stacks=stacks)
+            outputs = {}
+            for name, method in methods.items():
+                method.set_frame(store, key)
+                rec, outputs[name] = _score(method, buffers, ref, metric_names, opts, pooled.setdefault(name, []))
+                recs[name].append(rec)
+            if r == 0 and i < e.crops:
+                crops.append((str(key), [outputs.get(m) for m in CROP_METHODS if m in e.methods] + [ref]))
+        for name, rs in recs.items():
+            rows[name]["per_frame"].append({"frame": str(key), **merge_realizations(rs, metric_names)})
         bar.update(1)
-    return crops, pooled
+    return crops, {name: pairs for name, pairs in pooled.items() if pairs}
+
+
+def _score(method, buffers: dict, ref: np.ndarray, metric_names: list[str], opts: dict, pairs: list):
+    """(the record of one method on one realization, its finite output or None); the method's
+    (σ, error) pixel pairs, when it predicts σ, are appended to ``pairs``."""
+    oc = run_method(method, buffers)
+    rec = {"seconds": oc.seconds, "status": oc.status(), "input_repaired": int(sum(oc.input_repaired.values())),
+           "output_nonfinite": oc.output_nonfinite}
+    if oc.output is None:
+        return rec, None
+    out = finite_output(oc)
+    rec["metrics"] = score(out, ref, metric_names, opts)
+    std = method.uncertainty()
+    if std is not None:
+        s, err = uncertainty.pixel_pairs(std, out, ref)
+        rec["uncertainty"] = {"spearman": uncertainty.rank_correlation(s, err)}
+        pairs.append((s, err))
+    return rec, out
+
+
+def merge_realizations(recs: list[dict], metric_names: list[str]) -> dict:
+    """One frame's record from its realizations' records: the mean metrics, seconds and Spearman ρ
+    over the realizations that were scored, the first failure's status, the repairs summed; a single
+    realization's record unchanged."""
+    if len(recs) == 1:
+        return recs[0]
+    scored = [r for r in recs if "metrics" in r]
+    out = {"seconds": float(np.mean([r["seconds"] for r in recs])),
+           "status": next((r["status"] for r in recs if r["status"] != "ok"), "ok"),
+           "input_repaired": sum(r["input_repaired"] for r in recs),
+           "output_nonfinite": sum(r["output_nonfinite"] for r in recs), "realizations": len(recs)}
+    if scored:
+        out["metrics"] = {m: float(np.mean([r["metrics"][m] for r in scored])) for m in metric_names}
+    rho = [r["uncertainty"]["spearman"] for r in scored if "uncertainty" in r]
+    if rho:
+        out["uncertainty"] = {"spearman": float(np.mean(rho))}
+    return out
 
 
 def _summarize_rows(rows: dict, pooled: dict, metric_names: list[str]) -> None:

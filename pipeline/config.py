@@ -616,6 +616,11 @@ class EvalConfig(Section):
     stress: bool = doc("Also report the store's 'stress' split (dataset.stress presets) as its own group, never "
                        "averaged into the split above.", True)
     frames: int = doc("Evaluate at most this many frames of the split (0: all).", 0)
+    realizations: int = doc("Noise realizations per frame and spp: every method denoises this many disjoint groups "
+                            "of the frame's stacks (at most stacks × stack_spp / spp of them; 1: the first stacks "
+                            "only) and the frame's metrics are their mean, so the per-frame numbers carry less of "
+                            "one noise draw's luck (one 4-spp realization moves a method's PSNR gain on a frame by "
+                            "about 0.1 dB) at that many times the time. Crops show the first realization.", 1)
     metrics: list = doc("Metric columns: l1, psnr, ssim, flip (LDR, on the tonemap), hdr_flip, fvvdp.",
                         factory=lambda: ["l1", "psnr", "ssim", "flip", "hdr_flip", "fvvdp"])
     fvvdp_display: str = doc("FovVideoVDP display model (pyfvvdp's display_models.json).", "standard_4k")
@@ -638,6 +643,8 @@ class EvalConfig(Section):
 
 
     def check(self, bad: Bad) -> None:
+        if self.realizations < 1:
+            bad("realizations", f"must be >= 1 (the first stacks only), got {self.realizations}")
         if self.bootstrap_resamples < 100:
             bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
         self.one_of(bad, "equal_time", ("render", "pool", "none"))

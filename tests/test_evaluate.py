@@ -334,3 +334,37 @@ def test_external_scene_rendered_and_reported_separately(tmp_path):
     rows = g["spp"]["16"]["methods"]
     assert rows["oidn"]["failed_frames"] == 0 and rows["oidn"]["seconds"]["median"] > 0
     assert set(rows["noisy"]["metrics"]) == {"l1", "psnr"}
+
+
+def test_realizations_average_each_frame_over_disjoint_stack_groups(store_root, tmp_path):
+    """eval.realizations=N: a frame's metrics are the mean over its disjoint stack groups (as many as the
+    stacks hold at that spp), scored one by one here with the store's own reader."""
+    from mcdenoise.pipeline.config import ConfigError
+    from mcdenoise.pipeline.metrics import psnr
+
+    cfg = load_config(TINY, [f"store={store_root}", f"runs={tmp_path}", "eval.methods=[noisy, oidn]",
+                             "eval.equal_time=none", "eval.metrics=[l1, psnr]", "eval.realizations=8"])
+    result = run_eval(cfg, spps=[4, 8, 16], out=str(tmp_path / "r"), quiet=True)
+    store = Store(store_root)
+    for spp, groups in ((4, 4), (8, 2), (16, 1)):
+        rows = result["groups"]["test"]["spp"][str(spp)]["methods"]
+        for key, rec in zip(sorted(store.frames("test"), key=str), rows["noisy"]["per_frame"]):
+            ref = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+            k = spp // 4
+            each = [psnr(store.read(key.scene, key.frame, spp, stacks=list(range(g * k, (g + 1) * k)))["color"], ref)
+                    for g in range(groups)]
+            assert rec["metrics"]["psnr"] == pytest.approx(np.mean(each), abs=1e-9)
+            assert rec.get("realizations", 1) == groups
+            assert len(set(np.round(each, 6))) == groups        # the groups are different noise draws
+        assert all(r["status"] == "ok" for r in rows["oidn"]["per_frame"])
+    one = run_eval(load_config(TINY, [f"store={store_root}", f"runs={tmp_path}", "eval.methods=[noisy]",
+                                      "eval.equal_time=none", "eval.metrics=[psnr]"]),
+                   spps=[4], out=str(tmp_path / "one"), quiet=True)
+    first = one["groups"]["test"]["spp"]["4"]["methods"]["noisy"]["per_frame"][0]
+    key = sorted(store.frames("test"), key=str)[0]
+    ref = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+    assert first["metrics"]["psnr"] == pytest.approx(psnr(store.read(key.scene, key.frame, 4)["color"], ref))
+    assert "up to 8 noise realizations" in (tmp_path / "r" / "eval.md").read_text()
+    assert "noise realizations" not in (tmp_path / "one" / "eval.md").read_text()
+    with pytest.raises(ConfigError, match="realizations"):
+        load_config(TINY, ["eval.realizations=0"])
