@@ -212,6 +212,8 @@ def test_export_is_self_contained_and_serves_as_the_shipped_model(setup, tmp_pat
     card = (out / "README.md").read_text()          # the card's commands make this model again
     train_line = next(line for line in card.splitlines() if line.startswith("python -m pipeline train --model diffusion"))
     assert "diffusion.loss_norm=crop" in train_line and all(k in train_line for k in cfg_overrides(keys))
+    data_line = next(line for line in card.splitlines() if line.startswith("python -m pipeline dataset"))
+    assert f"store={tmp / 'store'}" in data_line and "diffusion." not in data_line   # the data's keys, only them
     store = Store(tmp / "store")
     key = store.frames("test")[0]
     buffers = store.read(key.scene, key.frame, 4)

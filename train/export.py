@@ -137,7 +137,7 @@ def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", o
     spp = record.get("spp")
     extra = "".join(f" {shlex.quote(o)}" for o in overrides)
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
-              *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
+              *data_commands(config, overrides),
               *([f"python -m pipeline train --model isik --spp {spp} --config {config}"]
                 if "isik" in KINDS[f.get("estimate", "none")] else []),
               f"python -m pipeline pack --config {config}",
@@ -280,6 +280,17 @@ def _rebase_note(model: Path, out: Path, old: float, new: float) -> str:
             f"python -m pipeline export --from {model} --base-blend {new:g} --out {out}\n```\n")
 
 
+# Config sections that decide what the dataset and gt-clean stages write (the rest is training).
+_DATA_KEYS = ("seed=", "store=", "dataset.", "scene.", "render.", "clean.")
+
+
+def data_commands(config: str, overrides) -> list[str]:
+    """The card's dataset and gt-clean lines, with the overrides that change their data (a run trained on
+    ``scene.texture_probability=0.3`` says so where its data is made, not only where it is trained)."""
+    data = "".join(f" {shlex.quote(o)}" for o in overrides if str(o).startswith(_DATA_KEYS))
+    return [f"python -m pipeline {c} --config {config}{data}" for c in ("dataset", "gt-clean")]
+
+
 def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
     """The model card of an exported OIDN-based denoiser: what it is, its data, training, validation, commands."""
     train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
@@ -338,7 +349,7 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
     spp = record.get("spp")
     spp = "any" if isinstance(spp, list) and len(spp) > 1 else spp
     lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
-              *[f"python -m pipeline {c} --config {config}" for c in ("dataset", "gt-clean")],
+              *data_commands(config, overrides),
               *([f"python -m pipeline train --model oidn_ft --spp any --config {config}{extra}"]
                 if cfg.diffusion.base == "oidn_ft" and not init else []),   # the base: OIDN fine-tuned, blended
               f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
