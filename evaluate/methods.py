@@ -273,6 +273,8 @@ class Diffusion(Method):
         n = getattr(den, "last_clamped", 0)
         if not n:
             return ""
+        if getattr(den, "clamp_note", ""):
+            return f"{n} {den.clamp_note}"
         if den.formulation.estimate != "none":
             return f"{n} pixels above the model's range (radiance 6) kept the first estimate's value"
         return f"{n} pixels above the model's range clamped to radiance 6"

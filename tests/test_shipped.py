@@ -57,6 +57,21 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
     assert std.max() > 0        # a trained network's samples differ (an untrained one returns its estimate)
 
 
+def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped):
+    """Garbage normals (|n| ~ 1e3) push the Control Module past the end of OIDN's output space, where the
+    inverse transfer overflows: those pixels end at the range's top (65504 after exposure), counted;
+    an ordinary frame touches none."""
+    from mcdenoise.evaluate.stability import CASES
+    from mcdenoise.pipeline.oidn_net import autoexposure
+
+    bad = CASES["bad_normals"][1]()
+    out = shipped.denoise(bad, spp=4)
+    assert np.isfinite(out).all() and shipped.last_clamped > 0
+    assert out.max() <= 65504.0 / autoexposure(bad["color"]) * 1.0001
+    shipped.denoise(synthetic_buffers(32, 32, seed=5, noise=0.7), spp=4)
+    assert shipped.last_clamped == 0
+
+
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     """`python -m mcdenoise denoise --exr IN --out OUT` from another folder with nothing trained (the command
     an installed package gives; the checkout is on PYTHONPATH): an R,G,B EXR comes out denoised."""

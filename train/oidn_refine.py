@@ -449,6 +449,7 @@ class OIDNRefiner:
         self.last_black = self.last_estimate_only = False
         self.last_seconds = 0.0
         self.fallback = ""
+        self.clamp_note = "pixels beyond OIDN's output range (65504 after exposure) clamped to its end"
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 rotation=None, variance=None, steps: int | None = None, start: str | None = None, samples: int = 1,
@@ -457,6 +458,7 @@ class OIDNRefiner:
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
+        self.last_clamped = 0
         color = buffers["color"]
         self.last_black = not np.any(color)
         self.last_estimate_only = not all(a in buffers for a in ("albedo", "normal"))
@@ -485,7 +487,11 @@ class OIDNRefiner:
         mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
                               torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start, seed,
                               samples)
-        hdr, std_hdr = self.to_hdr(mean, std, scale, H, W)
+        # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
+        # Module pushed past it by inputs unlike its training (garbage normals) would overflow the inverse
+        # transfer to inf: such pixels are clamped to the range's end and counted.
+        self.last_clamped = int((mean[..., :H, :W] > 1.0).any(dim=1).sum())
+        hdr, std_hdr = self.to_hdr(mean.clamp(max=1.0), std, scale, H, W)
         return hdr, std_hdr * self.sigma_scale
 
     @staticmethod
