@@ -438,6 +438,8 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
 class OIDNRefiner:
     """A trained run as the evaluator and ``denoise`` use it (the interface of ``train.infer.Denoiser``)."""
 
+    clamp_note = "pixels beyond OIDN's output range (65504 after exposure) clamped to its end"   # with last_clamped
+
     def __init__(self, model: ControlledOIDN, meta: dict, device, base_only: bool = False, folder: Path | None = None):
         self.model, self.meta, self.device, self.folder = model, meta, device, folder
         self.formulation = Formulation.from_record(meta["formulation"])
@@ -449,7 +451,6 @@ class OIDNRefiner:
         self.last_black = self.last_estimate_only = False
         self.last_seconds = 0.0
         self.fallback = ""
-        self.clamp_note = "pixels beyond OIDN's output range (65504 after exposure) clamped to its end"
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 rotation=None, variance=None, steps: int | None = None, start: str | None = None, samples: int = 1,

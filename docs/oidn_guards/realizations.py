@@ -16,6 +16,7 @@ import sys
 import numpy as np
 
 from mcdenoise.evaluate.methods import Loader
+from mcdenoise.evaluate.run import realization_stacks
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
@@ -24,13 +25,11 @@ from mcdenoise.pipeline.store import Store
 def realization_psnrs(methods, store, key, spp):
     """{method: [PSNR on each disjoint group of stacks that makes ``spp``]} for the frame ``key``,
     against the reference eval reads (GT_clean where the frame has one, else GT1)."""
-    sm = store.scene_manifest(key.scene)
-    k, total = spp // int(sm["stack_spp"]), int(sm["stacks"])
     ref_name = "gt_clean" if store.image_path(key.scene, key.frame, "gt_clean").exists() else "gt1"
     ref = store.read_image(key.scene, key.frame, ref_name, ["color"])[0]["color"]
     out = {name: [] for name in methods}
-    for g in range(total // k):
-        buffers = store.read(key.scene, key.frame, spp, stacks=list(range(g * k, (g + 1) * k)))
+    for stacks in realization_stacks(store, key, spp, n=1 << 30):
+        buffers = store.read(key.scene, key.frame, spp, stacks=stacks)
         for name, method in methods.items():
             method.set_frame(store, key)
             out[name].append(psnr(np.asarray(method.denoise(buffers), np.float32), ref))
