@@ -568,8 +568,14 @@ class OidnFtConfig(TrainingConfig):
     diversify: float = doc("Probability that a training crop (with its GT) comes from a changed frame: the light "
                            "tinted (per-channel gains on colour and target alike) and, half the time, the frame at "
                            "half resolution: colours and scales the training scenes lack.", 0.0)
-    trainable: str = doc("Which weights train: 'all', 'decoder' (the encoder stays OIDN's) or 'bias' (biases "
-                         "only: 0.5 % of the weights).", "all")
+    trainable: str = doc("Which weights train: 'all', 'decoder' (the encoder stays OIDN's), 'bias' (biases "
+                         "only: 0.5 % of the weights) or 'fine' (the layers at the fine_levels finest resolutions; "
+                         "the coarse ones, whose gradients on our crops are 100-1000x smaller and which Adam would "
+                         "move as far as the rest, stay OIDN's: docs/oidn.md, 'Only the fine levels').", "fine")
+    fine_levels: int = doc("With trainable 'fine': how many of the UNet's five resolutions train, from the full one "
+                           "(1: full only, 2: full and half, ... 5: all). 4 keeps only the bottleneck (1/16 "
+                           "resolution) OIDN's: as much gain on our data as training everything, without most of "
+                           "the loss on unseen scenes.", 4)
     augment: bool = doc("OIDN's own augmentation: random colour-channel permutation (colour, albedo and target "
                         "together), normal-channel permutation, flips and transposes.", True)
     blend: float = doc("Weight-space blend with OIDN (WiSE-FT, Wortsman et al. 2022) when the run is used or "
@@ -589,7 +595,9 @@ class OidnFtConfig(TrainingConfig):
         if self.crop % 16:
             bad("crop", f"must be a positive multiple of 16 (OIDN's alignment), got {self.crop}")
         self.one_of(bad, "loss", ("l1", "l1_relative", "l1_ssim"))
-        self.one_of(bad, "trainable", ("all", "decoder", "bias"))
+        self.one_of(bad, "trainable", ("all", "decoder", "bias", "fine"))
+        if not 1 <= self.fine_levels <= 5:
+            bad("fine_levels", f"expected 1 to 5 (the UNet's resolutions), got {self.fine_levels}")
         if not 0 <= self.distill < 1 or not 0 <= self.diversify <= 1:
             bad("distill/diversify", f"probabilities: distill in [0, 1), diversify in [0, 1]; got {self.distill}, "
                                      f"{self.diversify}")

@@ -187,6 +187,11 @@ def fit(task: Task, quiet: bool = False, started: float | None = None) -> dict:
                       "rerun to resume")
             break
     task.finish()
+    if task.world > 1:
+        # Leave together: a rank that tears gloo down while its peer still writes files can abort the peer
+        # at exit ("terminate called without an active exception"). Only on success: after an error a
+        # barrier could wait for a rank that is gone.
+        torch.distributed.barrier()
     summary = _summary(task, history, best, trained, time.perf_counter() - t_start)
     if not quiet:
         print(summary["line"], flush=True)

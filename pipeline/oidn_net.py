@@ -48,6 +48,10 @@ ENCODER = ("enc_conv0", "enc_conv1", "enc_conv2", "enc_conv3", "enc_conv4", "enc
 DECODER = ("dec_conv4a", "dec_conv4b", "dec_conv3a", "dec_conv3b", "dec_conv2a", "dec_conv2b",
            "dec_conv1a", "dec_conv1b", "dec_conv0")
 LAYERS = ENCODER + DECODER
+# The resolution each layer works at: 0 the full image, k after k 2×2 poolings (4: the bottleneck).
+LEVEL = {"enc_conv0": 0, "enc_conv1": 0, "enc_conv2": 1, "enc_conv3": 2, "enc_conv4": 3, "enc_conv5a": 4,
+         "enc_conv5b": 4, "dec_conv4a": 3, "dec_conv4b": 3, "dec_conv3a": 2, "dec_conv3b": 2, "dec_conv2a": 1,
+         "dec_conv2b": 1, "dec_conv1a": 0, "dec_conv1b": 0, "dec_conv0": 0}
 
 
 def _pu(y: torch.Tensor) -> torch.Tensor:

@@ -126,7 +126,7 @@ TRAINER_KEYS = {
                           "noise", "fireflies", "real", "out", "warmup_steps", "precision"},
     "oidn_ft": SHARED | {"network", "crops_per_frame", "epoch_steps", "lr_end", "warmup_steps", "weight_decay",
                          "loss", "l2sp", "distill", "diversify", "trainable", "augment", "blend", "val_frames",
-                         "target"},
+                         "target", "fine_levels"},
 }
 TRAINER_DEFAULTS = {   # section: (epochs, lr), the defaults each section gives the shared keys without one
     "clean": (12, 1e-3), "afgsa": (12, 5e-4), "diffusion": (100, 2e-5), "pretrain": (100, 2e-4),

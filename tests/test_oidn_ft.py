@@ -114,6 +114,27 @@ def test_trainable_subsets():
     assert sum(p.numel() for p in oidn_ft.trainable_parameters(net, "all")) == n
 
 
+def test_fine_levels_train_only_the_finest_resolutions():
+    """'fine' with 2 levels: the layers that see the full and the half-resolution image train, the coarse ones
+    (a quarter resolution and below) stay OIDN's bit for bit through an Adam step; the count grows with the
+    levels up to every weight."""
+    net = oidn_net.load_unet("rt_hdr_small")
+    prior = {k: v.detach().clone() for k, v in net.named_parameters()}
+    params = oidn_ft.trainable_parameters(net, "fine", 2)
+    trained = {n.split(".")[0] for n, p in net.named_parameters() if p.requires_grad}
+    assert trained == {"enc_conv0", "enc_conv1", "enc_conv2", "dec_conv2a", "dec_conv2b", "dec_conv1a",
+                       "dec_conv1b", "dec_conv0"}
+    opt = torch.optim.AdamW(params, lr=1e-3)
+    x = torch.rand(1, net.in_channels, 32, 32)
+    net(x).abs().mean().backward()
+    opt.step()
+    for name, p in net.named_parameters():
+        moved = not torch.equal(p.detach(), prior[name])
+        assert moved == (name.split(".")[0] in trained), name
+    counts = [sum(p.numel() for p in oidn_ft.trainable_parameters(net, "fine", k)) for k in range(1, 6)]
+    assert counts == sorted(set(counts)) and counts[-1] == sum(p.numel() for p in net.parameters())
+
+
 def test_l2sp_is_zero_at_the_prior_and_grows_with_the_change():
     net = oidn_net.load_unet("rt_hdr_small")
     oidn_ft.trainable_parameters(net, "all")
@@ -155,6 +176,8 @@ def test_wrong_settings_are_named():
         load_config(None, ["oidn_ft.trainable=encoder"])
     with pytest.raises(PipelineError, match="oidn_ft.target"):
         load_config(None, ["oidn_ft.target=gt2"])
+    with pytest.raises(PipelineError, match="oidn_ft.fine_levels"):
+        load_config(None, ["oidn_ft.trainable=fine", "oidn_ft.fine_levels=6"])
 
 
 def test_the_target_is_gt_clean_or_the_raw_gt1(cleaned):

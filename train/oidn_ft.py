@@ -14,7 +14,10 @@ against GT_clean (the best epoch is kept). What keeps the prior's generality (me
 - ``l2sp``: an L2-SP penalty toward OIDN's weights;
 - ``distill``: part of each batch is a changed input (colours permuted and rescaled, half
   resolution, another frame's noise level) whose target is stock OIDN's output on it;
-- ``trainable``: all weights, the decoder, or the biases only;
+- ``trainable``: by default every layer but the bottleneck (``fine``, ``fine_levels`` 4): its
+  gradients on small crops are 100-1000× smaller than the fine layers', Adam moves it as far
+  anyway, and that move is most of what the network forgets elsewhere; or all weights, the
+  decoder, or the biases only;
 - ``blend``: used or exported, the weights are OIDN's plus ``blend`` × what training changed.
 
 Files of the run folder: ``model.safetensors`` + ``model.json`` (the best epoch: float32 UNet
@@ -200,12 +203,13 @@ def lr_at(step: int, total: int, lr: float, lr_end: float, warmup: int) -> float
     return lr_end + 0.5 * (lr - lr_end) * (1 + math.cos(math.pi * t))
 
 
-def trainable_parameters(net: oidn_net.UNet, which: str) -> list[torch.nn.Parameter]:
-    """Set ``requires_grad`` by ``oidn_ft.trainable`` and return the trained parameters."""
+def trainable_parameters(net: oidn_net.UNet, which: str, fine_levels: int = 4) -> list[torch.nn.Parameter]:
+    """Set ``requires_grad`` by ``oidn_ft.trainable`` (and ``fine_levels``) and return the trained parameters."""
     for name, p in net.named_parameters():
         layer = name.split(".")[0]
         p.requires_grad_(which == "all" or (which == "decoder" and layer in oidn_net.DECODER)
-                         or (which == "bias" and name.endswith(".bias")))
+                         or (which == "bias" and name.endswith(".bias"))
+                         or (which == "fine" and oidn_net.LEVEL[layer] < fine_levels))
     return [p for p in net.parameters() if p.requires_grad]
 
 
@@ -241,7 +245,7 @@ class OIDNFineTune(Task):
         self.net.to(self.device)
         self.teacher = copy.deepcopy(self.net).eval().requires_grad_(False)
         self.reference = {n: p.detach().clone() for n, p in self.teacher.named_parameters()}
-        self.params = trainable_parameters(self.net, o.trainable)
+        self.params = trainable_parameters(self.net, o.trainable, o.fine_levels)
         self.state, self.optimizers = self.net, torch.optim.AdamW(self.params, lr=o.lr, weight_decay=o.weight_decay)
         self.steps_per_epoch = self._steps_per_epoch()
         self.total_steps = self.steps_per_epoch * o.epochs
@@ -253,6 +257,8 @@ class OIDNFineTune(Task):
                                                            "epochs")}}
         if o.target != "gt_clean":   # left out at its default: runs made before the key keep their fingerprint
             self.fingerprint["target"] = o.target
+        if o.trainable == "fine":
+            self.fingerprint["fine_levels"] = o.fine_levels
         self.output = str(self.folder / "model.safetensors")
         self.crops = self.val = None
 
