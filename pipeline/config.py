@@ -570,12 +570,10 @@ class OidnFtConfig(TrainingConfig):
                            "half resolution: colours and scales the training scenes lack.", 0.0)
     trainable: str = doc("Which weights train: 'all', 'decoder' (the encoder stays OIDN's), 'bias' (biases "
                          "only: 0.5 % of the weights) or 'fine' (the layers at the fine_levels finest resolutions; "
-                         "the coarse ones, whose gradients on our crops are 100-1000x smaller and which Adam would "
-                         "move as far as the rest, stay OIDN's: docs/oidn.md, 'Only the fine levels').", "fine")
+                         "the coarser ones stay OIDN's: docs/oidn.md, 'Only the fine levels').", "all")
     fine_levels: int = doc("With trainable 'fine': how many of the UNet's five resolutions train, from the full one "
-                           "(1: full only, 2: full and half, ... 5: all). 4 keeps only the bottleneck (1/16 "
-                           "resolution) OIDN's: as much gain on our data as training everything, without most of "
-                           "the loss on unseen scenes.", 4)
+                           "(1: full only, 2: full and half, ... 5: all); 4 keeps only the bottleneck (1/16 "
+                           "resolution) OIDN's.", 4)
     augment: bool = doc("OIDN's own augmentation: random colour-channel permutation (colour, albedo and target "
                         "together), normal-channel permutation, flips and transposes.", True)
     blend: float = doc("Weight-space blend with OIDN (WiSE-FT, Wortsman et al. 2022) when the run is used or "

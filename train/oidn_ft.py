@@ -14,10 +14,8 @@ against GT_clean (the best epoch is kept). What keeps the prior's generality (me
 - ``l2sp``: an L2-SP penalty toward OIDN's weights;
 - ``distill``: part of each batch is a changed input (colours permuted and rescaled, half
   resolution, another frame's noise level) whose target is stock OIDN's output on it;
-- ``trainable``: by default every layer but the bottleneck (``fine``, ``fine_levels`` 4): its
-  gradients on small crops are 100-1000× smaller than the fine layers', Adam moves it as far
-  anyway, and that move is most of what the network forgets elsewhere; or all weights, the
-  decoder, or the biases only;
+- ``trainable``: all weights, the decoder, the biases only, or the layers at the finest
+  resolutions (``fine``, ``fine_levels``: 4 leaves only the bottleneck OIDN's);
 - ``blend``: used or exported, the weights are OIDN's plus ``blend`` × what training changed.
 
 Files of the run folder: ``model.safetensors`` + ``model.json`` (the best epoch: float32 UNet
