@@ -118,6 +118,7 @@ def test_fine_levels_train_only_the_finest_resolutions():
     """'fine' with 2 levels: the layers that see the full and the half-resolution image train, the coarse ones
     (a quarter resolution and below) stay OIDN's bit for bit through an Adam step; the count grows with the
     levels up to every weight."""
+    assert sorted(oidn_net.LEVEL) == sorted(oidn_net.LAYERS)        # every layer has its resolution
     net = oidn_net.load_unet("rt_hdr_small")
     prior = {k: v.detach().clone() for k, v in net.named_parameters()}
     params = oidn_ft.trainable_parameters(net, "fine", 2)
