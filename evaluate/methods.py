@@ -15,7 +15,9 @@ Names (``eval.methods``):
 - ``oidn_ft``: OIDN's network fine-tuned on the store (``train.oidn_ft``, run
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
-  ``oidn_ft.blend``; ``oidn_ft_color``: the colour-only network's run (``oidn_ft_rt_hdr``).
+  ``oidn_ft.blend``; ``oidn_ft_color``: the colour-only network's run (``oidn_ft_rt_hdr``), else the
+  colour-only weights shipped with the model (``train/shipped/oidn_ft/rt_hdr.tza``, fine-tuned on the
+  ship data), which ``ours`` runs on inputs without albedo and normal.
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
@@ -199,6 +201,12 @@ class OIDN(Method):
         return oidn.denoise(buffers, aux=self.aux, quality=self.quality)
 
 
+def shipped_oidn_ft(network: str) -> Path:
+    """Where the shipped model keeps OIDN's ``network`` fine-tuned (it may not have it)."""
+    from mcdenoise.train.model import SHIPPED_MODEL
+    return SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
+
+
 @dataclass
 class OIDNFineTuned(Method):
     """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob)."""
@@ -351,6 +359,13 @@ class Loader:
         from mcdenoise.train.oidn_ft import export_blob, load_run
 
         folder = run_dir(self.cfg, "oidn_ft", variant=OIDN_FT[family])
+        shipped = shipped_oidn_ft(OIDN_FT[family])
+        if not (folder / "model.safetensors").exists() and shipped.exists():
+            why = oidn.available()
+            if why:
+                raise MethodUnavailable(why)
+            return OIDNFineTuned(weights=shipped.read_bytes(), aux=family == "oidn_ft", name=family,
+                                 checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
         if not (folder / "model.safetensors").exists():
             raise MethodUnavailable(f"no oidn_ft run in {folder}: run `make train MODEL=oidn_ft SPP=any"
                                     + (" oidn_ft.network=rt_hdr`" if family == "oidn_ft_color" else "`"))

@@ -13,6 +13,7 @@ Mitsuba and torch load on demand.
 - ``pipeline.errors``: the errors a user can act on, under ``PipelineError``.
 - ``pipeline.schema``: every buffer the renderer produces, its EXR channels and storage type.
 - ``pipeline.exr``: one multi-channel EXR image of the store, written atomically.
+- ``pipeline.foreign_layers``: where other tools (Mitsuba's aov integrator, Blender) put colour, albedo, normal.
 - ``pipeline.store``: the on-disk store (manifests, frames, stacks): the one reader/writer API.
 - ``pipeline.inspect``: ``inspect``: what a store holds, from its manifests and headers.
 - ``pipeline.verify``: ``verify``: check every file of a store.

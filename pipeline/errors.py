@@ -66,3 +66,16 @@ class WeightsError(PipelineError, ValueError):
 
 class TaskFailed(PipelineError, RuntimeError):
     """A task of the executor failed for good (after its retries), or the executor cannot start."""
+
+
+def innermost_message(exc: BaseException) -> str:
+    """The first line of the deepest exception in ``exc``'s chain (``__cause__``, else ``__context__``).
+
+    drjit reports a failure inside a render as "error while performing a custom differentiable
+    operation (see above)"; what went wrong (a plugin's own message) is two or three causes down."""
+    seen = {id(exc)}
+    while (nxt := exc.__cause__ or exc.__context__) is not None and id(nxt) not in seen:
+        seen.add(id(nxt))
+        exc = nxt
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

@@ -629,13 +629,17 @@ def _check_encoding(path: Path, record: dict, stored_channels) -> None:
                                 else f"channels {', '.join(kept)} are stored"))
 
 
-def read_layers(path: Path) -> dict[str, np.ndarray]:
-    """Buffers of *any* EXR that uses the schema's channel names (e.g. from another renderer).
+def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray]:
+    """Buffers of *any* EXR that uses the schema's channel names, or another tool's for the colour,
+    albedo and normal (Mitsuba's aov integrator, Blender's passes: ``pipeline.foreign_layers``).
 
-    ``R, G, B`` are required; every other buffer (``albedo.R``…, ``N.X``…, ``variance.R``…) is
-    read when all its channels are present and left out otherwise (consumers treat a missing
-    feature as its background value). No ``mcdenoise`` header is needed.
+    ``R, G, B`` (or a colour layer of another tool) are required; every other buffer (``albedo.R``…,
+    ``N.X``…, ``variance.R``…) is read when all its channels are present and left out otherwise
+    (consumers treat a missing feature as its background value). No ``mcdenoise`` header is needed.
+    ``aliased``, when given, receives buffer → the other tool's channels it was read from.
     """
+    from .foreign_layers import ALIASES, resolve
+
     path = Path(path)
     if not path.is_file():
         raise StoreError(f"{path}: EXR file not found")
@@ -647,12 +651,18 @@ def read_layers(path: Path) -> dict[str, np.ndarray]:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as exc:
         raise StoreError(f"{path}: corrupt or truncated EXR ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-    if not all(c in channels for c in ("R", "G", "B")):
-        raise StoreError(f"{path}: channels R, G, B (the noisy colour) are required; found {', '.join(sorted(channels))}")
+    other = resolve(channels, {b: schema.BY_NAME[b].exr_channels for b in ALIASES}, str(path))
+    if not all(c in channels for c in ("R", "G", "B")) and "color" not in other:
+        raise StoreError(f"{path}: channels R, G, B (the noisy colour) are required, or a layer "
+                         f"{' or '.join(repr(x) for x in ALIASES['color'])} with .R, .G, .B; "
+                         f"found {', '.join(sorted(channels))}")
+    if aliased is not None:
+        aliased.update(other)
     out: dict[str, np.ndarray] = {}
-    shape = channels["R"].shape
+    shape = channels[other.get("color", ("R",))[0]].shape
     for buf in schema.BUFFERS:
-        for key, names in ((buf.name, buf.exr_channels), (schema.variance_name(buf.name), buf.variance_channels)):
+        for key, names in ((buf.name, other.get(buf.name, buf.exr_channels)),
+                           (schema.variance_name(buf.name), buf.variance_channels)):
             if all(n in channels for n in names):
                 arrs = [channels[n] for n in names]
                 for n, a in zip(names, arrs):

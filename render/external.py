@@ -103,4 +103,6 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
         print(f"render-scene: {sid} -> {store.frame_dir(sid, 0)}: {result['width']}x{result['height']}, "
               f"{len(result['images'])} images, {result['timing']['total']:.1f} s, "
               f"{result['nonfinite']} non-finite values repaired")
+        for note in result.get("scene_notes", []):
+            print(f"render-scene: {sid}: note: {note}")
     return stats

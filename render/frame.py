@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline import metrics, schema
-from mcdenoise.pipeline.errors import PipelineError
+from mcdenoise.pipeline.errors import PipelineError, innermost_message
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 from mcdenoise.pipeline.store import GT_IMAGES, Store, image_names, sha256
@@ -48,6 +48,10 @@ class FrameTask:
 
 class ExternalSceneError(PipelineError, RuntimeError):
     """A Mitsuba scene file from the user cannot be rendered; the message names the file or what is missing."""
+
+
+class RenderFailed(RuntimeError):
+    """Mitsuba failed inside a render of a random scene; the message carries Mitsuba's own reason."""
 
 
 def load_external_scene(mi, xml: str):
@@ -80,6 +84,21 @@ def external_sensor(mi, scene, width: int | None, height: int | None):
     to_world = mi.ScalarTransform4f(matrix)
     return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
 
+
+
+def external_notes(mi, scene) -> list[str]:
+    """What of a user's scene our render leaves out, in words: render-scene says it once, so that a
+    surprise in the images (no depth of field, clear glass where a medium was) has its reason."""
+    notes = []
+    params = mi.traverse(scene.sensors()[0])
+    if "aperture_radius" in params and float(np.asarray(params["aperture_radius"]).ravel()[0]) > 0:
+        notes.append("its thin-lens camera is rendered as a pinhole (no depth of field)")
+    media = {id(m) for m in [scene.sensors()[0].get_medium()]
+             + [m for sh in scene.shapes() for m in (sh.interior_medium(), sh.exterior_medium())] if m is not None}
+    if media:
+        notes.append(f"its {len(media)} participating medi{'um is' if len(media) == 1 else 'a are'} not rendered "
+                     "(our integrator traces surfaces only; a medium's boundary keeps its BSDF)")
+    return notes
 
 _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}}
 
@@ -176,6 +195,8 @@ def render_frame(task: FrameTask) -> dict:
         "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
                                     .reshape(4, 4), 6).tolist(),
     }
+    if "xml" in task.desc:
+        record["scene_notes"] = external_notes(mi, scene)
     if not task.images:
         store.write_frame_record(task.scene, task.frame, record)
     return record
@@ -190,8 +211,13 @@ def _render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tupl
     from .progressive import StopRule, render_to_target
 
     def render_pass(spp, seed):
-        return render_image(mi, scene, sensor, spp=spp, seed=seed, features=features,
-                            max_depth=task.render["max_depth"], rr_depth=task.render["rr_depth"])
+        try:
+            return render_image(mi, scene, sensor, spp=spp, seed=seed, features=features,
+                                max_depth=task.render["max_depth"], rr_depth=task.render["rr_depth"])
+        except RuntimeError as exc:   # say what Mitsuba said, not drjit's "(see above)" wrapper
+            what = f"{task.desc['xml']}: Mitsuba" if "xml" in task.desc else f"frame {task.scene}/{task.frame:03d}: Mitsuba"
+            error = ExternalSceneError if "xml" in task.desc else RenderFailed
+            raise error(f"{what} failed rendering {name}: {innermost_message(exc)}") from exc
 
     if name not in GT_IMAGES:
         return render_pass(task.stack_spp, task.seeds[name]), {"spp": task.stack_spp}

@@ -193,6 +193,48 @@ def test_render_scene_writes_a_test_frame(tmp_path):
     assert "transmission.Y" in rec["constants"]
 
 
+
+_CAMERA = """<sensor type="{camera}"><float name="fov" value="45"/>{lens}
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="12"/><integer name="height" value="10"/></film></sensor>
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>"""
+
+
+def test_what_the_render_leaves_out_of_a_users_scene_is_said(tmp_path):
+    """A thin-lens camera and a participating medium render without depth of field and without the
+    medium; render-scene says so instead of leaving the user to find out from the images."""
+    xml = tmp_path / "lens.xml"
+    lens = '<float name="aperture_radius" value="0.1"/><float name="focus_distance" value="4"/>'
+    xml.write_text(f"""<scene version="3.0.0">{_CAMERA.format(camera="thinlens", lens=lens)}
+  <shape type="sphere"><bsdf type="dielectric"/>
+    <medium type="homogeneous" name="interior"><float name="sigma_t" value="2"/></medium></shape>
+</scene>""")
+    proc = cli("render-scene", xml, "--store", tmp_path / "ext", "--config", TINY)
+    assert "thin-lens camera is rendered as a pinhole" in proc.stdout
+    assert "1 participating medium is not rendered" in proc.stdout
+    assert Store(tmp_path / "ext").frame_record("ext_lens", 0)["scene_notes"] == [
+        line.split("note: ", 1)[1] for line in proc.stdout.splitlines() if "note: " in line]
+
+    plain = tmp_path / "plain.xml"
+    plain.write_text(f"""<scene version="3.0.0">{_CAMERA.format(camera="perspective", lens="")}
+  <shape type="sphere"><bsdf type="diffuse"/></shape></scene>""")
+    proc = cli("render-scene", plain, "--store", tmp_path / "ext", "--config", TINY)
+    assert "note:" not in proc.stdout
+
+
+def test_a_scene_mitsuba_cannot_render_gets_mitsubas_reason(tmp_path):
+    """Mitsuba loads a bump map on a procedural texture but cannot render it; the error is the
+    plugin's own message with the file, not drjit's "custom differentiable operation (see above)"."""
+    xml = tmp_path / "bump.xml"
+    xml.write_text(f"""<scene version="3.0.0">{_CAMERA.format(camera="perspective", lens="")}
+  <shape type="sphere"><bsdf type="bumpmap"><texture type="checkerboard" name="arbitrary"/>
+    <bsdf type="diffuse"/></bsdf></shape></scene>""")
+    proc = cli("render-scene", xml, "--store", tmp_path / "ext", "--config", TINY, check=False)
+    assert proc.returncode == 2
+    assert "bump.xml: Mitsuba failed rendering" in proc.stderr and "eval_1_grad" in proc.stderr
+    assert "see above" not in proc.stderr
+    assert not (tmp_path / "ext").exists()
+
 def test_corrupt_image_in_store_names_the_file(tiny_store, tmp_path):
     root, _ = tiny_store
     store = Store(root)

@@ -92,16 +92,26 @@ def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
 
 
 @pytest.mark.slow
-def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained):
+def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, monkeypatch):
+    """oidn_ft runs the store's run; the colour-only row without a run of its own runs the weights shipped
+    with the model (what `ours` uses on R,G,B alone), and without those says what to train."""
     from mcdenoise.evaluate.methods import Loader, MethodUnavailable
+    from mcdenoise.train import model as shipped_model
     store, runs, _ = trained
     loader = Loader(tiny(store, runs))
     method = loader.load("oidn_ft", 4)
     buf = Store(store).read(*_first(store), 4)
     best = oidn_ft.load_run(runs / "oidn_ft_rt_hdr_alb_nrm", tiny(store, runs))[0]
     assert _psnr(method.denoise(buf), oidn_net.denoise(best, buf["color"], buf["albedo"], buf["normal"])) >= 80
+    color = loader.load("oidn_ft_color", 4)
+    shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / "rt_hdr.tza"
+    assert color.checkpoint == "shipped oidn_ft/rt_hdr.tza"
+    out = color.denoise(buf)
+    assert np.array_equal(out, oidn.denoise(buf, aux=False, weights=shipped.read_bytes()))
+    assert _psnr(out, oidn.denoise(buf, aux=False)) < 70            # not stock OIDN's colour-only network
+    monkeypatch.setattr(shipped_model, "SHIPPED_MODEL", tmp_path / "no_shipped_model")
     with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):
-        loader.load("oidn_ft_color", 4)
+        Loader(tiny(store, runs)).load("oidn_ft_color", 4)
 
 
 def test_trainable_subsets():

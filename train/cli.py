@@ -174,7 +174,10 @@ def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None
     """The buffers of ``--frame SCENE/FRAME`` (at ``spp``) or ``--exr FILE``, and how to name the source."""
     if exr is not None:
         from mcdenoise.pipeline.exr import read_layers
-        buffers = read_layers(Path(exr))
+        aliased: dict = {}
+        buffers = read_layers(Path(exr), aliased)
+        for name, channels in aliased.items():
+            print(f"{exr}: {name} from {channels[0].rsplit('.', 1)[0]!r} ({', '.join(channels)})", flush=True)
         _warn_if_correlated(exr, buffers["color"])
         return buffers, exr
     if spp is None:
