@@ -201,12 +201,6 @@ class OIDN(Method):
         return oidn.denoise(buffers, aux=self.aux, quality=self.quality)
 
 
-def shipped_oidn_ft(network: str) -> Path:
-    """Where the shipped model keeps OIDN's ``network`` fine-tuned (it may not have it)."""
-    from mcdenoise.train.model import SHIPPED_MODEL
-    return SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
-
-
 @dataclass
 class OIDNFineTuned(Method):
     """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob)."""
@@ -356,24 +350,24 @@ class Loader:
     def _oidn_ft(self, family: str) -> Method:
         from mcdenoise.pipeline import oidn
         from mcdenoise.pipeline.runs import run_dir
+        from mcdenoise.train.model import SHIPPED_MODEL, oidn_ft_blob
         from mcdenoise.train.oidn_ft import export_blob, load_run
 
         folder = run_dir(self.cfg, "oidn_ft", variant=OIDN_FT[family])
-        shipped = shipped_oidn_ft(OIDN_FT[family])
-        if not (folder / "model.safetensors").exists() and shipped.exists():
-            why = oidn.available()
-            if why:
-                raise MethodUnavailable(why)
-            return OIDNFineTuned(weights=shipped.read_bytes(), aux=family == "oidn_ft", name=family,
-                                 checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
-        if not (folder / "model.safetensors").exists():
+        trained = (folder / "model.safetensors").exists()
+        # no run of its own: the weights shipped with the denoiser, as the ours rows fall back to it
+        shipped = oidn_ft_blob(SHIPPED_MODEL, OIDN_FT[family]) if self.cfg.diffusion.shipped else None
+        if not trained and not (shipped and shipped.exists()):
             raise MethodUnavailable(f"no oidn_ft run in {folder}: run `make train MODEL=oidn_ft SPP=any"
                                     + (" oidn_ft.network=rt_hdr`" if family == "oidn_ft_color" else "`"))
+        why = oidn.available()
+        if why:
+            raise MethodUnavailable(why)
+        if not trained:
+            return OIDNFineTuned(weights=shipped.read_bytes(), aux=family == "oidn_ft", name=family,
+                                 checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
         key = ("oidn_ft", str(folder))
         if key not in self._models:
-            why = oidn.available()
-            if why:
-                raise MethodUnavailable(why)
             try:
                 self._models[key] = export_blob(load_run(folder, self.cfg)[0])
             except (OSError, PipelineError, ValueError, KeyError) as exc:

@@ -406,7 +406,8 @@ class DiffusionConfig(TrainingConfig):
                         True)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
     shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
-                        "own (make eval's ours rows, make denoise).", True)
+                        "own (make eval's ours rows, make denoise), and its colour-only oidn_ft weights for make "
+                        "eval's oidn_ft_color row.", True)
     name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
                     "formulation beside the default one); make eval's ours_<name> rows read it.", "")
     prediction: str = doc("What the network predicts: 'sample' (x0; an untrained zero last layer returns the first "

@@ -17,32 +17,34 @@ from __future__ import annotations
 from .errors import StoreError
 
 # buffer -> layer names, most specific first ("Noisy Image" is Combined before Blender denoised it).
+# Our own names come again: under a view layer (``ViewLayer.albedo.R``) the schema's names miss them.
 ALIASES: dict[str, tuple[str, ...]] = {
     "color": ("Noisy Image", "Combined"),
     "albedo": ("albedo", "Denoising Albedo", "Albedo"),
     "normal": ("N", "nn", "sh_normal", "normal", "normals", "Denoising Normal", "Normal"),
 }
-SUFFIXES = {"color": ("R", "G", "B"), "albedo": ("R", "G", "B"), "normal": ("X", "Y", "Z")}
 
 
 def resolve(channels, schema_channels: dict[str, tuple[str, ...]], where: str) -> dict[str, tuple[str, ...]]:
     """For each of colour, albedo and normal that ``channels`` lacks under the schema's names
     (``schema_channels``: buffer → its channels), the channels that hold it under another tool's
-    layer name; a layer found under several view layers is an error that names them (``where``: the file)."""
+    layer name, with the schema's channel suffixes (R, G, B or X, Y, Z); a layer found under several
+    view layers is an error that names them (``where``: the file)."""
     names = set(channels)
     found: dict[str, tuple[str, ...]] = {}
     for buffer, layers in ALIASES.items():
         if all(c in names for c in schema_channels[buffer]):
             continue
+        suffixes = [c.rsplit(".", 1)[-1] for c in schema_channels[buffer]]
         for layer in layers:
-            prefixes = sorted({n[: -len(f"{layer}.{s}")] for n in names for s in SUFFIXES[buffer][:1]
-                               if n.endswith(f"{layer}.{s}")})
-            prefixes = [p for p in prefixes if (p == "" or (p.endswith(".") and "." not in p[:-1]))
-                        and all(f"{p}{layer}.{s}" in names for s in SUFFIXES[buffer])]
-            if len(prefixes) > 1:
+            views = sorted(view for view in {n[: -len(f"{layer}.{suffixes[0]}")] for n in names
+                                             if n.endswith(f"{layer}.{suffixes[0]}")}
+                           if (view == "" or (view.endswith(".") and "." not in view[:-1]))
+                           and all(f"{view}{layer}.{s}" in names for s in suffixes))
+            if len(views) > 1:
                 raise StoreError(f"{where}: layer {layer!r} is in several view layers "
-                                 f"({', '.join(p[:-1] or '(none)' for p in prefixes)}); write one view layer per file")
-            if prefixes:
-                found[buffer] = tuple(f"{prefixes[0]}{layer}.{s}" for s in SUFFIXES[buffer])
+                                 f"({', '.join(v[:-1] or '(none)' for v in views)}); write one view layer per file")
+            if views:
+                found[buffer] = tuple(f"{views[0]}{layer}.{s}" for s in suffixes)
                 break
     return found

@@ -85,20 +85,21 @@ def external_sensor(mi, scene, width: int | None, height: int | None):
     return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
 
 
-
 def external_notes(mi, scene) -> list[str]:
     """What of a user's scene our render leaves out, in words: render-scene says it once, so that a
     surprise in the images (no depth of field, clear glass where a medium was) has its reason."""
     notes = []
-    params = mi.traverse(scene.sensors()[0])
+    camera = scene.sensors()[0]
+    params = mi.traverse(camera)
     if "aperture_radius" in params and float(np.asarray(params["aperture_radius"]).ravel()[0]) > 0:
         notes.append("its thin-lens camera is rendered as a pinhole (no depth of field)")
-    media = {id(m) for m in [scene.sensors()[0].get_medium()]
+    media = {id(m) for m in [camera.get_medium()]
              + [m for sh in scene.shapes() for m in (sh.interior_medium(), sh.exterior_medium())] if m is not None}
     if media:
         notes.append(f"its {len(media)} participating medi{'um is' if len(media) == 1 else 'a are'} not rendered "
                      "(our integrator traces surfaces only; a medium's boundary keeps its BSDF)")
     return notes
+
 
 _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}}
 
@@ -215,9 +216,10 @@ def _render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tupl
             return render_image(mi, scene, sensor, spp=spp, seed=seed, features=features,
                                 max_depth=task.render["max_depth"], rr_depth=task.render["rr_depth"])
         except RuntimeError as exc:   # say what Mitsuba said, not drjit's "(see above)" wrapper
-            what = f"{task.desc['xml']}: Mitsuba" if "xml" in task.desc else f"frame {task.scene}/{task.frame:03d}: Mitsuba"
-            error = ExternalSceneError if "xml" in task.desc else RenderFailed
-            raise error(f"{what} failed rendering {name}: {innermost_message(exc)}") from exc
+            external = "xml" in task.desc
+            where = task.desc["xml"] if external else f"frame {task.scene}/{task.frame:03d}"
+            raise (ExternalSceneError if external else RenderFailed)(
+                f"{where}: Mitsuba failed rendering {name}: {innermost_message(exc)}") from exc
 
     if name not in GT_IMAGES:
         return render_pass(task.stack_spp, task.seeds[name]), {"spp": task.stack_spp}

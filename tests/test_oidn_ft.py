@@ -109,6 +109,8 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
     out = color.denoise(buf)
     assert np.array_equal(out, oidn.denoise(buf, aux=False, weights=shipped.read_bytes()))
     assert _psnr(out, oidn.denoise(buf, aux=False)) < 70            # not stock OIDN's colour-only network
+    with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):   # the switch
+        Loader(tiny(store, runs, "diffusion.shipped=false")).load("oidn_ft_color", 4)
     monkeypatch.setattr(shipped_model, "SHIPPED_MODEL", tmp_path / "no_shipped_model")
     with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):
         Loader(tiny(store, runs)).load("oidn_ft_color", 4)

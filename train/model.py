@@ -62,6 +62,12 @@ def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     return runs.run_dir(cfg, "diffusion", spp, variant)
 
 
+def oidn_ft_blob(folder: Path, network: str) -> Path:
+    """Where a model folder (``train/shipped``, an export) keeps OIDN's ``network`` fine-tuned, the weights
+    it runs on inputs without the layers its base reads; the folder may not have them."""
+    return Path(folder) / "oidn_ft" / f"{network}.tza"
+
+
 def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and

@@ -48,6 +48,7 @@ from mcdenoise.pipeline.runs import pick_device, run_dir
 from mcdenoise.pipeline.store import Store, sha256
 
 from .formulation import Formulation, snr_weight
+from .model import oidn_ft_blob
 from .oidn_control import ControlledOIDN
 from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path
 from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
@@ -477,7 +478,7 @@ class OIDNRefiner:
         (``oidn_ft/<network>.tza``, OIDN fine-tuned on our data) when it has them, else OIDN's own."""
         from mcdenoise.pipeline import oidn
         network = oidn_weights.network_for("albedo" in buffers, False)
-        blob_path = self.folder / "oidn_ft" / f"{network}.tza" if self.folder is not None else None
+        blob_path = oidn_ft_blob(self.folder, network) if self.folder is not None else None
         self.fallback = str(blob_path) if blob_path is not None and blob_path.exists() else f"OIDN {network}"
         blob = blob_path.read_bytes() if blob_path is not None and blob_path.exists() else None
         return oidn.denoise({k: v for k, v in buffers.items() if k in ("color", "albedo")}, weights=blob)
