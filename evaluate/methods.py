@@ -11,13 +11,14 @@ Names (``eval.methods``):
 
 - ``noisy``: the input colour itself.
 - ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
-  albedo and normal; ``oidn_color``: colour only.
+  albedo and normal; ``oidn_albedo``: colour and albedo; ``oidn_color``: colour only.
 - ``oidn_ft``: OIDN's network fine-tuned on the store (``train.oidn_ft``, run
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
-  ``oidn_ft.blend``; ``oidn_ft_color``: the colour-only network's run (``oidn_ft_rt_hdr``), else the
-  colour-only weights shipped with the model (``train/shipped/oidn_ft/rt_hdr.tza``, fine-tuned on the
-  ship data), which ``ours`` runs on inputs without albedo and normal.
+  ``oidn_ft.blend``; ``oidn_ft_albedo`` and ``oidn_ft_color``: the colour + albedo and the colour-only
+  networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``), else the weights shipped with the model
+  (``train/shipped/oidn_ft/<network>.tza``, fine-tuned on the ship data), which ``ours`` runs on
+  inputs without normal (or without albedo and normal).
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
@@ -65,13 +66,16 @@ from mcdenoise.pipeline.exr import StoreError
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
 _DIFFUSION = {"ours": False, "base_only": True}
-FAMILIES = ("noisy", "oidn", "oidn_color", "oidn_ft", "oidn_ft_color", "isik", "afgsa", "oidn_isik", *_DIFFUSION)
-# oidn_ft families -> the OIDN network their run fine-tuned
-OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_color": "rt_hdr"}
+# OIDN families -> the network OIDN runs; oidn_ft families -> the network their run fine-tuned
+OIDN_STOCK = {"oidn": "rt_hdr_alb_nrm", "oidn_albedo": "rt_hdr_alb", "oidn_color": "rt_hdr"}
+OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft_color": "rt_hdr"}
+FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
-LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_color": "OIDN (colour only)",
+LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_albedo": "OIDN (colour+albedo)",
+          "oidn_color": "OIDN (colour only)",
           "oidn_ft": "OIDN fine-tuned on our data (colour+albedo+normal)",
+          "oidn_ft_albedo": "OIDN fine-tuned on our data (colour+albedo)",
           "oidn_ft_color": "OIDN fine-tuned on our data (colour only)",
           "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
@@ -185,8 +189,9 @@ class Noisy(Method):
 
 @dataclass
 class OIDN(Method):
+    """OIDN on colour and the aux layers of ``network`` (``oidn_weights.network_aux``)."""
     name: str = "oidn"
-    aux: bool = True
+    network: str = "rt_hdr_alb_nrm"
     quality: str = "high"
     device: str = "cpu"
 
@@ -198,21 +203,27 @@ class OIDN(Method):
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn
-        return oidn.denoise(buffers, aux=self.aux, quality=self.quality)
+        return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality)
 
 
 @dataclass
 class OIDNFineTuned(Method):
-    """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob)."""
+    """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob of ``network``)."""
     weights: bytes = b""
-    aux: bool = True
+    network: str = "rt_hdr_alb_nrm"
     name: str = "oidn_ft"
     device: str = "cpu"
     checkpoint: str = ""
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn
-        return oidn.denoise(buffers, aux=self.aux, weights=self.weights)
+        return oidn.denoise(_layers_of(self.network, buffers), weights=self.weights)
+
+
+def _layers_of(network: str, buffers: dict) -> dict:
+    """The buffers an OIDN network reads that the frame has: colour and its aux layers, nothing else."""
+    from mcdenoise.pipeline import oidn_weights
+    return {k: buffers[k] for k in ("color", *oidn_weights.network_aux(network)) if k in buffers}
 
 
 @dataclass
@@ -336,8 +347,8 @@ class Loader:
             return SelfEnsemble(inner=inner, n=spec.ensemble, name=name)
         if spec.family == "noisy":
             return Noisy()
-        if spec.family in ("oidn", "oidn_color"):
-            return OIDN(name=name, aux=spec.family == "oidn")
+        if spec.family in OIDN_STOCK:
+            return OIDN(name=name, network=OIDN_STOCK[spec.family])
         if spec.family in OIDN_FT:
             return self._oidn_ft(spec.family)
         if spec.family in ("isik", "afgsa"):
@@ -359,12 +370,12 @@ class Loader:
         shipped = oidn_ft_blob(SHIPPED_MODEL, OIDN_FT[family]) if self.cfg.diffusion.shipped else None
         if not trained and not (shipped and shipped.exists()):
             raise MethodUnavailable(f"no oidn_ft run in {folder}: run `make train MODEL=oidn_ft SPP=any"
-                                    + (" oidn_ft.network=rt_hdr`" if family == "oidn_ft_color" else "`"))
+                                    + ("`" if family == "oidn_ft" else f" oidn_ft.network={OIDN_FT[family]}`"))
         why = oidn.available()
         if why:
             raise MethodUnavailable(why)
         if not trained:
-            return OIDNFineTuned(weights=shipped.read_bytes(), aux=family == "oidn_ft", name=family,
+            return OIDNFineTuned(weights=shipped.read_bytes(), network=OIDN_FT[family], name=family,
                                  checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
         key = ("oidn_ft", str(folder))
         if key not in self._models:
@@ -372,7 +383,8 @@ class Loader:
                 self._models[key] = export_blob(load_run(folder, self.cfg)[0])
             except (OSError, PipelineError, ValueError, KeyError) as exc:
                 raise MethodUnavailable(f"cannot load the oidn_ft run {folder}: {type(exc).__name__}: {exc}") from None
-        return OIDNFineTuned(weights=self._models[key], aux=family == "oidn_ft", name=family, checkpoint=folder.name)
+        return OIDNFineTuned(weights=self._models[key], network=OIDN_FT[family], name=family,
+                             checkpoint=folder.name)
 
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model as load_isik

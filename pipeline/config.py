@@ -406,8 +406,8 @@ class DiffusionConfig(TrainingConfig):
                         True)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
     shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
-                        "own (make eval's ours rows, make denoise), and its colour-only oidn_ft weights for make "
-                        "eval's oidn_ft_color row.", True)
+                        "own (make eval's ours rows, make denoise), and its oidn_ft weights for make eval's "
+                        "oidn_ft_albedo and oidn_ft_color rows.", True)
     name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
                     "formulation beside the default one); make eval's ours_<name> rows read it.", "")
     prediction: str = doc("What the network predicts: 'sample' (x0; an untrained zero last layer returns the first "
@@ -548,8 +548,8 @@ class OidnFtConfig(TrainingConfig):
     lr: float = override("lr", 5e-5, "Optimiser: Adam; reached after the warm-up, then a cosine decay to lr_end "
                                        "over the run.")
     network: str = doc("OIDN network fine-tuned by make train MODEL=oidn_ft: 'rt_hdr_alb_nrm' (colour + albedo + "
-                       "normal: what make eval's oidn row runs), 'rt_hdr_alb' (+ albedo) or 'rt_hdr' (colour only: "
-                       "the oidn_ft_color row); a '_small' variant of each also loads. Its run folder is "
+                       "normal: what make eval's oidn row runs), 'rt_hdr_alb' (+ albedo: the oidn_ft_albedo row) or "
+                       "'rt_hdr' (colour only: the oidn_ft_color row); a '_small' variant of each also loads. Its run folder is "
                        "<runs>/oidn_ft_<network>.", "rt_hdr_alb_nrm")
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     epoch_steps: int = doc("At most this many steps per epoch (a random subset of the epoch's crops); 0: every "
@@ -605,8 +605,9 @@ class OidnFtConfig(TrainingConfig):
 
 @dataclass
 class EvalConfig(Section):
-    methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_color, oidn_ft "
-                        "and oidn_ft_color (OIDN fine-tuned on the store: make train MODEL=oidn_ft), isik, "
+    methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_albedo, "
+                        "oidn_color, oidn_ft, oidn_ft_albedo and oidn_ft_color (OIDN fine-tuned on the store: make "
+                        "train MODEL=oidn_ft), isik, "
                         "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
                         "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
                         "steps), skipN, kN (mean of N samples), small (paper formulation: fixed posterior variance), "
@@ -614,8 +615,9 @@ class EvalConfig(Section):
                         "diffusion_spp<N>_paper; see evaluate/methods.py). Any method takes _xN last: its self-ensemble "
                         "over N (2, 4, 8) flipped/transposed copies of the frame at N times its time (oidn_x8, "
                         "ours_x8). A method whose model is missing is listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_color", "oidn_ft", "oidn_ft_color", "isik",
-                                         "afgsa", "oidn_isik", "ours", "ours_x8", "ours_s3_k4", "base_only"])
+                        factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_albedo", "oidn_color", "oidn_ft",
+                                         "oidn_ft_albedo", "oidn_ft_color", "isik", "afgsa", "oidn_isik", "ours",
+                                         "ours_x8", "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
     split: str = doc("Store split to evaluate (the stress and external splits are always reported separately).",

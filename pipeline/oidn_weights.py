@@ -38,6 +38,12 @@ def network_for(albedo: bool, normal: bool, small: bool = False) -> str:
     return name + ("_small" if small else "")
 
 
+def network_aux(network: str) -> tuple[str, ...]:
+    """The aux buffers an OIDN network reads (the inverse of ``network_for``): (), ("albedo",) or
+    ("albedo", "normal")."""
+    return ("albedo", "normal")[: (2 if "_alb_nrm" in network else 1 if "_alb" in network else 0)]
+
+
 def library_path() -> Path:
     """pyoidn's ``libOpenImageDenoise_core`` (found without importing pyoidn)."""
     spec = importlib.util.find_spec("pyoidn")

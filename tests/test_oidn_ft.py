@@ -93,8 +93,9 @@ def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
 
 @pytest.mark.slow
 def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, monkeypatch):
-    """oidn_ft runs the store's run; the colour-only row without a run of its own runs the weights shipped
-    with the model (what `ours` uses on R,G,B alone), and without those says what to train."""
+    """oidn_ft runs the store's run; the colour-only and colour + albedo rows without a run of their own run
+    the weights shipped with the model (what `ours` uses on inputs without normal) on the layers their stock
+    rows read, and without those say what to train."""
     from mcdenoise.evaluate.methods import Loader, MethodUnavailable
     from mcdenoise.train import model as shipped_model
     store, runs, _ = trained
@@ -103,12 +104,16 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
     buf = Store(store).read(*_first(store), 4)
     best = oidn_ft.load_run(runs / "oidn_ft_rt_hdr_alb_nrm", tiny(store, runs))[0]
     assert _psnr(method.denoise(buf), oidn_net.denoise(best, buf["color"], buf["albedo"], buf["normal"])) >= 80
-    color = loader.load("oidn_ft_color", 4)
-    shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / "rt_hdr.tza"
-    assert color.checkpoint == "shipped oidn_ft/rt_hdr.tza"
-    out = color.denoise(buf)
-    assert np.array_equal(out, oidn.denoise(buf, aux=False, weights=shipped.read_bytes()))
-    assert _psnr(out, oidn.denoise(buf, aux=False)) < 70            # not stock OIDN's colour-only network
+    for family, layers in (("oidn_ft_color", ("color",)), ("oidn_ft_albedo", ("color", "albedo"))):
+        method, stock = loader.load(family, 4), loader.load(family.replace("_ft", ""), 4)
+        network = "rt_hdr_alb" if "albedo" in layers else "rt_hdr"
+        shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
+        assert method.checkpoint == f"shipped oidn_ft/{network}.tza"
+        only = {k: buf[k] for k in layers}
+        out = method.denoise(buf)
+        assert np.array_equal(out, oidn.denoise(only, weights=shipped.read_bytes()))
+        assert np.array_equal(stock.denoise(buf), oidn.denoise(only))   # the stock row reads the same layers
+        assert _psnr(out, stock.denoise(buf)) < 70                      # not stock OIDN's network for them
     with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):   # the switch
         Loader(tiny(store, runs, "diffusion.shipped=false")).load("oidn_ft_color", 4)
     monkeypatch.setattr(shipped_model, "SHIPPED_MODEL", tmp_path / "no_shipped_model")

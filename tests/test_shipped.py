@@ -72,6 +72,23 @@ def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped):
     assert shipped.last_clamped == 0
 
 
+@pytest.mark.parametrize("layers", [("color",), ("color", "albedo")])
+def test_inputs_without_normal_run_the_shipped_oidn_ft_network_for_their_layers(shipped, layers):
+    """R,G,B alone and R,G,B + albedo (no normal) get OIDN's network for those layers fine-tuned on the ship
+    data (train/shipped/oidn_ft/<network>.tza, card beside it), run by OIDN itself, not stock OIDN."""
+    from mcdenoise.pipeline import oidn, oidn_weights
+    network = oidn_weights.network_for("albedo" in layers, False)
+    blob = SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
+    card = json.loads(blob.with_suffix(".json").read_text())
+    assert card["network"] == network and card["sha256"] == sha256(blob) and "python -m pipeline" in card["exported"]["command"]
+    noisy = {k: v for k, v in synthetic_buffers(40, 48, seed=3, noise=0.7).items() if k in layers}
+    out = shipped.denoise(noisy, spp=4)
+    assert shipped.last_estimate_only and shipped.fallback == str(blob)
+    assert np.array_equal(out, oidn.denoise(noisy, weights=blob.read_bytes()))
+    stock = oidn.denoise(noisy)
+    assert np.abs(out - stock).max() > 1e-3 * np.abs(stock).max()      # the fine-tuned weights, not OIDN's own
+
+
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     """`python -m mcdenoise denoise --exr IN --out OUT` from another folder with nothing trained (the command
     an installed package gives; the checkout is on PYTHONPATH): an R,G,B EXR comes out denoised."""

@@ -45,12 +45,7 @@ from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 
 FORMAT = weights.FORMATS["oidn_ft"]
-AUX = ("albedo", "normal")
-
-
-def network_aux(network: str) -> tuple[str, ...]:
-    """The aux buffers an OIDN network reads: (), ("albedo",) or ("albedo", "normal")."""
-    return AUX[: (2 if "_alb_nrm" in network else 1 if "_alb" in network else 0)]
+AUX = oidn_weights.network_aux("rt_hdr_alb_nrm")
 
 
 # ---- data --------------------------------------------------------------------------------------
@@ -232,7 +227,7 @@ class OIDNFineTune(Task):
         self.cfg, self.store = cfg, Store(cfg.store)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.spps = self.store.spp_choices(spp)
-        self.aux = network_aux(o.network)
+        self.aux = oidn_weights.network_aux(o.network)
         self.folder = runs.run_dir(cfg, "oidn_ft")
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, o.epochs, o.time_budget_s, o.nan_limit
         self.device = runs.pick_device(o.device)
