@@ -189,11 +189,14 @@ class Noisy(Method):
 
 @dataclass
 class OIDN(Method):
-    """OIDN on colour and the aux layers of ``network`` (``oidn_weights.network_aux``)."""
+    """OIDN on colour and the aux layers of ``network`` (``oidn_weights.network_aux``), with its built-in
+    weights or, for the oidn_ft rows, ``weights`` (the float16 TZA blob of an oidn_ft run or shipped file)."""
     name: str = "oidn"
     network: str = "rt_hdr_alb_nrm"
+    weights: bytes | None = None
     quality: str = "high"
     device: str = "cpu"
+    checkpoint: str = ""
 
     def __post_init__(self):
         from mcdenoise.pipeline import oidn
@@ -203,21 +206,7 @@ class OIDN(Method):
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn
-        return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality)
-
-
-@dataclass
-class OIDNFineTuned(Method):
-    """OIDN running the weights of an oidn_ft run (``weights``: the float16 TZA blob of ``network``)."""
-    weights: bytes = b""
-    network: str = "rt_hdr_alb_nrm"
-    name: str = "oidn_ft"
-    device: str = "cpu"
-    checkpoint: str = ""
-
-    def denoise(self, buffers):
-        from mcdenoise.pipeline import oidn
-        return oidn.denoise(_layers_of(self.network, buffers), weights=self.weights)
+        return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality, weights=self.weights)
 
 
 def _layers_of(network: str, buffers: dict) -> dict:
@@ -359,7 +348,6 @@ class Loader:
         return self._diffusion(name, spec, spp)
 
     def _oidn_ft(self, family: str) -> Method:
-        from mcdenoise.pipeline import oidn
         from mcdenoise.pipeline.runs import run_dir
         from mcdenoise.train.model import SHIPPED_MODEL, oidn_ft_blob
         from mcdenoise.train.oidn_ft import export_blob, load_run
@@ -371,20 +359,16 @@ class Loader:
         if not trained and not (shipped and shipped.exists()):
             raise MethodUnavailable(f"no oidn_ft run in {folder}: run `make train MODEL=oidn_ft SPP=any"
                                     + ("`" if family == "oidn_ft" else f" oidn_ft.network={OIDN_FT[family]}`"))
-        why = oidn.available()
-        if why:
-            raise MethodUnavailable(why)
         if not trained:
-            return OIDNFineTuned(weights=shipped.read_bytes(), network=OIDN_FT[family], name=family,
-                                 checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
+            return OIDN(weights=shipped.read_bytes(), network=OIDN_FT[family], name=family,
+                        checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
         key = ("oidn_ft", str(folder))
         if key not in self._models:
             try:
                 self._models[key] = export_blob(load_run(folder, self.cfg)[0])
             except (OSError, PipelineError, ValueError, KeyError) as exc:
                 raise MethodUnavailable(f"cannot load the oidn_ft run {folder}: {type(exc).__name__}: {exc}") from None
-        return OIDNFineTuned(weights=self._models[key], network=OIDN_FT[family], name=family,
-                             checkpoint=folder.name)
+        return OIDN(weights=self._models[key], network=OIDN_FT[family], name=family, checkpoint=folder.name)
 
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model as load_isik

@@ -21,18 +21,16 @@ from mcdenoise.pipeline import oidn, oidn_weights, tza
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train.model import SHIPPED_MODEL, oidn_ft_blob
+from mcdenoise.train.oidn_ft import blended
 
 
 def blob_at(network: str, weights: bytes, weights_blend: float, blend: float) -> bytes:
     """``weights`` (exported at ``weights_blend``) moved to ``blend`` (0: stock OIDN's ``network``)."""
     stock = tza.read(oidn_weights.load(network), network)
     given = tza.read(weights, f"{network} at blend {weights_blend}")
-    t = blend / weights_blend
-
-    def moved(k):
-        a, b = stock[k].array.astype(np.float64), given[k].array.astype(np.float64)
-        return tza.Tensor((a + t * (b - a)).astype(stock[k].array.dtype), stock[k].layout)
-    return tza.write({k: moved(k) for k in stock})
+    f64 = lambda ts: {k: t.array.astype(np.float64) for k, t in ts.items()}  # noqa: E731
+    moved = blended(f64(stock), f64(given), blend / weights_blend)
+    return tza.write({k: tza.Tensor(moved[k].astype(t.array.dtype), t.layout) for k, t in stock.items()})
 
 
 def gains(store: Store, key, spp: int, network: str, blobs: dict) -> dict:
