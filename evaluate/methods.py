@@ -16,9 +16,9 @@ Names (``eval.methods``):
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
   ``oidn_ft.blend``; ``oidn_ft_albedo`` and ``oidn_ft_color``: the colour + albedo and the colour-only
-  networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``), else the weights shipped with the model
-  (``train/shipped/oidn_ft/<network>.tza``, fine-tuned on the ship data), which ``ours`` runs on
-  inputs without normal (or without albedo and normal).
+  networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``). Each row without a run of its own runs the
+  weights shipped with the model (``train/shipped/oidn_ft/<network>.tza``, fine-tuned on the ship data;
+  ``ours`` runs the two without normal on inputs without normal, or without albedo and normal).
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.

@@ -95,7 +95,7 @@ def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
 def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, monkeypatch):
     """oidn_ft runs the store's run; the colour-only and colour + albedo rows without a run of their own run
     the weights shipped with the model (what `ours` uses on inputs without normal) on the layers their stock
-    rows read, and without those say what to train."""
+    rows read, oidn_ft without one the shipped full-layer network, and without those they say what to train."""
     from mcdenoise.evaluate.methods import Loader, MethodUnavailable
     from mcdenoise.train import model as shipped_model
     store, runs, _ = trained
@@ -114,6 +114,11 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
         assert np.array_equal(out, oidn.denoise(only, weights=shipped.read_bytes()))
         assert np.array_equal(stock.denoise(buf), oidn.denoise(only))   # the stock row reads the same layers
         assert _psnr(out, stock.denoise(buf)) < 70                      # not stock OIDN's network for them
+    # no run of its own: the oidn_ft row runs the shipped full-layer network, as the other two rows do
+    method = Loader(tiny(store, tmp_path / "no_runs")).load("oidn_ft", 4)
+    shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / "rt_hdr_alb_nrm.tza"
+    assert method.checkpoint == "shipped oidn_ft/rt_hdr_alb_nrm.tza"
+    assert np.array_equal(method.denoise(buf), oidn.denoise(buf, weights=shipped.read_bytes()))
     with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):   # the switch
         Loader(tiny(store, runs, "diffusion.shipped=false")).load("oidn_ft_color", 4)
     monkeypatch.setattr(shipped_model, "SHIPPED_MODEL", tmp_path / "no_shipped_model")

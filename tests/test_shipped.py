@@ -77,16 +77,28 @@ def test_inputs_without_normal_run_the_shipped_oidn_ft_network_for_their_layers(
     """R,G,B alone and R,G,B + albedo (no normal) get OIDN's network for those layers fine-tuned on the ship
     data (train/shipped/oidn_ft/<network>.tza, card beside it), run by OIDN itself, not stock OIDN."""
     from mcdenoise.pipeline import oidn, oidn_weights
-    network = oidn_weights.network_for("albedo" in layers, False)
-    blob = SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
-    card = json.loads(blob.with_suffix(".json").read_text())
-    assert card["network"] == network and card["sha256"] == sha256(blob) and "python -m pipeline" in card["exported"]["command"]
+    blob = SHIPPED_MODEL / "oidn_ft" / f"{oidn_weights.network_for('albedo' in layers, False)}.tza"
     noisy = {k: v for k, v in synthetic_buffers(40, 48, seed=3, noise=0.7).items() if k in layers}
     out = shipped.denoise(noisy, spp=4)
     assert shipped.last_estimate_only and shipped.fallback == str(blob)
     assert np.array_equal(out, oidn.denoise(noisy, weights=blob.read_bytes()))
     stock = oidn.denoise(noisy)
     assert np.abs(out - stock).max() > 1e-3 * np.abs(stock).max()      # the fine-tuned weights, not OIDN's own
+
+
+@pytest.mark.parametrize("network", ["rt_hdr", "rt_hdr_alb", "rt_hdr_alb_nrm"])
+def test_each_of_oidns_networks_ships_fine_tuned_with_its_card(network):
+    """train/shipped/oidn_ft has OIDN's three networks fine-tuned on the ship data (what `ours` runs without
+    normal, and the oidn_ft rows and `denoise --oidn-weights` without a run of one's own); each card names
+    its network, the file's sha256, its blend and the command that made it, and OIDN's reader takes the file."""
+    from mcdenoise.pipeline import oidn_net, tza
+    blob = SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
+    card = json.loads(blob.with_suffix(".json").read_text())
+    assert card["network"] == network and card["sha256"] == sha256(blob) and 0 < card["blend"] <= 1
+    assert f"oidn_ft.network={network}" in card["exported"]["command"] and f"oidn_ft.blend={card['blend']:g}" in \
+        card["exported"]["command"]
+    net = oidn_net.UNet.from_tza(tza.read(blob.read_bytes(), str(blob)))
+    assert net.in_channels == {"rt_hdr": 3, "rt_hdr_alb": 6, "rt_hdr_alb_nrm": 9}[network]
 
 
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
@@ -175,3 +187,27 @@ def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module
     (zero / "model.json").write_text(json.dumps({k: v for k, v in record.items() if k != "base_blend"}))
     proc = cli("export", "--from", zero, "--base-blend", "0.3", "--out", tmp_path / "never", check=False)
     assert proc.returncode != 0 and "model.json: no base_blend" in proc.stderr and not (tmp_path / "never").exists()
+
+
+def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_module(tmp_path):
+    """export --base FILE: the frozen base becomes FILE (its blend from the card beside it), the Control Module
+    stays; a file of another OIDN network is refused with a one-line error naming it, nothing written."""
+    from tests.helpers import cli
+
+    base = SHIPPED_MODEL / "oidn_ft" / "rt_hdr_alb_nrm.tza"
+    out = tmp_path / "swapped"
+    cli("export", "--from", SHIPPED_MODEL, "--base", base, "--out", out, "--quiet")
+    record = json.loads((out / "model.json").read_text())
+    assert (out / "base.tza").read_bytes() == base.read_bytes() != (SHIPPED_MODEL / "base.tza").read_bytes()
+    assert record["base_sha256"] == sha256(base) and record["base_blend"] == json.loads(base.with_suffix(".json").read_text())["blend"]
+    assert (out / "control.safetensors").read_bytes() == (SHIPPED_MODEL / "control.safetensors").read_bytes()
+    assert f"--base {base}" in (out / "README.md").read_text()
+    model, _ = oidn_refine.load(out)
+    reference, _ = oidn_refine.load(SHIPPED_MODEL)
+    buf = synthetic_buffers(24, 24, seed=2, noise=0.5)
+    assert not np.array_equal(oidn_refine.OIDNRefiner(model, record, "cpu").denoise(buf, spp=4),
+                              oidn_refine.OIDNRefiner(reference, record, "cpu").denoise(buf, spp=4))
+    proc = cli("export", "--from", SHIPPED_MODEL, "--base", SHIPPED_MODEL / "oidn_ft" / "rt_hdr.tza",
+               "--out", tmp_path / "never", check=False)
+    assert proc.returncode != 0 and "rt_hdr.tza: not OIDN's rt_hdr_alb_nrm" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "never").exists()

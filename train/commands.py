@@ -50,7 +50,11 @@ def _training_commands(sub) -> None:
     p.add_argument("--base-blend", type=float, default=None,
                    help="instead: move the base of an exported model (--from) to OIDN + this x what fine-tuning "
                         "changed (oidn_ft.blend's knob, after training), written to --out (default: --from)")
-    p.add_argument("--from", dest="from_model", default="train/shipped", help="the model folder --base-blend moves")
+    p.add_argument("--base", default=None,
+                   help="instead: replace the frozen base of an exported model (--from) by this .tza of the same "
+                        "OIDN network (e.g. an --format oidn export), keeping its Control Module; to --out")
+    p.add_argument("--from", dest="from_model", default="train/shipped",
+                   help="the model folder --base-blend moves or --base changes")
     with_quiet(p)
     p.set_defaults(fn=_export)
 
@@ -156,7 +160,10 @@ def _pretrain(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export, export_oidn, rebase
+    from .export import export, export_oidn, rebase, swap_base
+    if args.base is not None:
+        swap_base(Path(args.from_model), Path(args.base), Path(args.out) if args.out else None, quiet=args.quiet)
+        return 0
     if args.base_blend is not None:
         rebase(Path(args.from_model), args.base_blend, Path(args.out) if args.out else None,
                config(args).oidn.weights, quiet=args.quiet)

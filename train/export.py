@@ -273,6 +273,48 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
     return _publish(tmp, out, model, quiet)
 
 
+def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool = False) -> Path:
+    """An exported model on OIDN's network with its frozen base replaced by ``base_file`` (a float16 TZA of the
+    same network, e.g. an ``export --format oidn`` file; its blend from the card beside it, ``<file>.json``) and
+    its Control Module kept: the start of a warm-started run on another base (``diffusion.init``), or a model
+    to validate as it is. ``out`` (default: ``model`` itself) is replaced by a rename."""
+    import hashlib
+
+    from mcdenoise.pipeline import tza
+
+    model, base_file = Path(model), Path(base_file)
+    out = Path(out) if out else model
+    meta = weights.read_record(model, "oidn_control", "give a model folder exported from a run on OIDN's network")
+    if not base_file.is_file():
+        raise CheckpointError(f"{base_file}: no such weights file (give a .tza of OIDN's {meta['base_network']})")
+    blob = base_file.read_bytes()
+    new, old = tza.read(blob, str(base_file)), tza.read((model / meta["base"]).read_bytes(), str(model / meta["base"]))
+    shapes = lambda ts: {k: tuple(t.array.shape) for k, t in ts.items()}  # noqa: E731
+    if shapes(new) != shapes(old):
+        raise CheckpointError(f"{base_file}: not OIDN's {meta['base_network']} (its tensors differ from "
+                              f"{model / meta['base']}'s): the Control Module feeds that network's decoder")
+    card = base_file.with_suffix(".json")
+    blend = json.loads(card.read_text()).get("blend") if card.exists() else None
+    tmp = out.parent / (out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(model, tmp)
+    (tmp / meta["base"]).write_bytes(blob)
+    record = {**meta, "base_blend": blend, "base_what": f"{base_file} (blend {blend})",
+              "base_sha256": hashlib.sha256(blob).hexdigest(),
+              "base_swapped": {"from": meta.get("base_what"), "to": str(base_file), "date": datetime.date.today().isoformat()}}
+    atomic_write_json(tmp / weights.RECORD, record)
+    readme = tmp / "README.md"
+    if readme.exists():
+        readme.write_text(readme.read_text().rstrip("\n") + "\n\n" + _swap_note(model, base_file, out, blend))
+    return _publish(tmp, out, model, quiet)
+
+
+def _swap_note(model: Path, base_file: Path, out: Path, blend) -> str:
+    return (f"## Base replaced after training ({datetime.date.today().isoformat()})\n\nThe base is now `{base_file}` "
+            f"(blend {blend}); the Control Module above was trained on the previous base and is unchanged. Made by:"
+            f"\n\n```sh\npython -m pipeline export --from {model} --base {base_file} --out {out}\n```\n")
+
+
 def _rebase_note(model: Path, out: Path, old: float, new: float) -> str:
     return (f"## Base moved after training ({datetime.date.today().isoformat()})\n\nThe base is now OIDN + {new:g} "
             f"x what fine-tuning changed (it was {old:g} before this move; the training record above is the model "
