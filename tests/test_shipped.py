@@ -194,12 +194,17 @@ def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_mod
     stays; a file of another OIDN network is refused with a one-line error naming it, nothing written."""
     from tests.helpers import cli
 
-    base = SHIPPED_MODEL / "oidn_ft" / "rt_hdr_alb_nrm.tza"
+    moved = tmp_path / "moved"     # another rt_hdr_alb_nrm base: the shipped one moved halfway to OIDN
+    blend = json.loads((SHIPPED_MODEL / "model.json").read_text())["base_blend"] / 2
+    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(blend), "--out", moved, "--quiet")
+    base = tmp_path / "other.tza"
+    base.write_bytes((moved / "base.tza").read_bytes())
+    base.with_suffix(".json").write_text(json.dumps({"network": "rt_hdr_alb_nrm", "blend": blend}))
     out = tmp_path / "swapped"
     cli("export", "--from", SHIPPED_MODEL, "--base", base, "--out", out, "--quiet")
     record = json.loads((out / "model.json").read_text())
     assert (out / "base.tza").read_bytes() == base.read_bytes() != (SHIPPED_MODEL / "base.tza").read_bytes()
-    assert record["base_sha256"] == sha256(base) and record["base_blend"] == json.loads(base.with_suffix(".json").read_text())["blend"]
+    assert record["base_sha256"] == sha256(base) and record["base_blend"] == blend
     assert (out / "control.safetensors").read_bytes() == (SHIPPED_MODEL / "control.safetensors").read_bytes()
     assert f"--base {base}" in (out / "README.md").read_text()
     model, _ = oidn_refine.load(out)
