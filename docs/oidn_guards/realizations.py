@@ -7,7 +7,8 @@ of them says what the method does on the scene. Methods are loaded and run exact
 runs them (``evaluate.methods.Loader``); PSNR is eval's (Reinhard tonemap, against GT1).
 
     python docs/oidn_guards/realizations.py --methods oidn_ft ours [--store data/external]
-        [--split external] [--prefix ext_val] [--exclude P] [--spp 4 16] -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
+        [--split external] [--prefix ext_val] [--exclude P] [--spp 4 16] [--layers color albedo normal]
+        -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
 """
 import argparse
 import json
@@ -22,14 +23,16 @@ from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
 
 
-def realization_psnrs(methods, store, key, spp):
+def realization_psnrs(methods, store, key, spp, layers=()):
     """{method: [PSNR on each disjoint group of stacks that makes ``spp``]} for the frame ``key``,
-    against the reference eval reads (GT_clean where the frame has one, else GT1)."""
+    against the reference eval reads (GT_clean where the frame has one, else GT1); ``layers``: only these
+    buffers reach the methods (an EXR from another renderer: ``color albedo normal``), else all."""
     ref_name = "gt_clean" if store.image_path(key.scene, key.frame, "gt_clean").exists() else "gt1"
     ref = store.read_image(key.scene, key.frame, ref_name, ["color"])[0]["color"]
     out = {name: [] for name in methods}
     for stacks in realization_stacks(store, key, spp, n=1 << 30):
         buffers = store.read(key.scene, key.frame, spp, stacks=stacks)
+        buffers = {k: v for k, v in buffers.items() if k in layers} if layers else buffers
         for name, method in methods.items():
             method.set_frame(store, key)
             out[name].append(psnr(np.asarray(method.denoise(buffers), np.float32), ref))
@@ -46,6 +49,7 @@ def main(argv):
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 16])
     ap.add_argument("--config", default="configs/default.yaml")
     ap.add_argument("--json", default="")
+    ap.add_argument("--layers", nargs="+", default=[], help="only these buffers reach the methods (default: all)")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     cfg = load_config(a.config, a.overrides)
@@ -56,7 +60,7 @@ def main(argv):
     loader, result = Loader(cfg), {}
     for spp in a.spp:
         methods = {name: loader.load(name, spp) for name in ["oidn", *a.methods]}
-        result[spp] = {label(key): realization_psnrs(methods, store, key, spp) for key in keys}
+        result[spp] = {label(key): realization_psnrs(methods, store, key, spp, a.layers) for key in keys}
     for name in a.methods:
         print(f"{name} − oidn, dB, the mean over realizations ± its standard error (first realization; range):")
         for spp in a.spp:
