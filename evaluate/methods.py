@@ -272,6 +272,8 @@ class Diffusion(Method):
             if getattr(den, "fallback", ""):
                 return f"no albedo/normal in the input: returned {den.fallback} on the colour"
             return "no renderer variance/albedo/normal in the input: returned the first estimate (OIDN)"
+        if getattr(den, "last_base_only", False):
+            return "colour, albedo and normal only: returned the model's base alone (control_without_groups)"
         n = getattr(den, "last_clamped", 0)
         if not n:
             return ""

@@ -216,3 +216,21 @@ def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_mod
                "--out", tmp_path / "never", check=False)
     assert proc.returncode != 0 and "rt_hdr.tza: not OIDN's rt_hdr_alb_nrm" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "never").exists()
+
+
+def test_colour_albedo_normal_alone_run_the_shipped_base_alone_and_more_buffers_the_control_module(shipped):
+    """The shipped model.json says control_without_groups: false (chosen on the hand-made validation scenes):
+    an input with none of the Control Module's extra groups (an EXR from another renderer) gets its base
+    alone, exactly the base_only row; one more group (the variances) brings the Control Module back."""
+    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
+    assert meta["control_without_groups"] is False
+    full = synthetic_buffers(40, 32, seed=4, noise=0.6)
+    plain = {k: full[k] for k in ("color", "albedo", "normal")}
+    base = load_denoiser(SHIPPED_MODEL, device="cpu", base_only=True)
+    out = shipped.denoise(plain, spp=4)
+    assert shipped.last_base_only and not shipped.last_estimate_only
+    assert np.array_equal(out, base.denoise(plain, spp=4))
+    with_variance = {**plain, **{k: v for k, v in full.items() if k.endswith("variance")}}
+    out_v = shipped.denoise(with_variance, spp=4)
+    assert not shipped.last_base_only and shipped.model.control is not None
+    assert not np.array_equal(out_v, base.denoise(with_variance, spp=4))

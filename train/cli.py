@@ -105,6 +105,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
             "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
+            "base_only": getattr(den, "last_base_only", False),
             "ensemble": ensemble, "seconds": round(seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:
@@ -114,7 +115,9 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}"
               f"{f', self-ensemble of {ensemble}' if ensemble > 1 else ''}) in {seconds:.1f} s"
               f" -> {out}" + (f"; {den.last_repaired} non-finite input values replaced by 0" if den.last_repaired
-                              else "") + (alone if den.last_estimate_only else ""), flush=True)
+                              else "") + (alone if den.last_estimate_only else "")
+              + ("; colour, albedo and normal only: the model's base alone (its model.json: control_without_groups)"
+                 if getattr(den, "last_base_only", False) else ""), flush=True)
     return 0
 
 

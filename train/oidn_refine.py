@@ -50,7 +50,7 @@ from mcdenoise.pipeline.store import Store, sha256
 from .formulation import Formulation, snr_weight
 from .model import oidn_ft_blob
 from .oidn_control import ControlledOIDN
-from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path
+from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path, present
 from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
 
 FORMAT = weights.FORMATS["oidn_control"]
@@ -448,8 +448,11 @@ class OIDNRefiner:
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
+        # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
+        # EXR from another renderer) the base runs alone, where validation found the Control Module worse
+        self.control_without_groups = bool(meta.get("control_without_groups", True))
         self.last_repaired = self.last_clamped = 0
-        self.last_black = self.last_estimate_only = False
+        self.last_black = self.last_estimate_only = self.last_base_only = False
         self.last_seconds = 0.0
         self.fallback = ""
 
@@ -460,7 +463,7 @@ class OIDNRefiner:
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
-        self.last_clamped = 0
+        self.last_clamped, self.last_base_only = 0, False
         color = buffers["color"]
         self.last_black = not np.any(color)
         self.last_estimate_only = not all(a in buffers for a in ("albedo", "normal"))
@@ -469,6 +472,7 @@ class OIDNRefiner:
         elif self.last_estimate_only:   # the base reads albedo and normal: OIDN on what there is
             hdr, std = self._oidn_only(buffers), np.zeros_like(color)
         else:
+            self.last_base_only = not self.control_without_groups and not any(present(buffers).values())
             hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples)
         self.last_seconds = time.perf_counter() - t0
         return (hdr, std) if with_std else hdr
@@ -486,9 +490,15 @@ class OIDNRefiner:
     def _sample(self, buffers, spp, skip, seed, steps, start, samples):
         x, cond, scale = inputs(buffers, int(spp))
         H, W = buffers["color"].shape[:2]
-        mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
-                              torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start, seed,
-                              samples)
+        control = self.model.control
+        if self.last_base_only:
+            self.model.control = None
+        try:
+            mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
+                                  torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start,
+                                  seed, samples)
+        finally:
+            self.model.control = control
         # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
         # Module pushed past it by inputs unlike its training (garbage normals) would overflow the inverse
         # transfer to inf: such pixels are clamped to the range's end and counted.
