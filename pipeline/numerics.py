@@ -1,4 +1,4 @@
-"""Small numerical helpers shared by the stages: non-finite repair, constant detection."""
+"""Small numerical helpers shared by the stages: non-finite repair, over-long normals, constant detection."""
 from __future__ import annotations
 
 import numpy as np
@@ -20,6 +20,17 @@ def repair_nonfinite(arrays: dict[str, np.ndarray]) -> dict[str, int]:
             arr[bad] = 0.0
             counts[key] = n
     return counts
+
+
+def shorten_normals(normal: np.ndarray, limit: float = 1.01) -> int:
+    """Scale normals longer than ``limit`` to unit length, in place; returns how many pixels. A rendered normal
+    has length 1 (0 where nothing was hit) and is left alone bit for bit; one of length 1e3 (another renderer's
+    unnormalised or garbage layer) would otherwise reach a network as an input 1000x beyond its training."""
+    length = np.sqrt(np.sum(np.square(normal, dtype=np.float64), axis=-1))
+    long = length > limit
+    if long.any():
+        normal[long] = (normal[long] / length[long][:, None]).astype(normal.dtype)
+    return int(long.sum())
 
 
 def constant_value(arr: np.ndarray) -> float | None:

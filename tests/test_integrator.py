@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 from mcdenoise.pipeline.schema import BUFFERS, BY_NAME, OPTIONAL_FEATURES, RADIANCE_COMPONENTS
 
 pytestmark = pytest.mark.slow
@@ -260,3 +260,18 @@ def test_integrator_props_and_registration(mi):
     with pytest.raises(Exception):
         mi.load_dict({"type": "split", "features": "sheen"})
     assert BY_NAME["depth"].size == 1
+
+
+def test_shorten_normals_rescales_only_overlong_normals_and_counts_them():
+    """Unit normals (and 0 where nothing was hit) are left bit for bit; a 1e3-long one becomes unit length."""
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(8, 8, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[0, 0] = 0.0
+    n[1, :3] *= 1000.0
+    before = n.copy()
+    assert shorten_normals(n) == 3
+    assert np.array_equal(n[2:], before[2:]) and np.array_equal(n[0], before[0])
+    np.testing.assert_allclose(np.linalg.norm(n[1, :3], axis=-1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(n[1, :3], before[1, :3] / np.linalg.norm(before[1, :3], axis=-1, keepdims=True), rtol=1e-6)
+    assert shorten_normals(n) == 0

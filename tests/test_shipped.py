@@ -57,19 +57,38 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
     assert std.max() > 0        # a trained network's samples differ (an untrained one returns its estimate)
 
 
-def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped):
-    """Garbage normals (|n| ~ 1e3) push the Control Module past the end of OIDN's output space, where the
-    inverse transfer overflows: those pixels end at the range's top (65504 after exposure), counted;
-    an ordinary frame touches none."""
-    from mcdenoise.evaluate.stability import CASES
+def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped, monkeypatch):
+    """A model output past the end of OIDN's output space (where the inverse transfer overflows) ends at the
+    range's top (65504 after exposure), counted; an ordinary frame touches none."""
     from mcdenoise.pipeline.oidn_net import autoexposure
 
+    frame = synthetic_buffers(32, 32, seed=5, noise=0.7)
+    shipped.denoise(frame, spp=4)
+    assert shipped.last_clamped == 0
+    real = oidn_refine.sample
+
+    def past_the_end(model, x, *args):      # the first rows pushed past OIDN's range, as a wild input could
+        mean, std, rest = real(model, x, *args)
+        mean[..., :4, :] += 2.0
+        return mean, std, rest
+
+    monkeypatch.setattr(oidn_refine, "sample", past_the_end)
+    out = shipped.denoise(frame, spp=4)
+    assert np.isfinite(out).all() and shipped.last_clamped >= 4 * 32
+    assert out.max() <= 65504.0 / autoexposure(frame["color"]) * 1.0001
+
+
+def test_garbage_normals_are_shortened_counted_and_give_an_ordinary_image(shipped):
+    """Normals of length ~1e3 (the stability suite's bad_normals) are scaled to unit length before the model sees
+    them, counted; the output stays near the base's (no blown-up pixels); rendered normals are untouched."""
+    from mcdenoise.evaluate.stability import CASES
     bad = CASES["bad_normals"][1]()
     out = shipped.denoise(bad, spp=4)
-    assert np.isfinite(out).all() and shipped.last_clamped > 0
-    assert out.max() <= 65504.0 / autoexposure(bad["color"]) * 1.0001
+    assert shipped.last_shortened > 0 and shipped.last_clamped == 0
+    base = load_denoiser(SHIPPED_MODEL, device="cpu", base_only=True).denoise(bad, spp=4)
+    assert abs(out.mean() - base.mean()) < 0.1 * base.mean()
     shipped.denoise(synthetic_buffers(32, 32, seed=5, noise=0.7), spp=4)
-    assert shipped.last_clamped == 0
+    assert shipped.last_shortened == 0
 
 
 @pytest.mark.parametrize("layers", [("color",), ("color", "albedo")])

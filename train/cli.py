@@ -105,7 +105,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
             "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
-            "base_only": getattr(den, "last_base_only", False),
+            "base_only": getattr(den, "last_base_only", False), "shortened_normals": getattr(den, "last_shortened", 0),
             "ensemble": ensemble, "seconds": round(seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:

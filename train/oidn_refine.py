@@ -43,7 +43,7 @@ from mcdenoise.pipeline.errors import CheckpointError, TrainError
 from mcdenoise.pipeline.exr import atomic_write_bytes, atomic_write_json, read_json
 from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
-from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 from mcdenoise.pipeline.runs import pick_device, run_dir
 from mcdenoise.pipeline.store import Store, sha256
 
@@ -453,6 +453,7 @@ class OIDNRefiner:
         self.control_without_groups = bool(meta.get("control_without_groups", True))
         self.last_repaired = self.last_clamped = 0
         self.last_black = self.last_estimate_only = self.last_base_only = False
+        self.last_shortened = 0        # normals longer than 1 scaled to unit length (garbage layers)
         self.last_seconds = 0.0
         self.fallback = ""
 
@@ -464,6 +465,7 @@ class OIDNRefiner:
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
         self.last_clamped, self.last_base_only = 0, False
+        self.last_shortened = shorten_normals(buffers["normal"]) if "normal" in buffers else 0
         color = buffers["color"]
         self.last_black = not np.any(color)
         self.last_estimate_only = not all(a in buffers for a in ("albedo", "normal"))
