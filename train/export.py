@@ -237,8 +237,6 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
     changed (model.json), with that base moved to OIDN + ``blend`` × the same change (``oidn_ft.blend``'s
     WiSE-FT knob, after training) and everything else kept: a new model to validate, since its Control
     Module was trained on the old base. ``out`` (default: ``model`` itself) is replaced by a rename."""
-    import hashlib
-
     from mcdenoise.pipeline import oidn_weights, tza
 
     from .oidn_ft import blended
@@ -259,18 +257,10 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
     moved = blended({k: t.array.astype(np.float32) for k, t in stock.items()},
                     {k: t.array.astype(np.float32) for k, t in base.items()}, float(blend) / float(old))
     blob = tza.write({k: tza.Tensor(moved[k].astype(np.float16), t.layout) for k, t in base.items()})
-    tmp = out.parent / (out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(model, tmp)
-    (tmp / meta["base"]).write_bytes(blob)
     what = f"{meta.get('base_what')}, moved from blend {old:g} to {blend:g} after training"
-    record = {**meta, "base_blend": float(blend), "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
-              "rebased": {"from": old, "to": float(blend), "date": datetime.date.today().isoformat()}}
-    atomic_write_json(tmp / weights.RECORD, record)
-    card = tmp / "README.md"
-    if card.exists():
-        card.write_text(card.read_text().rstrip("\n") + "\n\n" + _rebase_note(model, out, old, blend))
-    return _publish(tmp, out, model, quiet)
+    return _with_base(model, meta, blob, out, quiet, _rebase_note(model, out, old, blend),
+                      base_blend=float(blend), base_what=what,
+                      rebased={"from": old, "to": float(blend), "date": datetime.date.today().isoformat()})
 
 
 def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool = False) -> Path:
@@ -278,8 +268,6 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
     same network, e.g. an ``export --format oidn`` file; its blend from the card beside it, ``<file>.json``) and
     its Control Module kept: the start of a warm-started run on another base (``diffusion.init``), or a model
     to validate as it is. ``out`` (default: ``model`` itself) is replaced by a rename."""
-    import hashlib
-
     from mcdenoise.pipeline import tza
 
     model, base_file = Path(model), Path(base_file)
@@ -295,17 +283,25 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
                               f"{model / meta['base']}'s): the Control Module feeds that network's decoder")
     card = base_file.with_suffix(".json")
     blend = json.loads(card.read_text()).get("blend") if card.exists() else None
+    return _with_base(model, meta, blob, out, quiet, _swap_note(model, base_file, out, blend),
+                      base_blend=blend, base_what=f"{base_file} (blend {blend})",
+                      base_swapped={"from": meta.get("base_what"), "to": str(base_file),
+                                    "date": datetime.date.today().isoformat()})
+
+
+def _with_base(model: Path, meta: dict, blob: bytes, out: Path, quiet: bool, note: str, **record) -> Path:
+    """``model`` copied to ``out`` (by a rename) with ``blob`` as its frozen base, model.json updated with the
+    base's sha256 and ``record``, and ``note`` appended to its card."""
+    import hashlib
+
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(model, tmp)
     (tmp / meta["base"]).write_bytes(blob)
-    record = {**meta, "base_blend": blend, "base_what": f"{base_file} (blend {blend})",
-              "base_sha256": hashlib.sha256(blob).hexdigest(),
-              "base_swapped": {"from": meta.get("base_what"), "to": str(base_file), "date": datetime.date.today().isoformat()}}
-    atomic_write_json(tmp / weights.RECORD, record)
-    readme = tmp / "README.md"
-    if readme.exists():
-        readme.write_text(readme.read_text().rstrip("\n") + "\n\n" + _swap_note(model, base_file, out, blend))
+    atomic_write_json(tmp / weights.RECORD, {**meta, **record, "base_sha256": hashlib.sha256(blob).hexdigest()})
+    card = tmp / "README.md"
+    if card.exists():
+        card.write_text(card.read_text().rstrip("\n") + "\n\n" + note)
     return _publish(tmp, out, model, quiet)
 
 

@@ -502,7 +502,7 @@ class OIDNRefiner:
         finally:
             self.model.control = control
         # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
-        # Module pushed past it by inputs unlike its training (garbage normals) would overflow the inverse
+        # Module pushed past it by inputs unlike its training would overflow the inverse
         # transfer to inf: such pixels are clamped to the range's end and counted.
         self.last_clamped = int((mean[..., :H, :W] > 1.0).any(dim=1).sum())
         hdr, std_hdr = self.to_hdr(mean.clamp(max=1.0), std, scale, H, W)
