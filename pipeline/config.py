@@ -164,6 +164,10 @@ class SceneConfig(Section):
                                       "lit through one or two windows by a sky outside, half the time with no "
                                       "light inside: interiors lit mostly indirectly; 0: open sets only (the "
                                       "scenes made before this key existed).", 0.0)
+    sun_delta_probability: float = doc("Probability that a sky's sun is a delta (directional) light: sharp shadows, as "
+                                       "the sun lights of Blender, Houdini and USD throw, instead of a 3-8 degree "
+                                       "blob in the sky map (soft shadows) with the same irradiance; 0: blob suns only "
+                                       "(the scenes made before this key existed).", 0.0)
     group_probability: float = doc("Probability that an object is a grouped composition of primitives.", 0.2)
     materials: dict = doc("Relative weights of material families: principled, diffuse, plastic, roughplastic, "
                           "conductor, roughconductor, dielectric, roughdielectric.",
@@ -383,6 +387,9 @@ class DiffusionConfig(TrainingConfig):
                     "in train/base_model_paper, for the refine formulation a new IF-II-layout base with a zero last "
                     "layer written into the run folder (it returns the first estimate exactly and must train: "
                     "diffusion.train_base=true).", "")
+    extra_stores: list = doc("Base oidn: more stores whose train splits train the Control Module with the config's "
+                             "own (one pack each, beside it in <runs>/pack/); validation stays on the config's "
+                             "store. E.g. renders of your own scenes added to the ship data.", factory=list)
     init: str = doc("Base oidn: a trained model folder (a run folder or an exported one such as train/shipped) "
                     "the run starts from: its frozen base replaces diffusion.base and its Control Module trains "
                     "on (a warm start, e.g. on new data); empty: a new, zero-initialised Control Module.", "")

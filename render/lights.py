@@ -129,12 +129,11 @@ def sky_bitmap(env: dict, size: tuple[int, int] = SKY_SIZE) -> np.ndarray:
     e = float(np.sum(lum * np.clip(cos_t, 0, None) * dA))
     img = img * (np.pi / max(e, 1e-9))
     sun = env.get("sun")
-    if sun:
+    if sun and not sun.get("delta"):
         # Mitsuba's latlong: direction (sin t cos p', cos t, sin t sin p') with p' measured like ours
         # up to a fixed offset; the sun only needs to be *somewhere* consistent, so use our convention.
         d = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], -1)
-        a, el = np.deg2rad(sun["azimuth_deg"]), np.deg2rad(sun["elevation_deg"])
-        s = np.array([np.cos(el) * np.cos(a), np.sin(el), np.cos(el) * np.sin(a)])
+        s = sun_direction(sun)
         ang = np.arccos(np.clip(d @ s, -1, 1))
         sigma = np.deg2rad(sun["size_deg"]) / 2
         blob = np.exp(-0.5 * (ang / sigma) ** 2)
@@ -167,6 +166,27 @@ def emitter_dicts(mi, light: dict) -> dict:
                 "cutoff_angle": light["cutoff_angle"], "beam_width": light["beam_width"],
                 "intensity": {"type": "rgb", "value": light["intensity"]}}
     raise ValueError(f"unknown light type {kind!r}")
+
+
+def is_delta_sun(env: dict) -> bool:
+    """Whether the sky's sun is a directional light (``sun_dict``) rather than a blob in its map."""
+    return env["type"] == "sky" and bool((env.get("sun") or {}).get("delta"))
+
+
+def sun_direction(sun: dict) -> np.ndarray:
+    """Unit vector toward the sun (y up), by the convention of ``sky_bitmap``'s blob."""
+    a, el = np.deg2rad(sun["azimuth_deg"]), np.deg2rad(sun["elevation_deg"])
+    return np.array([np.cos(el) * np.cos(a), np.sin(el), np.cos(el) * np.sin(a)])
+
+
+def sun_dict(env: dict) -> dict:
+    """Mitsuba's ``directional`` emitter for a delta sun: the irradiance at normal incidence that the blob of
+    ``sky_bitmap`` would give (pi x strength x colour, times the map's ``scale``), with no angular size, so
+    its shadows are sharp."""
+    sun = env["sun"]
+    irradiance = np.pi * float(sun["strength"]) * float(env["scale"]) * np.asarray(sun["color"], np.float64)
+    return {"type": "directional", "direction": (-sun_direction(sun)).tolist(),
+            "irradiance": {"type": "rgb", "value": irradiance.tolist()}}
 
 
 def environment_dict(mi, env: dict) -> dict:

@@ -83,6 +83,10 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     enclosed = np.random.default_rng([int(seed), int(index), 1])
     if cfg.enclosed_probability > 0 and enclosed.uniform() < cfg.enclosed_probability:
         walls, floor, lights, environment = _enclose(enclosed, cfg, camera, c, radius, room_half, lights, total)
+    # Delta suns draw from a stream of their own too (the same reason).
+    if cfg.sun_delta_probability > 0 and environment and environment.get("sun"):
+        if np.random.default_rng([int(seed), int(index), 2]).uniform() < cfg.sun_delta_probability:
+            environment = {**environment, "sun": {**environment["sun"], "delta": True}}
     return {
         "version": DESC_VERSION, "seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
         "cluster": {"center": center, "radius": radius},
@@ -173,6 +177,8 @@ def build_scene(mi, desc: dict, max_depth: int = 8):
         scene[f"light_{i:02d}"] = lt.emitter_dicts(mi, light)
     if desc.get("environment"):
         scene["environment"] = lt.environment_dict(mi, desc["environment"])
+        if lt.is_delta_sun(desc["environment"]):
+            scene["sun"] = lt.sun_dict(desc["environment"])
     # The order of shapes and emitters decides which light a given random number selects, so it
     # must be fixed for a seed to reproduce an image. Parallel loading appends objects in
     # thread-timing order, and the 'optimize' pass (merging identical objects) reorders them

@@ -212,3 +212,31 @@ def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base):
         e, s = np.abs(hdr - it["ref"]).mean(2).ravel(), s.mean(2).ravel() * fit["scale"]
         ratios.append(e[s > 0] / s[s > 0])
     assert np.median(np.concatenate(ratios)) == pytest.approx(0.6745, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp_path):
+    """diffusion.extra_stores: each store's train split is packed on its own (reused on the next run) and
+    joined to the config's, every item keeping its own frame's target; a missing store names itself."""
+    import shutil
+    store, _ = cleaned
+    other = tmp_path / "other"
+    shutil.copytree(store, other)
+    cfg = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY,
+                             f"diffusion.extra_stores=[{other}]"])
+    one = oidn_refine.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'one'}"])).train_pack(True)
+    both = oidn_refine.StoreSource(cfg).train_pack(True)
+    n, frames = len(one["spp"]), len(one["target"])
+    assert len(both["spp"]) == 2 * n and len(both["target"]) == 2 * frames
+    extra = tmp_path / "runs" / "pack" / "train_extra0_oidn_base.safetensors"
+    assert extra.exists()
+    for i in range(n):
+        assert int(both["frame"][n + i]) == int(one["frame"][i]) + frames
+        assert torch.equal(both["target"][both["frame"][n + i]], one["target"][one["frame"][i]])
+        assert torch.equal(both["x"][n + i], one["x"][i])
+    stamp = extra.stat().st_mtime_ns
+    oidn_refine.StoreSource(cfg).train_pack(True)
+    assert extra.stat().st_mtime_ns == stamp          # the same store's pack is reused, not rebuilt
+    gone = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", f"diffusion.extra_stores=[{tmp_path / 'nope'}]"])
+    with pytest.raises(Exception, match="nope"):
+        oidn_refine.StoreSource(gone).train_pack(True)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mcdenoise.pipeline.config import SceneConfig
-from mcdenoise.render import camera as cam
+from mcdenoise.render import camera as cam, lights as lt
 from mcdenoise.render.materials import FAMILIES
 from mcdenoise.render.scene import STRESS_PRESETS, random_scene, stress_scene
 from mcdenoise.render.textures import KINDS, make_texture, random_texture_params
@@ -230,3 +230,54 @@ def test_daylight_reaches_a_closed_room_through_its_window(mi):
     assert np.isfinite(img).all() and img.mean() > 0
     dark = dict(desc, environment={**desc["environment"], "scale": 0.0, "irradiance": 0.0})
     assert _render(mi, dark, spp=4).max() == 0     # the sky is the only light
+
+
+def test_delta_suns_only_when_asked():
+    """scene.sun_delta_probability: at 1 every sky's sun is a directional light and nothing else of the scene
+    changes (its own stream); at 0 no scene has one (the scenes made before the key)."""
+    delta = dataclasses.replace(SceneConfig(), sun_delta_probability=1.0, environment_probability=1.0)
+    plain_cfg = dataclasses.replace(SceneConfig(), environment_probability=1.0)
+    suns = 0
+    for index in range(12):
+        desc, plain = random_scene(delta, 0, index, 1), random_scene(plain_cfg, 0, index, 1)
+        env, plain_env = desc["environment"], plain["environment"]
+        assert {k: v for k, v in desc.items() if k != "environment"} == {k: v for k, v in plain.items() if k != "environment"}
+        assert not lt.is_delta_sun(plain_env)
+        if plain_env.get("sun"):
+            suns += 1
+            assert lt.is_delta_sun(env) and {**env["sun"], "delta": False} == {**plain_env["sun"], "delta": False}
+        else:
+            assert env == plain_env
+    assert suns >= 3
+
+
+def test_a_delta_sun_gives_the_irradiance_its_blob_gave():
+    """The directional light carries what the sky map's sun blob carried: the map without the blob plus
+    the directional irradiance equals the map with it, at normal incidence toward the sun."""
+    env = next(e for e in (lt.random_environment(np.random.default_rng(seed), 5.0) for seed in range(50)) if e.get("sun"))
+    h, w = lt.SKY_SIZE
+    blob = lt.sky_bitmap(env).astype(np.float64) - lt.sky_bitmap({**env, "sun": {**env["sun"], "delta": True}})
+    theta, phi = (np.arange(h) + 0.5) / h * np.pi, (np.arange(w) + 0.5) / w * 2 * np.pi
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], -1)
+    cos = np.clip(d @ lt.sun_direction(env["sun"]), 0, None)
+    dA = np.sin(th) * (np.pi / h) * (2 * np.pi / w)
+    from_blob = env["scale"] * np.einsum("hwc,hw->c", blob, cos * dA)
+    sun = lt.sun_dict(env)
+    np.testing.assert_allclose(sun["irradiance"]["value"], from_blob, rtol=1e-4)
+    assert sun["type"] == "directional" and np.dot(sun["direction"], lt.sun_direction(env["sun"])) == pytest.approx(-1)
+
+
+@pytest.mark.slow
+def test_a_delta_sun_lights_the_ground_as_its_blob_did(mi):
+    """Rendered: the ground under the delta sun is as bright as under the blob (Mitsuba's frame and ours
+    agree on which way is down) and the render has no other light."""
+    cfg = dataclasses.replace(SceneConfig(), environment_probability=1.0, sun_delta_probability=1.0)
+    desc = next(d for d in (random_scene(cfg, 5, i, 1) for i in range(40))
+                if lt.is_delta_sun(d["environment"] or {}) and d["environment"]["sun"]["elevation_deg"] > 30)
+    bare = dict(desc, objects=[], walls=[], lights=[])
+    blob = dict(bare, environment={**bare["environment"], "sun": {**bare["environment"]["sun"], "delta": False}})
+    a, b = _render(mi, bare, spp=64), _render(mi, blob, spp=64)
+    assert np.isfinite(a).all() and np.median(a) == pytest.approx(np.median(b), rel=0.1)
+    no_sun = dict(bare, environment={**bare["environment"], "sun": None})
+    assert np.median(_render(mi, no_sun, spp=16)) < 0.8 * np.median(a)

@@ -133,7 +133,8 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
         from safetensors import safe_open
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
-        if (meta.get("format") == FORMAT and json.loads(meta.get("cond", "[]")) == cond_names()
+        if (meta.get("format") == FORMAT and meta.get("store") == str(store.root)
+                and json.loads(meta.get("cond", "[]")) == cond_names()
                 and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]):
             return path
     return build_pack(store, keys, path, quiet)
@@ -142,6 +143,16 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
 def load_pack(path: Path) -> dict[str, torch.Tensor]:
     from safetensors.torch import load_file
     return load_file(str(path))
+
+
+def concat_packs(packs: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """One pack of several (each item keeps its own frame's target)."""
+    if len(packs) == 1:
+        return packs[0]
+    offsets = np.cumsum([0] + [len(p["target"]) for p in packs[:-1]])
+    out = {k: torch.cat([p[k] for p in packs]) for k in packs[0] if k != "frame"}
+    out["frame"] = torch.cat([p["frame"] + int(o) for p, o in zip(packs, offsets)])
+    return out
 
 
 # ---- training items ----------------------------------------------------------------------------

@@ -50,7 +50,7 @@ from mcdenoise.pipeline.store import Store, sha256
 from .formulation import Formulation, snr_weight
 from .model import oidn_ft_blob
 from .oidn_control import ControlledOIDN
-from .oidn_pack import Crops, cond_names, ensure_pack, inputs, load_pack, pack_path, present
+from .oidn_pack import Crops, concat_packs, cond_names, ensure_pack, inputs, load_pack, pack_path, present
 from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
 
 FORMAT = weights.FORMATS["oidn_control"]
@@ -150,7 +150,12 @@ class StoreSource:
         return self.store.spp_choices(spp)
 
     def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
-        return load_pack(ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), quiet))
+        packs = [load_pack(ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), quiet))]
+        for i, root in enumerate(self.cfg.diffusion.extra_stores):
+            store = Store(root)
+            keys = store.training_frames()[0]
+            packs.append(load_pack(ensure_pack(store, keys, pack_path(self.cfg.runs, f"train_extra{i}"), quiet)))
+        return concat_packs(packs)
 
     def val_items(self, spps: list[int], frames: int) -> list[dict]:
         items = []
