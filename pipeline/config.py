@@ -496,6 +496,16 @@ class DiffusionConfig(TrainingConfig):
             bad("tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
         if self.init and not (Path(self.init) / "model.json").is_file():
             bad("init", f"{self.init}: not a trained model folder (no model.json there)")
+        for root in self.extra_stores:
+            if not (Path(root) / "dataset.json").is_file():
+                bad("extra_stores", f"{root}: no dataset there (no dataset.json); render it: make dataset store={root}")
+        if self.extra_stores and not self.on_oidn():
+            bad("extra_stores", "only a model on OIDN's network reads them (diffusion.base=oidn, oidn_ft or a .tza "
+                                "file, or diffusion.init)")
+
+    def on_oidn(self) -> bool:
+        """Whether the model is a Control Module on OIDN's network (train/oidn_refine.py)."""
+        return bool(self.init) or self.base in ("oidn", "oidn_ft") or self.base.endswith(".tza")
 
 
 @dataclass

@@ -7,7 +7,7 @@ import torch
 
 from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.store import Store, sha256
 from mcdenoise.train import oidn_pack, oidn_refine
 from mcdenoise.train.formulation import Formulation
@@ -237,6 +237,7 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
     stamp = extra.stat().st_mtime_ns
     oidn_refine.StoreSource(cfg).train_pack(True)
     assert extra.stat().st_mtime_ns == stamp          # the same store's pack is reused, not rebuilt
-    gone = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", f"diffusion.extra_stores=[{tmp_path / 'nope'}]"])
-    with pytest.raises(Exception, match="nope"):
-        oidn_refine.StoreSource(gone).train_pack(True)
+    with pytest.raises(ConfigError, match="extra_stores.*nope.*no dataset"):
+        load_config(TINY, [f"store={store}", *REFINE_TINY, f"diffusion.extra_stores=[{tmp_path / 'nope'}]"])
+    with pytest.raises(ConfigError, match="extra_stores.*OIDN"):   # the stand-in model would ignore them
+        load_config(TINY, [f"store={store}", f"diffusion.extra_stores=[{other}]"])

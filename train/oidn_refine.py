@@ -76,7 +76,7 @@ def base_blob(cfg: Config) -> tuple[bytes, str]:
 
 
 def is_oidn_base(cfg: Config) -> bool:
-    return bool(cfg.diffusion.init) or cfg.diffusion.base in ("oidn", "oidn_ft") or cfg.diffusion.base.endswith(".tza")
+    return cfg.diffusion.on_oidn()
 
 
 # ---- the loss ----------------------------------------------------------------------------------
@@ -145,15 +145,14 @@ class StoreSource:
     def __init__(self, cfg: Config):
         self.cfg, self.store = cfg, Store(cfg.store)
         self.train_keys, self.val_keys = self.store.training_frames()
+        self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 
     def spps(self, spp) -> list[int]:
         return self.store.spp_choices(spp)
 
     def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
         packs = [load_pack(ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), quiet))]
-        for i, root in enumerate(self.cfg.diffusion.extra_stores):
-            store = Store(root)
-            keys = store.training_frames()[0]
+        for i, (store, keys) in enumerate(self.extra):
             packs.append(load_pack(ensure_pack(store, keys, pack_path(self.cfg.runs, f"train_extra{i}"), quiet)))
         return concat_packs(packs)
 
