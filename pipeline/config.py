@@ -392,7 +392,9 @@ class DiffusionConfig(TrainingConfig):
                              "store. E.g. renders of your own scenes added to the ship data.", factory=list)
     init: str = doc("Base oidn: a trained model folder (a run folder or an exported one such as train/shipped) "
                     "the run starts from: its frozen base replaces diffusion.base and its Control Module trains "
-                    "on (a warm start, e.g. on new data); empty: a new, zero-initialised Control Module.", "")
+                    "on (a warm start, e.g. on new data) with that model's formulation and train_steps (the "
+                    "config's are not used; the run says which differ); empty: a new, zero-initialised Control "
+                    "Module.", "")
     tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
                        "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
     epochs: int = override("epochs", 100, "An epoch: crops_per_frame crops of every train frame, at most "

@@ -1,9 +1,12 @@
 """The diffusion denoiser on OIDN (train/oidn_control.py, train/oidn_pack.py, train/oidn_refine.py)."""
 import json
+import shutil
 
 import numpy as np
 import pytest
 import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.config import load_config
@@ -151,6 +154,30 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     warm = json.loads((tmp_path / "diffusion_sppany" / "model.json").read_text())
     assert warm["base_sha256"] == meta["base_sha256"] and warm["settings"]["init"] == str(folder)
     assert warm["settings"]["init_sha256"] == sha256(folder / "control.safetensors")
+    # a start whose Control Module is not zero, under a config whose formulation differs from the model's (a warm
+    # start from train/shipped with the default config's keys; 3 sampler steps, so the residual scale matters):
+    # the run keeps the model's formulation and record, so its epoch 0 is still that model
+    start = tmp_path / "start"
+    shutil.copytree(folder, start)
+    torch.manual_seed(0)
+    with safe_open(str(start / "control.safetensors"), "pt") as f:
+        moved = {k: f.get_tensor(k) + 0.05 * torch.randn_like(f.get_tensor(k)) for k in f.keys()}
+        save_file(moved, str(start / "control.safetensors"), f.metadata())
+    (start / "model.json").write_text(json.dumps({**meta, "control_without_groups": False}))
+    epoch0 = {}
+    for name, keys in {"same": [], "other": ["diffusion.residual_scale=0.5", "diffusion.steps=3",
+                                             "diffusion.t_focus=0.1", "diffusion.train_steps=[9]"]}.items():
+        proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
+                   f"runs={tmp_path / name}", *REFINE_TINY, "diffusion.epochs=1", "diffusion.base=",
+                   f"diffusion.init={start}", *keys)
+        epoch0[name] = json.loads((tmp_path / name / "diffusion_sppany" / "train.json").read_text())["history"][0]
+        assert ("diffusion.residual_scale=0.5" in proc.stdout) == bool(keys)
+    assert epoch0["other"]["val"]["psnr"] == pytest.approx(epoch0["same"]["val"]["psnr"], abs=1e-9)
+    assert epoch0["same"]["val"]["psnr"] != pytest.approx(meta["metrics"]["psnr"], abs=1e-3)   # the start moved
+    warm = json.loads((tmp_path / "other" / "diffusion_sppany" / "model.json").read_text())
+    assert warm["formulation"] == meta["formulation"]
+    assert warm["settings"]["train_steps"] == meta["settings"]["train_steps"]
+    assert warm["control_without_groups"] is False
     # a folder that is no trained model is a config error naming the key
     proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
                f"runs={tmp_path / 'bad'}", *REFINE_TINY, f"diffusion.init={tmp_path / 'nothing'}", check=False)

@@ -67,9 +67,7 @@ def run_refine(args: Settings, sizes: dict) -> int:
     cfg = load_config(None, [f"diffusion.{k}={st[k]}" for k in keys if k in st] + [
         "diffusion.base=oidn", f"diffusion.crop={side}", f"diffusion.batch_size={args.batch}",
         f"diffusion.lr={args.lr}", "diffusion.epochs=10000", "diffusion.warmup_steps=20", "diffusion.crops_per_frame=1",
-        f"diffusion.time_budget_s={args.minutes * 60}", f"diffusion.device={args.device}",
-        f"diffusion.residual_scale={meta['formulation']['residual_scale']}",
-        f"diffusion.train_steps={st.get('train_steps', [1])}", f"diffusion.t_focus={meta['formulation']['t_focus']}"])
+        f"diffusion.time_budget_s={args.minutes * 60}", f"diffusion.device={args.device}"])
     work = Path(tempfile.mkdtemp(prefix="gpu_recipe_")) / "diffusion_gpu"
     task = oidn_refine.RefineTask(cfg, "any", quiet=True, folder=work, init=Path(args.model),
                                   source=oidn_refine.PackSource(Path(args.train), Path(args.val)))

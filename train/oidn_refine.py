@@ -75,6 +75,26 @@ def base_blob(cfg: Config) -> tuple[bytes, str]:
     return oidn_weights.load(NETWORK, base), str(base)
 
 
+# What a warm-started run copies from its start's model.json besides the weights: how the model is used
+KEPT = ("control_without_groups",)
+
+
+def warm_start_recipe(d, meta: dict) -> tuple[Formulation, list[int], list[str]]:
+    """What a warm start (``diffusion.init``) keeps of the model it starts from: its formulation (the residual
+    scale its Control Module's output is read at, the schedule, the sampler, t_focus, the loss's normalisation)
+    and the sampler step counts it trained for, so that epoch 0 is that model and training goes on with its
+    recipe; the config's keys set the optimiser and the data. Returns (formulation, train_steps, the config's
+    keys that differ from the model's, as notes)."""
+    form = Formulation.from_record(meta["formulation"])
+    steps = list(meta.get("settings", {}).get("train_steps", d.train_steps))
+    mine = Formulation.from_config(d)
+    differ = [f"diffusion.{k}={getattr(mine, k)} (the model's: {getattr(form, k)})" for k in form.record()
+              if k not in ("estimate", "residual") and getattr(mine, k) != getattr(form, k)]
+    if list(d.train_steps) != steps:
+        differ.append(f"diffusion.train_steps={list(d.train_steps)} (the model's: {steps})")
+    return form, steps, differ
+
+
 def is_oidn_base(cfg: Config) -> bool:
     return cfg.diffusion.on_oidn()
 
@@ -215,10 +235,17 @@ class RefineTask(Task):
         # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module, or both
         # from a trained model folder (``init`` / diffusion.init: a warm start).
         init = init or (Path(d.init) if d.init else None)
+        self.train_steps, self.kept = list(d.train_steps), {}
         if init is not None:
             start, meta = load(init, self.device)
             self.blob, self.base_what = (Path(init) / meta["base"]).read_bytes(), f"{init}/{meta['base']}"
             self.base_blend = meta.get("base_blend")
+            form, self.train_steps, differ = warm_start_recipe(d, meta)
+            self.form = dataclasses.replace(form, estimate="oidn", residual=True)
+            self.kept = {k: meta[k] for k in KEPT if k in meta}
+            if differ and not quiet and self.rank == 0:
+                print(f"diffusion.init={init}: the run keeps that model's formulation; not used: {'; '.join(differ)}",
+                      flush=True)
         else:
             self.blob, self.base_what = base_blob(cfg)
             self.base_blend = {"oidn": 0.0, "oidn_ft": cfg.oidn_ft.blend}.get(cfg.diffusion.base)
@@ -238,7 +265,7 @@ class RefineTask(Task):
                             # the start by content, not only by path: a replaced folder must not resume this run
                             **({"init": str(init), "init_sha256": sha256(Path(init) / "control.safetensors")}
                                if init is not None else {}),
-                            "formulation": self.form.record(), "train_steps": list(d.train_steps),
+                            "formulation": self.form.record(), "train_steps": self.train_steps,
                             **{k: getattr(d, k) for k in ("crop", "batch_size", "crops_per_frame", "epoch_steps", "lr",
                                                            "weight_decay", "warmup_steps", "grad_clip", "ema", "epochs",
                                                            "hdr_weight", "dropout")}}
@@ -255,7 +282,7 @@ class RefineTask(Task):
             self.steps_per_epoch = min(self.steps_per_epoch, self.d.epoch_steps)
             self.per_rank = min(self.per_rank, self.steps_per_epoch * self.d.batch_size)
         self.total_steps = self.steps_per_epoch * self.d.epochs
-        self.focus = self.form.train_timesteps(list(self.d.train_steps))
+        self.focus = self.form.train_timesteps(self.train_steps)
         self.noise_sched = self.form.scheduler("ddpm")
         self.val = self.source.val_items(self.spps, self.d.val_frames) if self.rank == 0 else []
         self.net = self.model
@@ -336,7 +363,7 @@ class RefineTask(Task):
     def save_best(self, entry: dict) -> None:
         save(self.folder, self.model, self.blob, self.base_what, self.form, self.spps,
              {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
-              "store": str(self.cfg.store), "settings": self.fingerprint,
+              "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
               # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
               **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
 
