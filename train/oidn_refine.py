@@ -227,21 +227,16 @@ class RefineTask(Task):
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, d.epochs, d.time_budget_s, d.nan_limit
         self.device = pick_device(d.device)
         self.autocast = autocast_dtype(d.precision, self.device)
-        self.form = dataclasses.replace(Formulation.from_config(d), estimate="oidn", residual=True)
-        if self.form.paper or self.form.prediction != "sample":
-            raise TrainError("diffusion.base=oidn trains the refine formulation with x0 prediction "
-                             "(diffusion.prediction=sample)")
 
         # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module, or both
         # from a trained model folder (``init`` / diffusion.init: a warm start).
         init = init or (Path(d.init) if d.init else None)
-        self.train_steps, self.kept = list(d.train_steps), {}
+        form, self.train_steps, self.kept = Formulation.from_config(d), list(d.train_steps), {}
         if init is not None:
             start, meta = load(init, self.device)
             self.blob, self.base_what = (Path(init) / meta["base"]).read_bytes(), f"{init}/{meta['base']}"
             self.base_blend = meta.get("base_blend")
             form, self.train_steps, differ = warm_start_recipe(d, meta)
-            self.form = dataclasses.replace(form, estimate="oidn", residual=True)
             self.kept = {k: meta[k] for k in KEPT if k in meta}
             if differ and not quiet and self.rank == 0:
                 print(f"diffusion.init={init}: the run keeps that model's formulation; not used: {'; '.join(differ)}",
@@ -249,6 +244,10 @@ class RefineTask(Task):
         else:
             self.blob, self.base_what = base_blob(cfg)
             self.base_blend = {"oidn": 0.0, "oidn_ft": cfg.oidn_ft.blend}.get(cfg.diffusion.base)
+        self.form = dataclasses.replace(form, estimate="oidn", residual=True)
+        if self.form.paper or self.form.prediction != "sample":
+            raise TrainError("diffusion.base=oidn trains the refine formulation with x0 prediction "
+                             "(diffusion.prediction=sample)")
         torch.manual_seed(cfg.seed)
         base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
         self.model = ControlledOIDN(base, len(cond_names()), control=d.control).to(self.device)
