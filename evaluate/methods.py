@@ -11,7 +11,10 @@ Names (``eval.methods``):
 
 - ``noisy``: the input colour itself.
 - ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
-  albedo and normal; ``oidn_albedo``: colour and albedo; ``oidn_color``: colour only.
+  albedo and normal; ``oidn_albedo``: colour and albedo; ``oidn_color``: colour only;
+  ``oidn_prefilter``: OIDN's mode for final frames with noisy aux (albedo and normal denoised by its
+  aux networks first, then ``cleanAux``: its ``rt_hdr_calb_cnrm_large`` network at quality high),
+  three filter runs.
 - ``oidn_ft``: OIDN's network fine-tuned on the store (``train.oidn_ft``, run
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
@@ -67,13 +70,15 @@ from mcdenoise.pipeline.exr import StoreError
 # run variant and the sampling (see the module docstring).
 _DIFFUSION = {"ours": False, "base_only": True}
 # OIDN families -> the network OIDN runs; oidn_ft families -> the network their run fine-tuned
-OIDN_STOCK = {"oidn": "rt_hdr_alb_nrm", "oidn_albedo": "rt_hdr_alb", "oidn_color": "rt_hdr"}
+OIDN_STOCK = {"oidn": "rt_hdr_alb_nrm", "oidn_albedo": "rt_hdr_alb", "oidn_color": "rt_hdr",
+              "oidn_prefilter": "rt_hdr_calb_cnrm"}
 OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft_color": "rt_hdr"}
 FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_albedo": "OIDN (colour+albedo)",
           "oidn_color": "OIDN (colour only)",
+          "oidn_prefilter": "OIDN (colour+prefiltered albedo+normal, cleanAux)",
           "oidn_ft": "OIDN fine-tuned on our data (colour+albedo+normal)",
           "oidn_ft_albedo": "OIDN fine-tuned on our data (colour+albedo)",
           "oidn_ft_color": "OIDN fine-tuned on our data (colour only)",
@@ -190,7 +195,8 @@ class Noisy(Method):
 @dataclass
 class OIDN(Method):
     """OIDN on colour and the aux layers of ``network`` (``oidn_weights.network_aux``), with its built-in
-    weights or, for the oidn_ft rows, ``weights`` (the float16 TZA blob of an oidn_ft run or shipped file)."""
+    weights or, for the oidn_ft rows, ``weights`` (the float16 TZA blob of an oidn_ft run or shipped file);
+    a ``_calb_cnrm`` network gets its aux prefiltered by OIDN (``pipeline.oidn``'s ``clean_aux``)."""
     name: str = "oidn"
     network: str = "rt_hdr_alb_nrm"
     weights: bytes | None = None
@@ -206,7 +212,8 @@ class OIDN(Method):
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn
-        return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality, weights=self.weights)
+        return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality, weights=self.weights,
+                            clean_aux="_calb_cnrm" in self.network)
 
 
 def _layers_of(network: str, buffers: dict) -> dict:

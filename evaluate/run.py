@@ -40,8 +40,9 @@ from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 EXTERNAL = "external"
 STRESS = "stress"
-CROP_METHODS = ("noisy", "oidn", "oidn_ft", "isik", "ours")
-CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "oidn_ft": "OIDN fine-tuned", "isik": "Isik", "ours": "ours",
+CROP_METHODS = ("noisy", "oidn", "oidn_prefilter", "oidn_ft", "isik", "ours")
+CROP_TITLES = {"noisy": "noisy", "oidn": "OIDN", "oidn_prefilter": "OIDN, aux prefiltered",
+               "oidn_ft": "OIDN fine-tuned", "isik": "Isik", "ours": "ours",
                "gt_clean": "GT_clean", "gt1": "GT1"}
 
 

@@ -625,7 +625,8 @@ class OidnFtConfig(TrainingConfig):
 @dataclass
 class EvalConfig(Section):
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_albedo, "
-                        "oidn_color, oidn_ft, oidn_ft_albedo and oidn_ft_color (OIDN fine-tuned on the store: make "
+                        "oidn_color, oidn_prefilter (OIDN's final-frame mode: aux prefiltered, cleanAux), oidn_ft, "
+                        "oidn_ft_albedo and oidn_ft_color (OIDN fine-tuned on the store: make "
                         "train MODEL=oidn_ft), isik, "
                         "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
                         "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
@@ -634,7 +635,8 @@ class EvalConfig(Section):
                         "diffusion_spp<N>_paper; see evaluate/methods.py). Any method takes _xN last: its self-ensemble "
                         "over N (2, 4, 8) flipped/transposed copies of the frame at N times its time (oidn_x8, "
                         "ours_x8). A method whose model is missing is listed as not available.",
-                        factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_albedo", "oidn_color", "oidn_ft",
+                        factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_prefilter", "oidn_albedo", "oidn_color",
+                                         "oidn_ft",
                                          "oidn_ft_albedo", "oidn_ft_color", "isik", "afgsa", "oidn_isik", "ours",
                                          "ours_x8", "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "

@@ -1,9 +1,13 @@
 """Intel Open Image Denoise (``pyoidn``): the one call every stage uses (baseline, first estimate,
 and OIDN running weights we trained).
 
-Filter RT in HDR mode, quality high. Albedo and normal are the renderer's noisy buffers, so OIDN
-prefilters them (``cleanAux`` off). OIDN takes world- or view-space normals in [−1, 1] (need not be
-normalised) and albedo in [0, 1]: both are clamped to those ranges before the call; negative
+Filter RT in HDR mode, quality high. Albedo and normal are the renderer's noisy buffers. By default
+they go to OIDN as they are (``cleanAux`` off: the colour network trained on noisy aux, one filter
+run). ``clean_aux=True`` is the mode OIDN's documentation recommends for final frames with noisy aux:
+albedo and normal are first denoised by OIDN's own aux networks (an RT filter given only ``albedo``
+or only ``normal``), then the colour network made for noise-free aux runs (``cleanAux`` on): three
+filter runs instead of one. OIDN takes world- or view-space normals in [−1, 1] (need not be
+normalised) and albedo in [0, 1]: both are clamped to those ranges before each call; negative
 radiance (never produced by the renderer, possible in user EXRs) is clamped to 0.
 
 ``weights``: a float16 TZA blob (``pipeline.tza``; ``export --format oidn`` writes one) that OIDN
@@ -15,12 +19,13 @@ refuses float32 blobs. One filter is kept per blob, so stock calls never see cus
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import threading
 
 import numpy as np
 
-from .errors import OIDNUnavailable, WeightsError
+from .errors import OIDNUnavailable, PipelineError, WeightsError
 
 
 def available() -> str | None:
@@ -43,18 +48,78 @@ def _inputs(buffers: dict[str, np.ndarray], aux: bool) -> tuple[np.ndarray, np.n
 
 
 def denoise(buffers: dict[str, np.ndarray], aux: bool = True, quality: str = "high",
-            weights: bytes | None = None) -> np.ndarray:
+            weights: bytes | None = None, clean_aux: bool = False) -> np.ndarray:
     """(H, W, 3) float32 HDR from a frame's buffers (``color``; ``albedo`` and ``normal`` when
     ``aux`` and present; albedo alone is OIDN's +albedo input set). ``weights``: a TZA blob OIDN
-    runs instead of its own network."""
+    runs instead of its own network. ``clean_aux``: prefilter the aux buffers with OIDN's aux
+    networks and run the colour network for noise-free aux (a blob given in ``weights`` must then
+    be one such network)."""
     why = available()
     if why:
         raise OIDNUnavailable(why)
     color, albedo, normal = _inputs(buffers, aux)
+    clean_aux = clean_aux and albedo is not None
+    if clean_aux:
+        albedo, normal = prefilter_aux(albedo, normal, quality)
     if weights is not None:
-        return _custom(weights).run(color, albedo, normal, quality)
+        return _custom(weights).run(color, albedo, normal, quality, clean_aux)
     import pyoidn
-    return np.asarray(pyoidn.denoise(color, albedo, normal, hdr=True, quality=quality), dtype=np.float32)
+    return np.asarray(pyoidn.denoise(color, albedo, normal, hdr=True, clean_aux=clean_aux, quality=quality),
+                      dtype=np.float32)
+
+
+def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high"
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Albedo and normal denoised by OIDN's own aux networks (an RT filter given only that image),
+    clamped back to [0, 1] and [−1, 1]: the noise-free aux that ``cleanAux`` expects."""
+    filt = _aux_filter()
+    albedo = np.ascontiguousarray(np.clip(filt.run("albedo", albedo, quality), 0, 1), dtype=np.float32)
+    if normal is not None:
+        normal = np.ascontiguousarray(np.clip(filt.run("normal", normal, quality), -1, 1), dtype=np.float32)
+    return albedo, normal
+
+
+_QUALITY = {"high": "OIDN_QUALITY_HIGH", "balanced": "OIDN_QUALITY_BALANCED", "fast": "OIDN_QUALITY_FAST",
+            "default": "OIDN_QUALITY_DEFAULT"}
+
+
+class _AuxFilter:
+    """One RT filter per aux image on its own device, reused across calls (OIDN builds a filter
+    once and runs it many times)."""
+
+    def __init__(self):
+        import pyoidn
+        self.device = pyoidn.Device()
+        self.device.commit()
+        self.filters: dict = {}
+        self.lock = threading.Lock()
+
+    def run(self, name: str, image: np.ndarray, quality: str) -> np.ndarray:
+        import pyoidn
+        out = np.empty_like(image)
+        with self.lock:
+            if name not in self.filters:
+                self.filters[name] = pyoidn.Filter(self.device, pyoidn.OIDN_FILTER_TYPE_RT)
+            f = self.filters[name]
+            f.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
+            f.set_image("output", out, pyoidn.OIDN_FORMAT_FLOAT3)
+            f.set_quality(getattr(pyoidn, _QUALITY[quality]))
+            f.commit()
+            _check(self.device, f"committing the {name} prefilter")
+            f.execute()
+            _check(self.device, f"running the {name} prefilter")
+        return out
+
+
+@functools.cache
+def _aux_filter() -> _AuxFilter:
+    return _AuxFilter()
+
+
+def _check(device, what: str) -> None:
+    err = device.get_error()
+    if err:
+        raise PipelineError(f"OIDN failed while {what}: {err}")
 
 
 class _CustomFilter:
@@ -80,10 +145,8 @@ class _CustomFilter:
             raise WeightsError(f"OIDN refused the custom weights while {what}: {err} (a float16 TZA blob of OIDN's "
                                "UNet for these inputs is expected; export --format oidn writes one)")
 
-    def run(self, color, albedo, normal, quality: str) -> np.ndarray:
+    def run(self, color, albedo, normal, quality: str, clean_aux: bool = False) -> np.ndarray:
         import pyoidn
-        levels = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
-                  "fast": pyoidn.OIDN_QUALITY_FAST, "default": pyoidn.OIDN_QUALITY_DEFAULT}
         out = np.empty_like(color)
         with self.lock:
             f = self.filter
@@ -96,8 +159,8 @@ class _CustomFilter:
                     f.set_image("normal", normal, pyoidn.OIDN_FORMAT_FLOAT3)
             f.set_image("output", out, pyoidn.OIDN_FORMAT_FLOAT3)
             f.set_bool("hdr", True)
-            f.set_bool("cleanAux", False)
-            f.set_quality(levels[quality])
+            f.set_bool("cleanAux", clean_aux)
+            f.set_quality(getattr(pyoidn, _QUALITY[quality]))
             f.commit()
             self._check("committing the filter")
             f.execute()

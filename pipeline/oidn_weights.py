@@ -39,9 +39,9 @@ def network_for(albedo: bool, normal: bool, small: bool = False) -> str:
 
 
 def network_aux(network: str) -> tuple[str, ...]:
-    """The aux buffers an OIDN network reads (the inverse of ``network_for``): (), ("albedo",) or
-    ("albedo", "normal")."""
-    return ("albedo", "normal")[: (2 if "_alb_nrm" in network else 1 if "_alb" in network else 0)]
+    """The aux buffers an OIDN colour network reads (the inverse of ``network_for``): (), ("albedo",) or
+    ("albedo", "normal"); ``_calb_cnrm`` (noise-free aux) reads both."""
+    return ("albedo", "normal")[: (2 if "nrm" in network else 1 if "alb" in network else 0)]
 
 
 def library_path() -> Path:

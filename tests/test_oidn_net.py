@@ -94,6 +94,46 @@ def test_oidn_refuses_bad_blobs(frame):
         oidn.denoise(frame, weights=oidn_weights.load("rt_hdr"))
 
 
+def test_the_aux_prefilter_denoises_albedo_and_normal():
+    """OIDN's aux networks (an RT filter given only albedo or only normal) remove noise from them and
+    keep them in range."""
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:64, 0:80] / 80.0
+    albedo = np.stack([0.2 + 0.6 * x, 0.5 + 0.0 * x, 0.8 - 0.5 * y], -1).astype(np.float32)
+    normal = np.stack([np.sin(x), np.cos(x), 0.3 + 0.0 * y], -1).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    noisy_a = np.clip(albedo + rng.normal(0, 0.08, albedo.shape), 0, 1).astype(np.float32)
+    noisy_n = np.clip(normal + rng.normal(0, 0.15, normal.shape), -1, 1).astype(np.float32)
+    clean_a, clean_n = oidn.prefilter_aux(noisy_a, noisy_n)
+    assert clean_a.dtype == clean_n.dtype == np.float32 and clean_a.shape == clean_n.shape == albedo.shape
+    assert clean_a.min() >= 0 and clean_a.max() <= 1 and np.abs(clean_n).max() <= 1
+    for noisy, out, truth in ((noisy_a, clean_a, albedo), (noisy_n, clean_n, normal)):
+        assert np.mean((out - truth) ** 2) < 0.25 * np.mean((noisy - truth) ** 2)
+
+
+@pytest.mark.slow
+def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame):
+    """``clean_aux``: the aux prefiltered, then OIDN's network for noise-free aux (at quality high its
+    _large variant, whose blob run as custom weights on the same inputs gives the same output)."""
+    import pyoidn
+    clean = oidn.denoise(frame, clean_aux=True)
+    albedo, normal = oidn.prefilter_aux(np.clip(frame["albedo"], 0, 1), np.clip(frame["normal"], -1, 1))
+    by_hand = pyoidn.denoise(frame["color"], albedo, normal, hdr=True, clean_aux=True, quality="high")
+    np.testing.assert_array_equal(by_hand, clean)
+    large = oidn_weights.load("rt_hdr_calb_cnrm_large")
+    np.testing.assert_array_equal(oidn.denoise(frame, weights=large, clean_aux=True), clean)
+    assert tonemapped_psnr(clean, oidn.denoise(frame)) < 60     # another network on other aux
+    # without aux there is nothing to prefilter: the colour-only network, as without the flag
+    color = {"color": frame["color"]}
+    np.testing.assert_array_equal(oidn.denoise(color, clean_aux=True), oidn.denoise(color))
+    # the evaluator's row runs this mode, on colour, albedo and normal only
+    from mcdenoise.evaluate.methods import Loader
+    from mcdenoise.pipeline.config import load_config
+    row = Loader(load_config(None, ["eval.device=cpu"])).load("oidn_prefilter", 4)
+    extra = {"depth": np.ones_like(frame["color"][..., :1])}
+    np.testing.assert_array_equal(row.denoise({**frame, **extra}), clean)
+
+
 def test_pu_transfer_inverts():
     y = torch.cat([torch.zeros(1), torch.logspace(-9, np.log10(oidn_net.HDR_MAX), 2000, dtype=torch.float64)])
     x = oidn_net.to_pu(y)
