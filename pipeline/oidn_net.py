@@ -2,12 +2,16 @@
 
 ``pipeline.oidn`` runs OIDN itself (the baseline, the first estimate); this twin is what trains.
 Built from a TZA archive's shapes (``pipeline.tza``, ``pipeline.oidn_weights``), so the colour,
-+albedo and +albedo+normal networks (3/6/9 input channels) and their ``_small`` variants all load.
++albedo and +albedo+normal networks (3/6/9 input channels), their ``_small`` variants and the
+``_large`` layout (``rt_hdr_calb_cnrm_large``, what OIDN runs at quality high on prefiltered aux)
+all load.
 
-The UNet (OIDN's ``training/model.py``, ``UNet``): 3×3 convolutions with padding 1, each followed
-by a ReLU except the last; five encoder levels with 2×2 max pooling after ``enc_conv1`` …
-``enc_conv4``; a decoder of nearest ×2 upsampling, concatenation ``[upsampled, skip]`` (the order
-matters) and two convolutions per level, the last level concatenating the network input itself.
+The UNet (OIDN's ``training/model.py``, ``UNet`` and ``UNetLarge``; ``Layout`` names the layers):
+3×3 convolutions with padding 1, each followed by a ReLU except the last; five encoder levels with
+2×2 max pooling after the first four (one or two convolutions each; the large layout always two,
+and wider); a decoder of nearest ×2 upsampling, concatenation ``[upsampled, skip]`` (the order
+matters) and two convolutions per level, the last level concatenating the network input itself,
+then the output convolution.
 
 HDR processing (OIDN's core, ``input_process``/``output_process``/``autoexposure``):
 
@@ -23,6 +27,8 @@ The network's output space (PU of the exposed radiance) is where OIDN's training
 loss, and where ``oidn_ft`` (``train.oidn_ft``) puts ours.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -44,14 +50,80 @@ PU_X0, PU_X1 = 2.23151711e-03, 3.70974749e-01
 LUMINANCE = (0.212671, 0.715160, 0.072169)
 AUTOEXPOSURE_BIN, AUTOEXPOSURE_KEY, AUTOEXPOSURE_EPS = 16, 0.18, 1e-8
 
-ENCODER = ("enc_conv0", "enc_conv1", "enc_conv2", "enc_conv3", "enc_conv4", "enc_conv5a", "enc_conv5b")
-DECODER = ("dec_conv4a", "dec_conv4b", "dec_conv3a", "dec_conv3b", "dec_conv2a", "dec_conv2b",
-           "dec_conv1a", "dec_conv1b", "dec_conv0")
-LAYERS = ENCODER + DECODER
-# The resolution each layer works at: 0 the full image, k after k 2×2 poolings (4: the bottleneck).
-LEVEL = {"enc_conv0": 0, "enc_conv1": 0, "enc_conv2": 1, "enc_conv3": 2, "enc_conv4": 3, "enc_conv5a": 4,
-         "enc_conv5b": 4, "dec_conv4a": 3, "dec_conv4b": 3, "dec_conv3a": 2, "dec_conv3b": 2, "dec_conv2a": 1,
-         "dec_conv2b": 1, "dec_conv1a": 0, "dec_conv1b": 0, "dec_conv0": 0}
+
+@dataclass(frozen=True)
+class Layout:
+    """The layer names of one UNet layout: ``stages[k]`` are the convolutions at resolution level k
+    before the k-th 2×2 pooling (levels 0–3), then the bottleneck (level 4), the decoder's levels
+    (two convolutions each, skips ``pool3`` … ``pool1`` and the input ``x``) and the output conv."""
+    stages: tuple[tuple[str, ...], ...]
+    bottleneck: tuple[str, ...] = ("enc_conv5a", "enc_conv5b")
+    levels: tuple[tuple[str, str, str], ...] = (("dec_conv4a", "dec_conv4b", "pool3"),
+                                                ("dec_conv3a", "dec_conv3b", "pool2"),
+                                                ("dec_conv2a", "dec_conv2b", "pool1"),
+                                                ("dec_conv1a", "dec_conv1b", "x"))
+    output: str = "dec_conv0"
+
+    @property
+    def encoder(self) -> tuple[str, ...]:
+        return tuple(n for stage in self.stages for n in stage) + self.bottleneck
+
+    @property
+    def decoder(self) -> tuple[str, ...]:
+        return tuple(n for a, b, _ in self.levels for n in (a, b)) + (self.output,)
+
+    @property
+    def layers(self) -> tuple[str, ...]:
+        return self.encoder + self.decoder
+
+    @property
+    def level(self) -> dict[str, int]:
+        """The resolution each layer works at: 0 the full image, k after k 2×2 poolings (4: the bottleneck)."""
+        out = {n: k for k, stage in enumerate(self.stages) for n in stage}
+        out.update({n: 4 for n in self.bottleneck})
+        out.update({n: 3 - k for k, (a, b, _) in enumerate(self.levels) for n in (a, b)})
+        return {**out, self.output: 0}
+
+    @property
+    def first(self) -> str:
+        return self.stages[0][0]
+
+
+UNET = Layout(stages=(("enc_conv0", "enc_conv1"), ("enc_conv2",), ("enc_conv3",), ("enc_conv4",)))
+UNET_LARGE = Layout(stages=(("enc_conv1a", "enc_conv1b"), ("enc_conv2a", "enc_conv2b"), ("enc_conv3a", "enc_conv3b"),
+                            ("enc_conv4a", "enc_conv4b")), output="dec_conv1c")
+LAYOUTS = (UNET, UNET_LARGE)
+# OIDN's (regular) UNet, the layout every network but the _large ones has
+ENCODER, DECODER, LAYERS, LEVEL = UNET.encoder, UNET.decoder, UNET.layers, UNET.level
+
+
+def layout_of(names) -> Layout:
+    """The layout whose layers are all in ``names`` (a TZA archive's tensor names or a widths dict)."""
+    names = {n.split(".")[0] for n in names}
+    for layout in LAYOUTS:
+        if set(layout.layers) <= names:
+            return layout
+    raise WeightsError("not an OIDN UNet: the layers of neither OIDN's UNet nor its UNetLarge "
+                       f"(e.g. no {UNET.first} or {UNET_LARGE.first})")
+
+
+def encode(layout: Layout, conv, x: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The encoder's features for the decoder: ``x`` (the input), ``full`` (level 0 before pooling),
+    ``pool1`` … ``pool3``, ``bottleneck``; ``conv(name, h)`` runs one layer and its ReLU (the base's own,
+    or the Control Module's copy with its timestep bias)."""
+    feats, h = {"x": x}, x
+    for k, stage in enumerate(layout.stages):
+        for name in stage:
+            h = conv(name, h)
+        if k == 0:
+            feats["full"] = h
+        h = F.max_pool2d(h, 2)
+        if k < 3:
+            feats[f"pool{k + 1}"] = h
+    for name in layout.bottleneck:
+        h = conv(name, h)
+    feats["bottleneck"] = h
+    return feats
 
 
 def _pu(y: torch.Tensor) -> torch.Tensor:
@@ -122,31 +194,30 @@ def network_output(y: torch.Tensor, scale: float, size: tuple[int, int] | None =
 
 
 class UNet(nn.Module):
-    """OIDN's UNet with the layer names of its weights; ``widths`` maps a layer to (out, in) channels."""
+    """OIDN's UNet with the layer names of its weights; ``widths`` maps a layer to (out, in) channels and
+    says the layout (``layout_of``)."""
 
     def __init__(self, widths: dict[str, tuple[int, int]]):
         super().__init__()
-        missing = [n for n in LAYERS if n not in widths]
-        if missing:
-            raise WeightsError(f"not OIDN's UNet layout: no {', '.join(missing)} (the _large networks are not supported)")
-        self.widths = {n: tuple(widths[n]) for n in LAYERS}
-        for name in LAYERS:
+        self.layout = layout_of(widths)
+        self.widths = {n: tuple(widths[n]) for n in self.layout.layers}
+        for name in self.layout.layers:
             out_c, in_c = self.widths[name]
             setattr(self, name, nn.Conv2d(in_c, out_c, 3, padding=1))
-        self.in_channels = self.widths["enc_conv0"][1]
+        self.in_channels = self.widths[self.layout.first][1]
 
     @classmethod
     def from_tza(cls, tensors: dict[str, tza.Tensor]) -> "UNet":
         """The network with the archive's weights (float16 in the file, float32 here)."""
+        layout = layout_of(tensors)
         widths = {}
-        for name in LAYERS:
+        for name in layout.layers:
             w = tensors.get(f"{name}.weight")
             if w is None or w.array.ndim != 4:
-                raise WeightsError(f"TZA has no 4-d {name}.weight: not an OIDN UNet (the _large networks are not "
-                                   "supported)")
+                raise WeightsError(f"TZA has no 4-d {name}.weight: not an OIDN UNet")
             widths[name] = (int(w.array.shape[0]), int(w.array.shape[1]))
         net = cls(widths)
-        state = {f"{n}.{p}": torch.from_numpy(tensors[f"{n}.{p}"].array.astype(np.float32)) for n in LAYERS
+        state = {f"{n}.{p}": torch.from_numpy(tensors[f"{n}.{p}"].array.astype(np.float32)) for n in layout.layers
                  for p in ("weight", "bias")}
         net.load_state_dict(state)
         return net
@@ -154,7 +225,7 @@ class UNet(nn.Module):
     def to_tza(self) -> dict[str, tza.Tensor]:
         """The weights as OIDN reads them: float16, ``oihw`` weights and ``x`` biases, in OIDN's order."""
         out = {}
-        for name in LAYERS:
+        for name in self.layout.layers:
             conv = getattr(self, name)
             out[f"{name}.weight"] = tza.Tensor(conv.weight.detach().cpu().to(torch.float16).numpy(), "oihw")
             out[f"{name}.bias"] = tza.Tensor(conv.bias.detach().cpu().to(torch.float16).numpy(), "x")
@@ -162,13 +233,9 @@ class UNet(nn.Module):
 
     def encode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         """The features the decoder reads: ``x`` (the input), ``pool1``..``pool3``, ``bottleneck``."""
-        h = F.relu(self.enc_conv0(x))
-        p1 = F.max_pool2d(F.relu(self.enc_conv1(h)), 2)
-        p2 = F.max_pool2d(F.relu(self.enc_conv2(p1)), 2)
-        p3 = F.max_pool2d(F.relu(self.enc_conv3(p2)), 2)
-        b = F.max_pool2d(F.relu(self.enc_conv4(p3)), 2)
-        b = F.relu(self.enc_conv5b(F.relu(self.enc_conv5a(b))))
-        return {"x": x, "pool1": p1, "pool2": p2, "pool3": p3, "bottleneck": b}
+        feats = encode(self.layout, lambda name, h: F.relu(getattr(self, name)(h)), x)
+        del feats["full"]
+        return feats
 
     def decode(self, feats: dict[str, torch.Tensor], residuals: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
         """The output from ``encode``'s features; ``residuals`` (same names and shapes) are added to
@@ -179,11 +246,10 @@ class UNet(nn.Module):
             return feats[name] + r[name] if name in r else feats[name]
 
         h = feat("bottleneck")
-        for a, b, skip in (("dec_conv4a", "dec_conv4b", "pool3"), ("dec_conv3a", "dec_conv3b", "pool2"),
-                           ("dec_conv2a", "dec_conv2b", "pool1"), ("dec_conv1a", "dec_conv1b", "x")):
+        for a, b, skip in self.layout.levels:
             h = torch.cat([F.interpolate(h, scale_factor=2.0, mode="nearest"), feat(skip)], 1)
             h = F.relu(getattr(self, b)(F.relu(getattr(self, a)(h))))
-        return self.dec_conv0(h)
+        return getattr(self, self.layout.output)(h)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.decode(self.encode(x))

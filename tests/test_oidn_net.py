@@ -134,6 +134,20 @@ def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame)
     np.testing.assert_array_equal(row.denoise({**frame, **extra}), clean)
 
 
+@pytest.mark.slow
+def test_the_large_twin_equals_oidn_on_prefiltered_aux(frame):
+    """OIDN's UNetLarge (rt_hdr_calb_cnrm_large, 3.85 M parameters) in PyTorch on the prefiltered aux equals
+    OIDN's prefiltered-aux mode, and its weights go back into OIDN unchanged."""
+    net = oidn_net.load_unet("rt_hdr_calb_cnrm_large")
+    assert net.layout is oidn_net.UNET_LARGE and net.in_channels == 9
+    assert sum(p.numel() for p in net.parameters()) == 3_848_387
+    albedo, normal = oidn.prefilter_aux(np.clip(frame["albedo"], 0, 1), np.clip(frame["normal"], -1, 1))
+    ours = oidn_net.denoise(net, frame["color"], albedo, normal)
+    stock = oidn.denoise(frame, clean_aux=True)
+    assert tonemapped_psnr(ours, stock) >= 100
+    assert tza.write(net.to_tza()) == oidn_weights.load("rt_hdr_calb_cnrm_large")
+
+
 def test_pu_transfer_inverts():
     y = torch.cat([torch.zeros(1), torch.logspace(-9, np.log10(oidn_net.HDR_MAX), 2000, dtype=torch.float64)])
     x = oidn_net.to_pu(y)

@@ -4,7 +4,8 @@ The base is OIDN's UNet (``pipeline.oidn_net``) with OIDN's weights, or an ``oid
 it never trains. It reads what OIDN reads (colour, albedo, normal in OIDN's input space) and its
 output, decoded without help, is OIDN's own output: the first estimate.
 
-The Control Module is a trainable copy of the base's encoder (``enc_conv0`` … ``enc_conv5b``,
+The Control Module is a trainable copy of the base's encoder (``enc_conv0`` … ``enc_conv5b``, or the
+large layout's ``enc_conv1a`` … ``enc_conv5b``,
 initialised from the base's weights, as ControlNet copies its base), whose first convolution
 reads OIDN's input plus the condition (every other buffer of the frame, the spp, which buffer
 groups are present) and the diffusion state z_t, and whose levels get the timestep embedding
@@ -32,10 +33,14 @@ from torch import nn
 
 from mcdenoise.pipeline import oidn_net
 
-# The decoder skips the Control Module adds to, with the encoder layer whose output feeds each.
-SKIP_SOURCES = {"x": "enc_conv1", "pool1": "enc_conv1", "pool2": "enc_conv2", "pool3": "enc_conv3",
-                "bottleneck": "enc_conv5b"}
 EMBED = 64   # sinusoidal timestep features
+
+
+def skip_sources(layout: oidn_net.Layout) -> dict[str, str]:
+    """The decoder skips the Control Module adds to, with the encoder layer whose output feeds each
+    (the input skip ``x`` gets the level-0 features, as ``pool1`` does before pooling)."""
+    last = [stage[-1] for stage in layout.stages]
+    return {"x": last[0], "pool1": last[0], "pool2": last[1], "pool3": last[2], "bottleneck": layout.bottleneck[-1]}
 
 
 def timestep_features(t: torch.Tensor, dim: int = EMBED) -> torch.Tensor:
@@ -52,22 +57,22 @@ class ControlModule(nn.Module):
 
     def __init__(self, base: oidn_net.UNet, extra: int):
         super().__init__()
-        self.extra = int(extra)
-        self.encoder = nn.ModuleDict({n: copy.deepcopy(getattr(base, n)) for n in oidn_net.ENCODER})
-        first = self.encoder["enc_conv0"]
+        self.extra, self.layout = int(extra), base.layout
+        self.encoder = nn.ModuleDict({n: copy.deepcopy(getattr(base, n)) for n in self.layout.encoder})
+        first = self.encoder[self.layout.first]
         wide = nn.Conv2d(first.in_channels + self.extra, first.out_channels, 3, padding=1)
         with torch.no_grad():
             wide.weight.zero_()
             wide.weight[:, :first.in_channels] = first.weight
             wide.bias.copy_(first.bias)
-        self.encoder["enc_conv0"] = wide
+        self.encoder[self.layout.first] = wide
         self.embed = nn.Sequential(nn.Linear(EMBED, 128), nn.SiLU())
         self.time_bias = nn.ModuleDict({n: _zero(nn.Linear(128, getattr(base, n).out_channels))
-                                        for n in oidn_net.ENCODER})
-        width = {n: getattr(base, src).out_channels for n, src in SKIP_SOURCES.items()}
+                                        for n in self.layout.encoder})
+        width = {n: getattr(base, src).out_channels for n, src in skip_sources(self.layout).items()}
         self.zero = nn.ModuleDict({n: _zero(nn.Conv2d(width[n], base.in_channels if n == "x" else width[n], 1))
-                                   for n in SKIP_SOURCES})
-        self.zero["output"] = _zero(nn.Conv2d(width["x"], base.widths["dec_conv0"][0], 1))
+                                   for n in width})
+        self.zero["output"] = _zero(nn.Conv2d(width["x"], base.widths[self.layout.output][0], 1))
 
     def _conv(self, name: str, h: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
         return F.relu(self.encoder[name](h) + self.time_bias[name](emb)[:, :, None, None])
@@ -75,13 +80,8 @@ class ControlModule(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
         """Residuals for ``UNet.decode`` (``x``, ``pool1`` … ``bottleneck``) and ``output``."""
         emb = self.embed(timestep_features(t))
-        full = self._conv("enc_conv1", self._conv("enc_conv0", x, emb), emb)
-        p1 = F.max_pool2d(full, 2)
-        p2 = F.max_pool2d(self._conv("enc_conv2", p1, emb), 2)
-        p3 = F.max_pool2d(self._conv("enc_conv3", p2, emb), 2)
-        b = F.max_pool2d(self._conv("enc_conv4", p3, emb), 2)
-        b = self._conv("enc_conv5b", self._conv("enc_conv5a", b, emb), emb)
-        feats = {"x": full, "pool1": p1, "pool2": p2, "pool3": p3, "bottleneck": b, "output": full}
+        feats = oidn_net.encode(self.layout, lambda name, h: self._conv(name, h, emb), x)
+        feats["x"] = feats["output"] = feats["full"]
         return {n: conv(feats[n]) for n, conv in self.zero.items()}
 
 

@@ -198,11 +198,12 @@ def lr_at(step: int, total: int, lr: float, lr_end: float, warmup: int) -> float
 
 def trainable_parameters(net: oidn_net.UNet, which: str, fine_levels: int = 4) -> list[torch.nn.Parameter]:
     """Set ``requires_grad`` by ``oidn_ft.trainable`` (and ``fine_levels``) and return the trained parameters."""
+    level = net.layout.level
     for name, p in net.named_parameters():
         layer = name.split(".")[0]
-        p.requires_grad_(which == "all" or (which == "decoder" and layer in oidn_net.DECODER)
+        p.requires_grad_(which == "all" or (which == "decoder" and layer in net.layout.decoder)
                          or (which == "bias" and name.endswith(".bias"))
-                         or (which == "fine" and oidn_net.LEVEL[layer] < fine_levels))
+                         or (which == "fine" and level[layer] < fine_levels))
     return [p for p in net.parameters() if p.requires_grad]
 
 
