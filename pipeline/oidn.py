@@ -51,14 +51,15 @@ def denoise(buffers: dict[str, np.ndarray], aux: bool = True, quality: str = "hi
             weights: bytes | None = None, clean_aux: bool = False) -> np.ndarray:
     """(H, W, 3) float32 HDR from a frame's buffers (``color``; ``albedo`` and ``normal`` when
     ``aux`` and present; albedo alone is OIDN's +albedo input set). ``weights``: a TZA blob OIDN
-    runs instead of its own network. ``clean_aux``: prefilter the aux buffers with OIDN's aux
-    networks and run the colour network for noise-free aux (a blob given in ``weights`` must then
-    be one such network)."""
+    runs instead of its own network. ``clean_aux``: with albedo and normal, prefilter them with OIDN's
+    aux networks and run the colour network for noise-free aux (a blob given in ``weights`` must then
+    be one such network); OIDN has no such network for albedo alone, so without a normal the flag does
+    nothing."""
     why = available()
     if why:
         raise OIDNUnavailable(why)
     color, albedo, normal = _inputs(buffers, aux)
-    clean_aux = clean_aux and albedo is not None
+    clean_aux = clean_aux and albedo is not None and normal is not None
     if clean_aux:
         albedo, normal = prefilter_aux(albedo, normal, quality)
     if weights is not None:

@@ -3,6 +3,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.errors import StoreError
 from mcdenoise.pipeline.exr import read_layers
 from tests.helpers import cli
@@ -39,6 +40,10 @@ def test_mitsubas_aov_exr_gives_colour_albedo_and_its_named_normal(tmp_path):
 
     proc = cli("denoise", "--exr", path, "--out", tmp_path / "out.exr", "--spp", "4", "--method", "oidn")
     assert "normal from 'nn'" in proc.stdout and "rt_hdr_alb_nrm" in proc.stdout
+    # OIDN's final-frame mode on the same layers: the aux prefiltered, then its clean-aux network
+    proc = cli("denoise", "--exr", path, "--out", tmp_path / "pre.exr", "--method", "oidn_prefilter")
+    assert "rt_hdr_calb_cnrm_large" in proc.stdout
+    np.testing.assert_array_equal(read_layers(tmp_path / "pre.exr")["color"], oidn.denoise(buffers, clean_aux=True))
 
 
 def test_blenders_passes_give_the_noisy_image_not_the_denoised_combined(tmp_path):

@@ -89,6 +89,8 @@ def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
     assert bad.returncode == 2 and "read 9 channels" in bad.stderr and "has only colour" in bad.stderr
     ok = cli("denoise", "--exr", exr, "--out", tmp_path / "o.exr", "--method", "oidn")
     assert "pyoidn built-in rt_hdr" in ok.stdout and (tmp_path / "o.exr").exists()
+    bad = cli("denoise", "--exr", exr, "--out", tmp_path / "p.exr", "--method", "oidn_prefilter", check=False)
+    assert bad.returncode == 2 and "has only colour" in bad.stderr and not (tmp_path / "p.exr").exists()
 
 
 @pytest.mark.slow

@@ -126,6 +126,9 @@ def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame)
     # without aux there is nothing to prefilter: the colour-only network, as without the flag
     color = {"color": frame["color"]}
     np.testing.assert_array_equal(oidn.denoise(color, clean_aux=True), oidn.denoise(color))
+    # ... nor for albedo alone (OIDN has no clean-aux network for it)
+    albedo_only = {"color": frame["color"], "albedo": frame["albedo"]}
+    np.testing.assert_array_equal(oidn.denoise(albedo_only, clean_aux=True), oidn.denoise(albedo_only))
     # the evaluator's row runs this mode, on colour, albedo and normal only
     from mcdenoise.evaluate.methods import Loader
     from mcdenoise.pipeline.config import load_config

@@ -137,9 +137,10 @@ def oidn_weights_for(cfg: Config, network: str) -> tuple[bytes, str]:
 
 def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, method: str,
                      weights_file: str | None, spp: int | None = None, quiet: bool = False, ensemble: int = 1) -> int:
-    """Denoise a store frame or an EXR with OIDN itself: its built-in network (``oidn``), an oidn_ft
-    run (``oidn_ft``) or the weights of ``weights_file``, on the layers the input has (colour; +albedo;
-    +albedo+normal), at OIDN's speed."""
+    """Denoise a store frame or an EXR with OIDN itself: its built-in network (``oidn``), its final-frame
+    mode with the aux prefiltered (``oidn_prefilter``, on albedo and normal), an oidn_ft run (``oidn_ft``)
+    or the weights of ``weights_file``, on the layers the input has (colour; +albedo; +albedo+normal), at
+    OIDN's speed."""
     from mcdenoise.pipeline import oidn, oidn_weights as ow, tza
     from mcdenoise.pipeline.oidn_net import UNet
 
@@ -149,7 +150,12 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     layers = [a for a in ("albedo", "normal") if a in buffers]
     layers = layers if layers and layers[0] == "albedo" else []
     network = ow.network_for("albedo" in layers, "normal" in layers)
-    blob, origin = None, f"pyoidn built-in {network}"
+    clean_aux = method == "oidn_prefilter" and not weights_file
+    if clean_aux and len(layers) < 2:
+        raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {source} has only "
+                         f"{', '.join(['colour', *layers])}; use --method oidn")
+    blob, origin = None, ("pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN"
+                          if clean_aux else f"pyoidn built-in {network}")
     if weights_file:
         blob, origin = ow.load(network, weights_file), weights_file
         need = (UNet.from_tza(tza.read(blob, weights_file)).in_channels - 3) // 3
@@ -161,7 +167,7 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     elif method == "oidn_ft":
         blob, origin = oidn_weights_for(cfg, network)
     t = time.perf_counter()
-    hdr = ensemble_mean(lambda b: oidn.denoise(b, aux=bool(layers), weights=blob),
+    hdr = ensemble_mean(lambda b: oidn.denoise(b, aux=bool(layers), weights=blob, clean_aux=clean_aux),
                         {"color": buffers["color"], **{a: buffers[a] for a in layers}}, ensemble)
     seconds = time.perf_counter() - t
     meta = {"image": "denoised", "source": source, "method": method, "weights": origin,

@@ -105,8 +105,10 @@ def _inference_commands(sub) -> None:
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
-    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_ft"],
-                   help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_ft: the oidn_ft run "
+    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_prefilter", "oidn_ft"],
+                   help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_prefilter: OIDN's "
+                        "final-frame mode (albedo and normal prefiltered by OIDN, then cleanAux; needs both); "
+                        "oidn_ft: the oidn_ft run "
                         "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself")
     p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
                    help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
