@@ -19,7 +19,8 @@ Names (``eval.methods``):
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
   ``oidn_ft.blend``; ``oidn_ft_albedo`` and ``oidn_ft_color``: the colour + albedo and the colour-only
-  networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``). Each row without a run of its own runs the
+  networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``); ``oidn_ft_prefilter``: OIDN's final-frame
+  network fine-tuned (``oidn_ft_rt_hdr_calb_cnrm_large``), run as ``oidn_prefilter`` runs. Each row without a run of its own runs the
   weights shipped with the model (``train/shipped/oidn_ft/<network>.tza``, fine-tuned on the ship data;
   ``ours`` runs the two without normal on inputs without normal, or without albedo and normal).
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
@@ -72,7 +73,8 @@ _DIFFUSION = {"ours": False, "base_only": True}
 # OIDN families -> the network OIDN runs; oidn_ft families -> the network their run fine-tuned
 OIDN_STOCK = {"oidn": "rt_hdr_alb_nrm", "oidn_albedo": "rt_hdr_alb", "oidn_color": "rt_hdr",
               "oidn_prefilter": "rt_hdr_calb_cnrm"}
-OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft_color": "rt_hdr"}
+OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft_color": "rt_hdr",
+           "oidn_ft_prefilter": "rt_hdr_calb_cnrm_large"}
 FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
                     r"(?P<start>noise|render|estimate))$")
@@ -82,6 +84,7 @@ LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_a
           "oidn_ft": "OIDN fine-tuned on our data (colour+albedo+normal)",
           "oidn_ft_albedo": "OIDN fine-tuned on our data (colour+albedo)",
           "oidn_ft_color": "OIDN fine-tuned on our data (colour only)",
+          "oidn_ft_prefilter": "OIDN's final-frame network fine-tuned on our data (prefiltered aux, cleanAux)",
           "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 

@@ -376,6 +376,10 @@ def _check_formulation_steps(f, bad: Bad, val_skip: int | None) -> None:
         bad("skip", f"need 0 <= skip < steps ({f.steps}), got {f.skip}")
 
 
+# OIDN networks a Control Module can sit on (colour + albedo + normal, as rendered or prefiltered)
+BASE_NETWORKS = ("rt_hdr_alb_nrm", "rt_hdr_calb_cnrm", "rt_hdr_calb_cnrm_large")
+
+
 @dataclass
 class DiffusionConfig(TrainingConfig):
     base: str = doc("The frozen base. 'oidn': OIDN's own network (rt_hdr_alb_nrm, weights from oidn.weights or "
@@ -387,6 +391,11 @@ class DiffusionConfig(TrainingConfig):
                     "in train/base_model_paper, for the refine formulation a new IF-II-layout base with a zero last "
                     "layer written into the run folder (it returns the first estimate exactly and must train: "
                     "diffusion.train_base=true).", "")
+    base_network: str = doc("Base oidn or oidn_ft: which of OIDN's networks is the base. 'rt_hdr_alb_nrm' (what "
+                            "make eval's oidn row runs: colour, albedo and normal as rendered); 'rt_hdr_calb_cnrm' or "
+                            "'rt_hdr_calb_cnrm_large' (OIDN's final-frame mode, the oidn_prefilter row: albedo and "
+                            "normal first denoised by OIDN's aux networks; _large is the 3.9 M-parameter UNetLarge, "
+                            "2.4x slower to train). With oidn_ft, that network's oidn_ft run.", "rt_hdr_alb_nrm")
     extra_stores: list = doc("Base oidn: more stores whose train splits train the Control Module with the config's "
                              "own (one pack each, beside it in <runs>/pack/); validation stays on the config's "
                              "store. E.g. renders of your own scenes added to the ship data.", factory=list)
@@ -498,6 +507,7 @@ class DiffusionConfig(TrainingConfig):
             bad("tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
         if self.init and not (Path(self.init) / "model.json").is_file():
             bad("init", f"{self.init}: not a trained model folder (no model.json there)")
+        self.one_of(bad, "base_network", BASE_NETWORKS)
         for root in self.extra_stores:
             if not (Path(root) / "dataset.json").is_file():
                 bad("extra_stores", f"{root}: no dataset there (no dataset.json); render it: make dataset store={root}")
@@ -568,7 +578,10 @@ class OidnFtConfig(TrainingConfig):
                                        "over the run.")
     network: str = doc("OIDN network fine-tuned by make train MODEL=oidn_ft: 'rt_hdr_alb_nrm' (colour + albedo + "
                        "normal: what make eval's oidn row runs), 'rt_hdr_alb' (+ albedo: the oidn_ft_albedo row) or "
-                       "'rt_hdr' (colour only: the oidn_ft_color row); a '_small' variant of each also loads. Its run folder is "
+                       "'rt_hdr' (colour only: the oidn_ft_color row); a '_small' variant of each also loads; "
+                       "'rt_hdr_calb_cnrm_large' (the oidn_ft_prefilter row) or 'rt_hdr_calb_cnrm' fine-tune OIDN's "
+                       "final-frame mode (albedo and normal prefiltered by OIDN's aux networks: per 4-spp stack for "
+                       "training, as a whole at validation and use). Its run folder is "
                        "<runs>/oidn_ft_<network>.", "rt_hdr_alb_nrm")
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     epoch_steps: int = doc("At most this many steps per epoch (a random subset of the epoch's crops); 0: every "
@@ -607,8 +620,9 @@ class OidnFtConfig(TrainingConfig):
     def check(self, bad: Bad) -> None:
         super().check(bad)
         self.one_of(bad, "target", ("gt_clean", "gt1"))
-        if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?", self.network):
-            bad("network", f"expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), got {self.network!r}")
+        if not re.fullmatch(r"rt_hdr(_alb(_nrm)?)?(_small)?|rt_hdr_calb_cnrm(_large)?", self.network):
+            bad("network", "expected rt_hdr, rt_hdr_alb or rt_hdr_alb_nrm (optionally _small), rt_hdr_calb_cnrm or "
+                           f"rt_hdr_calb_cnrm_large, got {self.network!r}")
         self.at_least(bad, 1, "crops_per_frame")
         if self.crop % 16:
             bad("crop", f"must be a positive multiple of 16 (OIDN's alignment), got {self.crop}")

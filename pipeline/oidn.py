@@ -72,8 +72,11 @@ def denoise(buffers: dict[str, np.ndarray], aux: bool = True, quality: str = "hi
 def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high"
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Albedo and normal denoised by OIDN's own aux networks (an RT filter given only that image),
-    clamped back to [0, 1] and [−1, 1]: the noise-free aux that ``cleanAux`` expects."""
+    read and returned in [0, 1] and [−1, 1] (NaN as 0): the noise-free aux that ``cleanAux`` expects."""
     filt = _aux_filter()
+    albedo = np.ascontiguousarray(np.clip(np.nan_to_num(albedo), 0, 1), dtype=np.float32)
+    if normal is not None:
+        normal = np.ascontiguousarray(np.clip(np.nan_to_num(normal), -1, 1), dtype=np.float32)
     albedo = np.ascontiguousarray(np.clip(filt.run("albedo", albedo, quality), 0, 1), dtype=np.float32)
     if normal is not None:
         normal = np.ascontiguousarray(np.clip(filt.run("normal", normal, quality), -1, 1), dtype=np.float32)

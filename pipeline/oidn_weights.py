@@ -44,6 +44,12 @@ def network_aux(network: str) -> tuple[str, ...]:
     return ("albedo", "normal")[: (2 if "nrm" in network else 1 if "alb" in network else 0)]
 
 
+def clean_aux(network: str) -> bool:
+    """Whether the network expects noise-free albedo and normal (``_calb_cnrm``: OIDN's final-frame mode,
+    noisy aux first denoised by its aux networks, ``pipeline.oidn.prefilter_aux``)."""
+    return "_calb_cnrm" in network
+
+
 def library_path() -> Path:
     """pyoidn's ``libOpenImageDenoise_core`` (found without importing pyoidn)."""
     spec = importlib.util.find_spec("pyoidn")

@@ -10,7 +10,7 @@ import torch
 from mcdenoise.pipeline import oidn, oidn_net, oidn_weights
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import PipelineError
-from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.store import Store, stack_name
 from mcdenoise.train import oidn_ft
 from tests.helpers import TINY, cli
 
@@ -257,3 +257,41 @@ def test_changed_frames_tint_the_light_not_the_albedo():
             np.testing.assert_array_equal(out["albedo"], images["albedo"])
         assert not np.allclose(gains, gains[0], rtol=1e-3)      # the light's colour changed
         assert np.allclose(np.linalg.norm(out["normal"], axis=2), 1, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_the_final_frame_network_trains_on_prefiltered_aux_and_its_row_runs_it_so(cleaned, tmp_path, monkeypatch):
+    """oidn_ft.network=rt_hdr_calb_cnrm_large: training frames and validation read the aux prefiltered by
+    OIDN's aux networks, epoch 0 is OIDN's final-frame mode, and the evaluator's oidn_ft_prefilter row runs the
+    exported weights in that mode."""
+    store, _ = cleaned
+    runs = tmp_path / "runs"
+    large = ["oidn_ft.network=rt_hdr_calb_cnrm_large", "oidn_ft.epochs=1", "oidn_ft.val_frames=1"]
+    s = Store(store)
+    key = s.frames_with("train")[0]
+    frame = oidn_ft.Frame(s, key, ("albedo", "normal"), clean_aux=True)
+    stack = s.read_image(key.scene, key.frame, stack_name(0), ["albedo", "normal"])[0]
+    want = oidn.prefilter_aux(stack["albedo"], stack["normal"])
+    np.testing.assert_allclose(frame.aux["albedo"][0], want[0], atol=1e-3)   # float16 in memory
+    np.testing.assert_allclose(frame.aux["normal"][0], want[1], atol=1e-3)
+    assert np.abs(frame.aux["normal"][0] - stack["normal"]).max() > 1e-2     # the prefilter changed them
+    cli("train", "--model", "oidn_ft", "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",
+        *FT_TINY, *large)
+    folder = runs / "oidn_ft_rt_hdr_calb_cnrm_large"
+    hist = json.loads((folder / "train.json").read_text())["history"]
+    assert hist[0]["val"]["psnr"] == hist[0]["val"]["oidn_psnr"]
+    from mcdenoise.evaluate.methods import Loader
+    cfg = tiny(store, runs, *large, "oidn_ft.blend=0")          # blend 0: OIDN's own weights, exported
+    buf = s.read(*_first(store), 4)
+    row = Loader(cfg).load("oidn_ft_prefilter", 4)
+    assert _psnr(row.denoise(buf), oidn.denoise(buf, clean_aux=True)) > 80
+    # exported, its card names the network, and denoise --oidn-weights runs it in the final-frame mode
+    tza_file = tmp_path / "large.tza"
+    over = [f"store={store}", f"runs={runs}", *FT_TINY, *large, "oidn_ft.blend=0"]
+    cli("export", "--format", "oidn", "--config", TINY, *over, "--out", tza_file)
+    scene, frame = _first(store)
+    for how in (["--oidn-weights", tza_file], ["--method", "oidn_ft_prefilter"]):
+        out = tmp_path / f"{how[0][2:]}.exr"
+        cli("denoise", "--config", TINY, *over, "--frame", f"{scene}/{frame}", "--spp", "4", "--out", out, *how)
+        from mcdenoise.pipeline.exr import read_image
+        assert _psnr(read_image(out)[0]["color"], row.denoise(buf)) > 80

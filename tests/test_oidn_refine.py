@@ -276,3 +276,33 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
         load_config(TINY, [f"store={store}", *REFINE_TINY, f"diffusion.extra_stores=[{tmp_path / 'nope'}]"])
     with pytest.raises(ConfigError, match="extra_stores.*OIDN"):   # the stand-in model would ignore them
         load_config(TINY, [f"store={store}", f"diffusion.extra_stores=[{other}]"])
+
+
+@pytest.mark.slow
+def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_mode(cleaned, tmp_path):
+    """diffusion.base_network=rt_hdr_calb_cnrm: the pack and every caller give the base albedo and normal
+    prefiltered by OIDN's aux networks, so the untrained model (and the base alone) is OIDN's final-frame mode."""
+    from mcdenoise.pipeline import oidn
+    from mcdenoise.pipeline.metrics import psnr
+    store, _ = cleaned
+    runs = tmp_path / "runs"
+    cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",
+        *REFINE_TINY, "diffusion.base_network=rt_hdr_calb_cnrm", "diffusion.epochs=1")
+    folder = runs / "diffusion_sppany"
+    hist = json.loads((folder / "train.json").read_text())["history"]
+    assert hist[0]["val"]["psnr"] == hist[0]["val"]["estimate_psnr"]
+    meta = json.loads((folder / "model.json").read_text())
+    assert meta["base_network"] == "rt_hdr_calb_cnrm"
+    with safe_open(str(runs / "pack" / "train_oidn_base_calb.safetensors"), framework="pt") as f:
+        assert f.metadata()["aux"] == "prefiltered"
+    assert not (runs / "pack" / "train_oidn_base.safetensors").exists()
+    key = Store(store).frames("val")[0]
+    buf = Store(store).read(key.scene, key.frame, 4)
+    base_only = oidn_refine.load_refiner(folder, "cpu", base_only=True)
+    assert base_only.clean_aux
+    # OIDN in its final-frame mode running this network (at quality high its own choice is the large one)
+    blob = (folder / "base.tza").read_bytes()
+    out = base_only.denoise(buf, spp=4)
+    assert psnr(out, oidn.denoise(buf, weights=blob, clean_aux=True)) > 80
+    # the same network on the aux as rendered is another output: the prefilter is what makes them equal
+    assert psnr(out, oidn.denoise(buf, weights=blob)) < 60

@@ -6,6 +6,7 @@
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -135,12 +136,22 @@ def oidn_weights_for(cfg: Config, network: str) -> tuple[bytes, str]:
                      f"`make train MODEL=oidn_ft SPP=any oidn_ft.network={network}`, or give --oidn-weights FILE.tza")
 
 
+def _card_network(weights_file: str) -> str:
+    """The network named by the card ``export --format oidn`` writes beside a .tza (``<file>.json``); ''."""
+    card = Path(weights_file).with_suffix(".json")
+    try:
+        return str(json.loads(card.read_text()).get("network", "")) if card.is_file() else ""
+    except (OSError, ValueError):
+        return ""
+
+
 def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, method: str,
                      weights_file: str | None, spp: int | None = None, quiet: bool = False, ensemble: int = 1) -> int:
     """Denoise a store frame or an EXR with OIDN itself: its built-in network (``oidn``), its final-frame
     mode with the aux prefiltered (``oidn_prefilter``, on albedo and normal), an oidn_ft run (``oidn_ft``)
     or the weights of ``weights_file``, on the layers the input has (colour; +albedo; +albedo+normal), at
-    OIDN's speed."""
+    OIDN's speed. ``oidn_ft_prefilter``, and a ``weights_file`` whose card names a ``_calb_cnrm`` network,
+    run in the final-frame mode."""
     from mcdenoise.pipeline import oidn, oidn_weights as ow, tza
     from mcdenoise.pipeline.oidn_net import UNet
 
@@ -150,9 +161,11 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     layers = [a for a in ("albedo", "normal") if a in buffers]
     layers = layers if layers and layers[0] == "albedo" else []
     network = ow.network_for("albedo" in layers, "normal" in layers)
-    clean_aux = method == "oidn_prefilter" and not weights_file
+    clean_aux = (method in ("oidn_prefilter", "oidn_ft_prefilter") and not weights_file
+                 or bool(weights_file) and ow.clean_aux(_card_network(weights_file)))
     if clean_aux and len(layers) < 2:
-        raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {source} has only "
+        what = f"--method {method}" if not weights_file else f"{weights_file} (OIDN's final-frame network)"
+        raise TrainError(f"{what} prefilters albedo and normal, but {source} has only "
                          f"{', '.join(['colour', *layers])}; use --method oidn")
     blob, origin = None, ("pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN"
                           if clean_aux else f"pyoidn built-in {network}")
@@ -166,6 +179,8 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
         layers = layers[:need]
     elif method == "oidn_ft":
         blob, origin = oidn_weights_for(cfg, network)
+    elif method == "oidn_ft_prefilter":
+        blob, origin = oidn_weights_for(cfg, "rt_hdr_calb_cnrm_large")
     t = time.perf_counter()
     hdr = ensemble_mean(lambda b: oidn.denoise(b, aux=bool(layers), weights=blob, clean_aux=clean_aux),
                         {"color": buffers["color"], **{a: buffers[a] for a in layers}}, ensemble)

@@ -105,11 +105,13 @@ def _inference_commands(sub) -> None:
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
-    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_prefilter", "oidn_ft"],
+    p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_prefilter", "oidn_ft", "oidn_ft_prefilter"],
                    help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_prefilter: OIDN's "
                         "final-frame mode (albedo and normal prefiltered by OIDN, then cleanAux; needs both); "
                         "oidn_ft: the oidn_ft run "
-                        "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself")
+                        "(make train MODEL=oidn_ft) of the network the input's layers match, run by OIDN itself; "
+                        "oidn_ft_prefilter: the oidn_ft run of OIDN's final-frame network (oidn_ft.network="
+                        "rt_hdr_calb_cnrm_large), run as oidn_prefilter")
     p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
                    help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
     p.add_argument("--ensemble", type=int, default=1, choices=(1, 2, 4, 8),

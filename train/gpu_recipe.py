@@ -164,13 +164,13 @@ def _wheels(out: Path, python: str) -> None:
 def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int) -> None:
     """Crops of the config's OIDN packs (train and val splits; built if missing) for the OIDN-based model; the
     train crops come from the train pack the CPU run reads (``diffusion.extra_stores`` included)."""
-    from .oidn_pack import crop_pack, ensure_pack, load_pack, pack_path
+    from .oidn_pack import crop_pack, ensure_pack, load_pack
     from .oidn_refine import StoreSource
 
     src = StoreSource(cfg)
     for split, count in (("train", train_crops), ("val", val_crops)):
         pack = (src.train_pack(True) if split == "train"
-                else load_pack(ensure_pack(src.store, src.val_keys, pack_path(cfg.runs, "val"))))
+                else load_pack(ensure_pack(src.store, src.val_keys, src.pack_path("val"), clean_aux=src.clean_aux)))
         dest = out / f"{split}_crops.safetensors"
         out.mkdir(parents=True, exist_ok=True)
         size = crop_pack(pack, dest, count, side, seed=1 if split == "val" else 0)

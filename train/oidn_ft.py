@@ -35,13 +35,14 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, Dataset
 
-from mcdenoise.pipeline import oidn_net, oidn_weights, runs, tza, weights
+from mcdenoise.pipeline import oidn, oidn_net, oidn_weights, runs, tza, weights
 from mcdenoise.pipeline.checkpoint import plot_curves
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
 from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
+from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 
 FORMAT = weights.FORMATS["oidn_ft"]
@@ -53,9 +54,12 @@ AUX = oidn_weights.network_aux("rt_hdr_alb_nrm")
 
 class Frame:
     """One store frame in memory: its stacks' colour and aux (K, H, W, 3) and its training target (H, W, 3):
-    GT_clean, or the raw GT1 (``oidn_ft.target``)."""
+    GT_clean, or the raw GT1 (``oidn_ft.target``). ``clean_aux``: each stack's albedo and normal prefiltered
+    by OIDN's aux networks, once (a pooled frame's are then the mean of its stacks', close to the prefilter
+    of their mean that validation and inference run, which every training item would have to run again)."""
 
-    def __init__(self, store: Store, key: FrameKey, aux: tuple[str, ...], target: str = "gt_clean"):
+    def __init__(self, store: Store, key: FrameKey, aux: tuple[str, ...], target: str = "gt_clean",
+                 clean_aux: bool = False):
         sm = store.scene_manifest(key.scene)
         self.key, self.stack_spp = key, int(sm["stack_spp"])
         stacks = [store.read_image(key.scene, key.frame, stack_name(k), ["color", *aux])[0]
@@ -63,6 +67,9 @@ class Frame:
         self.color = np.stack([s["color"] for s in stacks]).astype(np.float32)
         # aux buffers a reader left out (e.g. a constant one) are what the schema says: zeros
         self.aux = {a: np.stack([s.get(a, np.zeros_like(s["color"])) for s in stacks]).astype(np.float16) for a in aux}
+        if clean_aux:
+            pre = [oidn.prefilter_aux(s["albedo"], s["normal"]) for s in stacks]
+            self.aux = {a: np.stack([p[i] for p in pre]).astype(np.float16) for i, a in enumerate(("albedo", "normal"))}
         self.target = store.read_image(key.scene, key.frame, target, ["color"])[0]["color"].astype(np.float32)
 
     def pooled(self, stacks: list[int]) -> dict[str, np.ndarray]:
@@ -229,6 +236,7 @@ class OIDNFineTune(Task):
         self.train_keys, self.val_keys = self.store.training_frames()
         self.spps = self.store.spp_choices(spp)
         self.aux = oidn_weights.network_aux(o.network)
+        self.clean_aux = oidn_weights.clean_aux(o.network)    # OIDN's final-frame mode: prefiltered aux
         self.folder = runs.run_dir(cfg, "oidn_ft")
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, o.epochs, o.time_budget_s, o.nan_limit
         self.device = runs.pick_device(o.device)
@@ -263,7 +271,8 @@ class OIDNFineTune(Task):
     # ---- data
     def prepare(self) -> None:
         t = time.perf_counter()
-        frames = [Frame(self.store, k, self.aux, self.o.target) for k in self.train_keys]
+        frames = [Frame(self.store, k, self.aux, self.o.target, self.clean_aux)
+                  for k in progress(self.train_keys, desc=f"{self.name}: reading", unit="frame")]
         self.crops = FrameCrops(frames, self.spps, self.o.crop, self.o.crops_per_frame, self.cfg.seed, self.aux,
                                 self.o.augment, self.o.distill, self.o.diversify)
         self.val = self._validation_items()
@@ -278,6 +287,8 @@ class OIDNFineTune(Task):
             for spp in self.spps:
                 buf = self.store.read(key.scene, key.frame, spp, ["color", *self.aux])
                 images = [buf["color"], *(buf.get(a, np.zeros_like(buf["color"])) for a in self.aux)]
+                if self.clean_aux:
+                    images[1:] = oidn.prefilter_aux(*images[1:])
                 items.append({"images": images, "ref": ref, "spp": spp,
                               "stock": oidn_net.denoise(self.teacher, *images, device=self.device)})
         return items

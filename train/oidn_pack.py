@@ -65,10 +65,12 @@ def present(buffers: dict) -> dict[str, bool]:
     return {g: all(k in buffers for k in keys) for g, keys in GROUPS.items()}
 
 
-def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal")
-           ) -> tuple[np.ndarray, np.ndarray, float]:
+def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal"),
+           clean_aux: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
-    at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole."""
+    at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole.
+    ``clean_aux``: OIDN's input has albedo and normal prefiltered by OIDN's aux networks (the base is a
+    ``_calb_cnrm`` network); the condition keeps them as rendered."""
     have = present(buffers)
     keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
     scale = oidn_net.autoexposure(keep["color"])
@@ -76,7 +78,11 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
     if missing:
         raise StoreError(f"the OIDN-based denoiser needs {', '.join(missing)} (OIDN's network for these inputs "
                          "reads them)")
-    x = oidn_net.network_input(keep["color"], *(keep[a] for a in aux), scale=scale)[0].numpy()
+    net_aux = [keep[a] for a in aux]
+    if clean_aux:
+        from mcdenoise.pipeline import oidn
+        net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"]))
+    x = oidn_net.network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
     cond = features.encode(keep, _encoding(scale), spp)
     flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
                             (len(GROUPS), *cond.shape[1:]))
@@ -89,13 +95,14 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
 # ---- the pack ----------------------------------------------------------------------------------
 
 
-def pack_path(runs: str | Path, split: str) -> Path:
-    """``<runs>/pack/<split>_oidn_base.safetensors`` (beside ``train.pack``'s packs of the stand-in model)."""
-    return Path(runs) / "pack" / f"{split}_oidn_base.safetensors"
+def pack_path(runs: str | Path, split: str, clean_aux: bool = False) -> Path:
+    """``<runs>/pack/<split>_oidn_base[_calb].safetensors`` (beside ``train.pack``'s packs of the stand-in
+    model; ``_calb``: OIDN's input with prefiltered aux, for a ``_calb_cnrm`` base)."""
+    return Path(runs) / "pack" / f"{split}_oidn_base{'_calb' if clean_aux else ''}.safetensors"
 
 
-def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False) -> Path:
-    """Decode ``keys`` once into the pack at ``path`` (written atomically)."""
+def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
+    """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``."""
     xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
     for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
         sm = store.scene_manifest(key.scene)
@@ -105,7 +112,8 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
         images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
         for spp, count in sorted(variants.items()):
             for v in range(count):
-                x, cond, scale = inputs(combine_stacks([images[s] for s in variant_stacks(spp, n, v, total)], n), spp)
+                x, cond, scale = inputs(combine_stacks([images[s] for s in variant_stacks(spp, n, v, total)], n), spp,
+                                        clean_aux=clean_aux)
                 xs.append(x.astype(np.float16))
                 conds.append(cond.astype(np.float16))
                 scales.append(scale)
@@ -122,22 +130,29 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
                "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(np.stack(targets))}
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
-            "cond": json.dumps(cond_names()), "sizes": json.dumps([list(s) for s in sizes])}
+            "cond": json.dumps(cond_names()), "sizes": json.dumps([list(s) for s in sizes]),
+            "aux": _aux_kind(clean_aux)}
     save_safetensors(path, tensors, meta)
     return path
 
 
-def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False) -> Path:
-    """The pack of ``keys`` at ``path``, built if missing or made from other frames or another layout."""
+def _aux_kind(clean_aux: bool) -> str:
+    return "prefiltered" if clean_aux else "rendered"
+
+
+def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
+    """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout or
+    other aux."""
     if path.exists():
         from safetensors import safe_open
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
         if (meta.get("format") == FORMAT and meta.get("store") == str(store.root)
                 and json.loads(meta.get("cond", "[]")) == cond_names()
-                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]):
+                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]
+                and meta.get("aux", "rendered") == _aux_kind(clean_aux)):
             return path
-    return build_pack(store, keys, path, quiet)
+    return build_pack(store, keys, path, quiet, clean_aux)
 
 
 def load_pack(path: Path) -> dict[str, torch.Tensor]:

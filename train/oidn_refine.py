@@ -54,7 +54,7 @@ from .oidn_pack import Crops, concat_packs, cond_names, ensure_pack, inputs, loa
 from .train import autocast_dtype, dist_info, dist_shutdown, ema_weights, lr_factor, make_ema, run_machine
 
 FORMAT = weights.FORMATS["oidn_control"]
-NETWORK = "rt_hdr_alb_nrm"      # the base reads colour, albedo and normal
+NETWORK = "rt_hdr_alb_nrm"      # the base of models whose model.json predates diffusion.base_network
 FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tonemap, L1 in PU)
 
 
@@ -62,17 +62,22 @@ FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tone
 
 
 def base_blob(cfg: Config) -> tuple[bytes, str]:
-    """(the base's float16 TZA blob, what it is): ``diffusion.base`` 'oidn' (OIDN's weights, from
-    ``oidn.weights`` or pyoidn), 'oidn_ft' (this config's oidn_ft run of rt_hdr_alb_nrm, as exported)
-    or a .tza file."""
-    base = cfg.diffusion.base
+    """(the base's float16 TZA blob, what it is): ``diffusion.base`` 'oidn' (OIDN's ``diffusion.base_network``,
+    from ``oidn.weights`` or pyoidn), 'oidn_ft' (this config's oidn_ft run of that network, as exported) or a
+    .tza file of it."""
+    base, network = cfg.diffusion.base, cfg.diffusion.base_network
     if base == "oidn":
-        return oidn_weights.load(NETWORK, oidn_weights.source(NETWORK, cfg.oidn.weights)), f"OIDN {NETWORK}"
+        return oidn_weights.load(network, oidn_weights.source(network, cfg.oidn.weights)), f"OIDN {network}"
     if base == "oidn_ft":
         from .oidn_ft import export_blob, load_run
-        folder = run_dir(cfg, "oidn_ft", variant=NETWORK)
+        folder = run_dir(cfg, "oidn_ft", variant=network)
         return export_blob(load_run(folder, cfg)[0]), f"oidn_ft run {folder} (blend {cfg.oidn_ft.blend:g})"
-    return oidn_weights.load(NETWORK, base), str(base)
+    return oidn_weights.load(network, base), str(base)
+
+
+def clean_aux(meta: dict) -> bool:
+    """Whether a model (its model.json) feeds its base prefiltered albedo and normal."""
+    return oidn_weights.clean_aux(meta.get("base_network", NETWORK))
 
 
 # What a warm-started run copies from its start's model.json besides the weights: how the model is used
@@ -162,8 +167,10 @@ class StoreSource:
     """The data of a config's store: the train split as the pack (``train.oidn_pack``), the first
     ``val_frames`` val frames whole, each at the run's smallest, middle and largest sample count."""
 
-    def __init__(self, cfg: Config):
+    def __init__(self, cfg: Config, network: str | None = None):
+        """``network``: the base's (default ``diffusion.base_network``); a ``_calb_cnrm`` one reads prefiltered aux."""
         self.cfg, self.store = cfg, Store(cfg.store)
+        self.clean_aux = oidn_weights.clean_aux(network or cfg.diffusion.base_network)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 
@@ -171,17 +178,20 @@ class StoreSource:
         return self.store.spp_choices(spp)
 
     def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
-        packs = [load_pack(ensure_pack(self.store, self.train_keys, pack_path(self.cfg.runs, "train"), quiet))]
+        packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux))]
         for i, (store, keys) in enumerate(self.extra):
-            packs.append(load_pack(ensure_pack(store, keys, pack_path(self.cfg.runs, f"train_extra{i}"), quiet)))
+            packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux)))
         return concat_packs(packs)
+
+    def pack_path(self, split: str) -> Path:
+        return pack_path(self.cfg.runs, split, self.clean_aux)
 
     def val_items(self, spps: list[int], frames: int) -> list[dict]:
         items = []
         for key in self.val_keys[:frames]:
             ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
             for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
-                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp)
+                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp, clean_aux=self.clean_aux)
                 items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                               "ref": ref, "spp": spp})
         return items
@@ -220,7 +230,11 @@ class RefineTask(Task):
         trained model folder whose base and Control Module the run starts from (else OIDN and a new one)."""
         d = self.d = cfg.diffusion
         self.cfg, self.quiet = cfg, quiet
-        self.source = source or StoreSource(cfg)
+        init = init or (Path(d.init) if d.init else None)
+        # the base's network: a warm start keeps its model's
+        self.network = (weights.read_record(init, "oidn_control", "").get("base_network", NETWORK) if init is not None
+                        else d.base_network)
+        self.source = source or StoreSource(cfg, self.network)
         self.spps = self.source.spps(spp)
         self.rank, self.world = dist_info()
         self.folder = folder or run_dir(cfg, "diffusion", spp)
@@ -230,7 +244,6 @@ class RefineTask(Task):
 
         # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module, or both
         # from a trained model folder (``init`` / diffusion.init: a warm start).
-        init = init or (Path(d.init) if d.init else None)
         form, self.train_steps, self.kept = Formulation.from_config(d), list(d.train_steps), {}
         if init is not None:
             start, meta = load(init, self.device)
@@ -360,7 +373,7 @@ class RefineTask(Task):
         return entry["val"]["psnr"] if entry["val"] else None
 
     def save_best(self, entry: dict) -> None:
-        save(self.folder, self.model, self.blob, self.base_what, self.form, self.spps,
+        save(self.folder, self.model, self.blob, self.base_what, self.network, self.form, self.spps,
              {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
               "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
               # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
@@ -442,13 +455,13 @@ def calibrate(refiner: "OIDNRefiner", items: list[dict], seed: int = 0) -> dict:
 # ---- saving and loading a run ------------------------------------------------------------------
 
 
-def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, form: Formulation, spps: list[int],
-         record: dict) -> None:
+def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, network: str, form: Formulation,
+         spps: list[int], record: dict) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
         atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
     weights.save(folder, "oidn_control", model.control.state_dict(), {
-        "base": "base.tza", "base_network": NETWORK, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
+        "base": "base.tza", "base_network": network, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
         "cond_channels": cond_names(), "spp": spps, "formulation": form.record(), **record}, weights="control.safetensors")
 
 
@@ -475,6 +488,7 @@ class OIDNRefiner:
         self.model, self.meta, self.device, self.folder = model, meta, device, folder
         self.formulation = Formulation.from_record(meta["formulation"])
         self.sigma_scale = float((meta.get("sigma") or {}).get("scale", 1.0))
+        self.clean_aux = clean_aux(meta)   # a _calb_cnrm base reads albedo and normal prefiltered by OIDN
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
@@ -520,7 +534,7 @@ class OIDNRefiner:
         return oidn.denoise({k: v for k, v in buffers.items() if k in ("color", "albedo")}, weights=blob)
 
     def _sample(self, buffers, spp, skip, seed, steps, start, samples):
-        x, cond, scale = inputs(buffers, int(spp))
+        x, cond, scale = inputs(buffers, int(spp), clean_aux=self.clean_aux)
         H, W = buffers["color"].shape[:2]
         control = self.model.control
         if self.last_base_only:
