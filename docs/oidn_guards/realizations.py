@@ -1,4 +1,4 @@
-"""Methods − OIDN on every noise realization the store holds, not only the first.
+"""Methods − OIDN (or ``--reference``) on every noise realization the store holds, not only the first.
 
 ``make eval`` reads each frame at 4 spp from its first stack; a store frame has 16 stacks of 4 spp,
 so 16 independent 4-spp inputs (and 4 at 16 spp). One realization's per-scene gain carries that
@@ -6,7 +6,7 @@ realization's noise (single scenes move by up to ±0.3 dB between realizations);
 of them says what the method does on the scene. Methods are loaded and run exactly as ``make eval``
 runs them (``evaluate.methods.Loader``); PSNR is eval's (Reinhard tonemap, against GT1).
 
-    python docs/oidn_guards/realizations.py --methods oidn_ft ours [--store data/external]
+    python docs/oidn_guards/realizations.py --methods oidn_ft ours [--reference oidn] [--store data/external]
         [--split external] [--prefix ext_val] [--exclude P] [--spp 4 16] [--layers color albedo normal]
         -- [config overrides, e.g. runs=R oidn_ft.blend=0.5]
 """
@@ -50,6 +50,7 @@ def main(argv):
     ap.add_argument("--config", default="configs/default.yaml")
     ap.add_argument("--json", default="")
     ap.add_argument("--layers", nargs="+", default=[], help="only these buffers reach the methods (default: all)")
+    ap.add_argument("--reference", default="oidn", help="the method the others are compared with")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     cfg = load_config(a.config, a.overrides)
@@ -59,14 +60,14 @@ def main(argv):
     label = (lambda key: key.scene) if a.split == "external" else str   # external scenes: one frame each
     loader, result = Loader(cfg), {}
     for spp in a.spp:
-        methods = {name: loader.load(name, spp) for name in ["oidn", *a.methods]}
+        methods = {name: loader.load(name, spp) for name in dict.fromkeys([a.reference, *a.methods])}
         result[spp] = {label(key): realization_psnrs(methods, store, key, spp, a.layers) for key in keys}
-    for name in a.methods:
-        print(f"{name} − oidn, dB, the mean over realizations ± its standard error (first realization; range):")
+    for name in (m for m in a.methods if m != a.reference):
+        print(f"{name} − {a.reference}, dB, the mean over realizations ± its standard error (first realization; range):")
         for spp in a.spp:
             means = {}
             for sid, r in result[spp].items():
-                d = np.subtract(r[name], r["oidn"])
+                d = np.subtract(r[name], r[a.reference])
                 means[sid] = d.mean()
                 se = d.std(ddof=1) / len(d) ** 0.5 if len(d) > 1 else float("nan")
                 print(f"  {spp:3d} spp {sid:28s} {d.mean():+.3f} ± {se:.3f} ({d[0]:+.2f}; {d.min():+.2f} … "
