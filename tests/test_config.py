@@ -122,7 +122,8 @@ TRAINER_KEYS = {
                            "start", "samples", "skip", "threshold_ratio", "variance", "ema", "pack", "val_frames",
                            "val_skip", "tile", "tile_overlap",
                            "init",    # added after TrainingConfig: a warm start from a trained model folder
-                           "extra_stores"},   # more stores' train splits beside the config's
+                           "extra_stores",    # more stores' train splits beside the config's
+                           "base_network"},   # which of OIDN's networks the Control Module sits on
     "pretrain": SHARED | {"channels", "layers_per_block", "images", "crops_per_image", "weight_decay", "scales",
                           "noise", "fireflies", "real", "out", "warmup_steps", "precision"},
     "oidn_ft": SHARED | {"network", "crops_per_frame", "epoch_steps", "lr_end", "warmup_steps", "weight_decay",

@@ -306,3 +306,11 @@ def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_m
     assert psnr(out, oidn.denoise(buf, weights=blob, clean_aux=True)) > 80
     # the same network on the aux as rendered is another output: the prefilter is what makes them equal
     assert psnr(out, oidn.denoise(buf, weights=blob)) < 60
+
+
+def test_the_base_network_is_one_oidn_has_for_colour_albedo_and_normal():
+    assert load_config(None, ["diffusion.base_network=rt_hdr_calb_cnrm_large"]).diffusion.base_network \
+        == "rt_hdr_calb_cnrm_large"
+    for wrong in ("rt_hdr", "rt_hdr_alb", "rt_ldr_calb_cnrm"):
+        with pytest.raises(ConfigError, match="diffusion.base_network"):
+            load_config(None, [f"diffusion.base_network={wrong}"])
