@@ -39,8 +39,9 @@ Names (``eval.methods``):
   of ``sN`` (N sampler steps), ``skipN`` (skip the first N; the paper formulation: of its 27
   super27 steps), ``kN`` (the mean of N samples), ``small`` (the paper formulation's fixed
   posterior variance instead of the learned one), ``noise`` / ``render`` / ``estimate`` (where
-  sampling starts). E.g. ``ours_s1``, ``ours_s3_k4``, ``ours_paper_skip24``,
-  ``ours_paper_small_skip24``, ``base_only_s1``.
+  sampling starts), ``strengthN`` (N %: the base's output plus that fraction of what the Control Module
+  changes; a model on OIDN's network). E.g. ``ours_s1``, ``ours_s3_k4``, ``ours_paper_skip24``,
+  ``ours_paper_small_skip24``, ``base_only_s1``, ``ours_strength50``.
 - ``_xN`` after any name (N in 2, 4, 8; last): that method's self-ensemble over N flipped and transposed
   copies of the frame (``pipeline.ensemble``), at N times its cost, e.g. ``oidn_x8``, ``ours_x8``.
   These are looked up lazily, as
@@ -77,7 +78,7 @@ OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft
            "oidn_ft_prefilter": "rt_hdr_calb_cnrm_large"}
 FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", "oidn_isik", *_DIFFUSION)
 _TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
-                    r"(?P<start>noise|render|estimate))$")
+                    r"(?P<start>noise|render|estimate)|strength(?P<strength>\d+))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_albedo": "OIDN (colour+albedo)",
           "oidn_color": "OIDN (colour only)",
           "oidn_prefilter": "OIDN (colour+prefiltered albedo+normal, cleanAux)",
@@ -95,7 +96,7 @@ class MethodUnavailable(PipelineError):
 
 @dataclass(frozen=True)
 class Spec:
-    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_xN]``."""
+    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_strengthN][_xN]``."""
     family: str
     variant: str = ""
     steps: int | None = None
@@ -104,6 +105,7 @@ class Spec:
     variance: str | None = None
     start: str | None = None
     ensemble: int = 1
+    strength: float | None = None     # percent in the name (strength50 = 0.5); None: the model's own
 
 
 def parse(name: str) -> Spec:
@@ -112,7 +114,7 @@ def parse(name: str) -> Spec:
                    if name == f or name.startswith(f + "_")), None)
     if family is None:
         raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, and "
-                          "<ours|base_only>[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate])")
+                          "<ours|base_only>[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_strengthN])")
     tokens = [t for t in name[len(family):].split("_") if t]
     if family not in _DIFFUSION and any(not re.fullmatch(r"x\d+", t) for t in tokens):
         raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options other than xN")
@@ -122,13 +124,16 @@ def parse(name: str) -> Spec:
         if m is None:
             if i != 0 or not re.fullmatch(r"[a-z][a-z0-9-]*", tok):
                 raise ConfigError(f"eval.methods: {name!r}: unknown option {tok!r} (a run variant comes first; "
-                                  "options are sN, skipN, kN, small, noise, render, estimate)")
+                                  "options are sN, skipN, kN, small, noise, render, estimate, strengthN)")
             fields["variant"] = tok
             continue
         for key, value in m.groupdict().items():
             if value is not None:
-                fields[key] = int(value) if key in ("steps", "skip", "samples", "ensemble") else value
+                fields[key] = (int(value) if key in ("steps", "skip", "samples", "ensemble")
+                               else int(value) / 100 if key == "strength" else value)
     spec = Spec(family, **fields)
+    if spec.strength is not None and spec.strength > 1:
+        raise ConfigError(f"eval.methods: {name!r}: strengthN is a percentage from 0 to 100")
     if spec.samples < 1 or (spec.steps is not None and spec.steps < 1):
         raise ConfigError(f"eval.methods: {name!r}: steps and samples must be at least 1")
     if spec.ensemble not in ensemble.SIZES or (spec.ensemble > 1 and tokens[-1] != f"x{spec.ensemble}"):
@@ -141,6 +146,7 @@ def curve_kind(name: str) -> str:
     spec = parse(name)
     return "_".join([spec.family] + [p for p in (spec.variant, spec.variance, spec.start) if p]
                     + ([f"k{spec.samples}"] if spec.samples > 1 else [])
+                    + ([f"strength{round(spec.strength * 100)}"] if spec.strength is not None else [])
                     + ([f"x{spec.ensemble}"] if spec.ensemble > 1 else []))
 
 
@@ -157,6 +163,8 @@ def label(name: str) -> str:
         parts.append("fixed small variance")
     if spec.samples > 1:
         parts.append(f"mean of {spec.samples} samples")
+    if spec.strength is not None:
+        parts.append(f"strength {spec.strength:g}")
     if spec.ensemble > 1:
         parts.append(f"self-ensemble of {spec.ensemble} flips/transposes")
     return ", ".join(parts)
@@ -300,7 +308,7 @@ class Diffusion(Method):
         s = self.spec
         out, std = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, rotation=self.rotation,
                                          variance=s.variance, steps=s.steps, start=s.start, samples=s.samples,
-                                         with_std=True)
+                                         with_std=True, **({} if s.strength is None else {"strength": s.strength}))
         self.last_std = std if s.samples > 1 else None
         return np.asarray(out, dtype=np.float32)
 
@@ -435,6 +443,9 @@ class Loader:
             raise MethodUnavailable(f"{name}: skip must be 0..{PAPER_STEPS - 1} of the {PAPER_STEPS} super27 steps")
         if not f.paper and not 0 <= (spec.skip or 0) < (spec.steps or f.steps):
             raise MethodUnavailable(f"{name}: skip must be below the number of steps")
+        if spec.strength is not None and not hasattr(den, "strength"):
+            raise MethodUnavailable(f"{name}: strengthN scales the change of a Control Module on OIDN's network; "
+                                    f"{folder} is a model on the stand-in base")
         return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device(),
                          checkpoint=folder.name)
 

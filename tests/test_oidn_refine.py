@@ -1,6 +1,7 @@
 """The diffusion denoiser on OIDN (train/oidn_control.py, train/oidn_pack.py, train/oidn_refine.py)."""
 import json
 import shutil
+import types
 
 import numpy as np
 import pytest
@@ -314,3 +315,66 @@ def test_the_base_network_is_one_oidn_has_for_colour_albedo_and_normal():
     for wrong in ("rt_hdr", "rt_hdr_alb", "rt_ldr_calb_cnrm"):
         with pytest.raises(ConfigError, match="diffusion.base_network"):
             load_config(None, [f"diffusion.base_network={wrong}"])
+
+
+@pytest.mark.slow
+def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, tmp_path):
+    """strength k: the base's output plus k times what the Control Module changes, in OIDN's output space, so
+    0 is the base alone and every pixel of k = 0.5 lies between the base's and the full model's (the inverse
+    transfer is monotone); the evaluator's strengthN, denoise --strength and export --strength give that."""
+    from mcdenoise.evaluate.methods import Loader, MethodUnavailable, parse
+    from mcdenoise.pipeline.exr import read_image
+
+    store, runs, _ = trained
+    # a Control Module that changes OIDN's output clearly (two tiny epochs barely move it)
+    moved = tmp_path / "runs" / "diffusion_sppany"
+    shutil.copytree(runs / "diffusion_sppany", moved)
+    torch.manual_seed(1)
+    with safe_open(str(moved / "control.safetensors"), "pt") as f:
+        state = {k: f.get_tensor(k) + 0.02 * torch.randn_like(f.get_tensor(k)) for k in f.keys()}
+        save_file(state, str(moved / "control.safetensors"), f.metadata())
+    key = Store(store).frames("val")[0]
+    buf = Store(store).read(key.scene, key.frame, 4)
+    den = oidn_refine.load_refiner(moved, "cpu")
+    full = den.denoise(buf, spp=4, strength=1.0)
+    assert den.last_clamped == 0      # (a clamped pixel is the same at every strength that reaches the clamp)
+    half, none = (den.denoise(buf, spp=4, strength=k) for k in (0.5, 0.0))
+    base = oidn_refine.load_refiner(moved, "cpu", base_only=True).denoise(buf, spp=4)
+    assert np.abs(full - base).max() > 0.05 * float(base.max())
+    np.testing.assert_allclose(none, base, rtol=1e-5, atol=1e-6)
+    lo, hi = np.minimum(base, full), np.maximum(base, full)
+    assert np.all(half >= lo - 1e-5 * (1 + hi)) and np.all(half <= hi + 1e-5 * (1 + hi))
+    apart = np.abs(full - base) > 0.01 * (1 + hi)
+    assert apart.mean() > 0.1 and np.all(np.abs(half - base)[apart] > 0) and np.all(np.abs(half - full)[apart] > 0)
+    assert np.array_equal(den.denoise(buf, spp=4), full)         # the model's own strength: 1 unless set
+
+    # the evaluator's token
+    assert parse("ours_large2_strength50").strength == 0.5 and parse("ours_large2_strength50").variant == "large2"
+    with pytest.raises(ConfigError, match="strength150"):
+        parse("ours_strength150")
+    cfg = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY])
+    np.testing.assert_array_equal(Loader(cfg).load("ours_strength50", 4).denoise(buf), half)
+    # export --strength writes it into a copy of an exported model: that copy applies it by default
+    exported, out = tmp_path / "exported", tmp_path / "half"
+    cli("export", "--config", TINY, f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY, "--spp", "any",
+        "--out", exported)
+    cli("export", "--from", exported, "--strength", "0.5", "--out", out)
+    assert json.loads((out / "model.json").read_text())["strength"] == 0.5
+    assert "--strength 0.5" in (out / "README.md").read_text()
+    assert "strength" not in json.loads((exported / "model.json").read_text())
+    np.testing.assert_array_equal(oidn_refine.load_refiner(out, "cpu").denoise(buf, spp=4),
+                                  oidn_refine.load_refiner(exported, "cpu").denoise(buf, spp=4, strength=0.5))
+    # ... and denoise --strength on the command line
+    cli("denoise", "--config", TINY, f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY, "--spp", "4",
+        "--frame", f"{key.scene}/{key.frame:03d}", "--out", tmp_path / "half.exr", "--strength", "0.5", "--seed", "0")
+    image, record = read_image(tmp_path / "half.exr")
+    assert record["strength"] == 0.5
+    np.testing.assert_allclose(image["color"], half, rtol=1e-6, atol=1e-6)
+    # outside [0, 1]: one line naming the flag, nothing written
+    proc = cli("export", "--from", moved, "--strength", "1.5", "--out", tmp_path / "bad", check=False)
+    assert proc.returncode != 0 and "--strength" in proc.stderr and not (tmp_path / "bad").exists()
+    # a model on the stand-in base has no such change to scale: the evaluator says so instead of a number
+    stand_in = Loader(cfg)
+    stand_in._models[("diffusion", str(moved), False)] = types.SimpleNamespace(formulation=den.formulation)
+    with pytest.raises(MethodUnavailable, match="strengthN"):
+        stand_in.load("ours_strength50", 4)

@@ -73,10 +73,11 @@ def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
 
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
-                samples: int | None = None, ensemble: int = 1) -> int:
+                samples: int | None = None, ensemble: int = 1, strength: float | None = None) -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
     mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
-    both over that many flipped and transposed copies (``pipeline.ensemble``)."""
+    both over that many flipped and transposed copies (``pipeline.ensemble``); ``strength``: the fraction of
+    the Control Module's change applied (default: the model's)."""
     from .infer import load_denoiser
 
     if (frame is None) == (exr is None):
@@ -97,7 +98,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
     def run(b):   # colour and std side by side, so that one self-ensemble turns both back
         return np.concatenate(den.denoise(b, int(spp), skip=skip, seed=cfg.seed if seed is None else seed,
                                           rotation=rotation, variance=f.variance, steps=steps, samples=samples,
-                                          with_std=True), axis=2)
+                                          with_std=True, strength=strength), axis=2)
     t0 = time.perf_counter()
     out6 = ensemble_mean(run, buffers, ensemble)
     hdr, std, seconds = out6[..., :3], out6[..., 3:], time.perf_counter() - t0
@@ -107,7 +108,8 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
             "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
             "base_only": getattr(den, "last_base_only", False), "shortened_normals": getattr(den, "last_shortened", 0),
-            "ensemble": ensemble, "seconds": round(seconds, 3)}
+            "ensemble": ensemble, "strength": getattr(den, "strength", 1.0) if strength is None else strength,
+            "seconds": round(seconds, 3)}
     write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
     if not quiet:
         fallback = getattr(den, "fallback", "")

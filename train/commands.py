@@ -53,8 +53,11 @@ def _training_commands(sub) -> None:
     p.add_argument("--base", default=None,
                    help="instead: replace the frozen base of an exported model (--from) by this .tza of the same "
                         "OIDN network (e.g. an --format oidn export), keeping its Control Module; to --out")
+    p.add_argument("--strength", type=float, default=None,
+                   help="instead: make an exported model (--from) apply this fraction (0..1) of what its Control "
+                        "Module changes to its base's output (model.json strength), written to --out (default: --from)")
     p.add_argument("--from", dest="from_model", default="train/shipped",
-                   help="the model folder --base-blend moves or --base changes")
+                   help="the model folder --base-blend moves, --base changes or --strength sets")
     with_quiet(p)
     p.set_defaults(fn=_export)
 
@@ -105,6 +108,9 @@ def _inference_commands(sub) -> None:
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
+    p.add_argument("--strength", type=float, default=None,
+                   help="the fraction (0..1) of what the Control Module changes that is applied to its base's output "
+                        "(a model on OIDN's network; default: the model's, model.json strength, else 1)")
     p.add_argument("--method", default="ours", choices=["ours", "oidn", "oidn_prefilter", "oidn_ft", "oidn_ft_prefilter"],
                    help="ours: the diffusion denoiser; oidn: OIDN's built-in network; oidn_prefilter: OIDN's "
                         "final-frame mode (albedo and normal prefiltered by OIDN, then cleanAux; needs both); "
@@ -164,7 +170,10 @@ def _pretrain(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export, export_oidn, rebase, swap_base
+    from .export import export, export_oidn, rebase, set_strength, swap_base
+    if args.strength is not None:
+        set_strength(Path(args.from_model), args.strength, Path(args.out) if args.out else None, quiet=args.quiet)
+        return 0
     if args.base is not None:
         swap_base(Path(args.from_model), Path(args.base), Path(args.out) if args.out else None, quiet=args.quiet)
         return 0
@@ -208,7 +217,7 @@ def _denoise(args) -> int:
                                 spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
     return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                        base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples,
-                       ensemble=args.ensemble)
+                       ensemble=args.ensemble, strength=args.strength)
 
 
 def _afgsa_report(args) -> int:

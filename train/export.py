@@ -258,9 +258,9 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
                     {k: t.array.astype(np.float32) for k, t in base.items()}, float(blend) / float(old))
     blob = tza.write({k: tza.Tensor(moved[k].astype(np.float16), t.layout) for k, t in base.items()})
     what = f"{meta.get('base_what')}, moved from blend {old:g} to {blend:g} after training"
-    return _with_base(model, meta, blob, out, quiet, _rebase_note(model, out, old, blend),
-                      base_blend=float(blend), base_what=what,
-                      rebased={"from": old, "to": float(blend), "date": datetime.date.today().isoformat()})
+    return _updated(model, meta, out, quiet, _rebase_note(model, out, old, blend), blob,
+                    base_blend=float(blend), base_what=what,
+                    rebased={"from": old, "to": float(blend), "date": datetime.date.today().isoformat()})
 
 
 def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool = False) -> Path:
@@ -283,26 +283,45 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
                               f"{model / meta['base']}'s): the Control Module feeds that network's decoder")
     card = base_file.with_suffix(".json")
     blend = json.loads(card.read_text()).get("blend") if card.exists() else None
-    return _with_base(model, meta, blob, out, quiet, _swap_note(model, base_file, out, blend),
-                      base_blend=blend, base_what=f"{base_file} (blend {blend})",
-                      base_swapped={"from": meta.get("base_what"), "to": str(base_file),
-                                    "date": datetime.date.today().isoformat()})
+    return _updated(model, meta, out, quiet, _swap_note(model, base_file, out, blend), blob,
+                    base_blend=blend, base_what=f"{base_file} (blend {blend})",
+                    base_swapped={"from": meta.get("base_what"), "to": str(base_file),
+                                  "date": datetime.date.today().isoformat()})
 
 
-def _with_base(model: Path, meta: dict, blob: bytes, out: Path, quiet: bool, note: str, **record) -> Path:
-    """``model`` copied to ``out`` (by a rename) with ``blob`` as its frozen base, model.json updated with the
-    base's sha256 and ``record``, and ``note`` appended to its card."""
+def _updated(model: Path, meta: dict, out: Path, quiet: bool, note: str, blob: bytes | None = None, **record) -> Path:
+    """``model`` copied to ``out`` (by a rename) with model.json updated by ``record``, ``note`` appended to its
+    card and, given ``blob``, that as its frozen base (and the base's sha256 in model.json)."""
     import hashlib
 
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(model, tmp)
-    (tmp / meta["base"]).write_bytes(blob)
-    atomic_write_json(tmp / weights.RECORD, {**meta, **record, "base_sha256": hashlib.sha256(blob).hexdigest()})
+    if blob is not None:
+        (tmp / meta["base"]).write_bytes(blob)
+        record["base_sha256"] = hashlib.sha256(blob).hexdigest()
+    atomic_write_json(tmp / weights.RECORD, {**meta, **record})
     card = tmp / "README.md"
     if card.exists():
         card.write_text(card.read_text().rstrip("\n") + "\n\n" + note)
     return _publish(tmp, out, model, quiet)
+
+
+def set_strength(model: Path, strength: float, out: Path | None = None, quiet: bool = False) -> Path:
+    """An exported model on OIDN's network that applies ``strength`` of its Control Module's change
+    (model.json ``strength``; ``oidn_refine.with_strength``), written to ``out`` (default: ``model`` itself)
+    by a rename; its weights unchanged."""
+    from .oidn_refine import check_strength
+
+    model = Path(model)
+    out = Path(out) if out else model
+    meta = weights.read_record(model, "oidn_control", "give a model folder exported from a run on OIDN's network")
+    k = check_strength(strength, "--strength")
+    note = (f"## Strength set after training ({datetime.date.today().isoformat()})\n\nThe model applies {k:g} of "
+            f"what its Control Module changes to its base's output (it was {meta.get('strength', 1.0):g}); the "
+            f"weights are unchanged. Made by:\n\n```sh\npython -m pipeline export --from {model} --strength {k:g} "
+            f"--out {out}\n```\n")
+    return _updated(model, meta, out, quiet, note, strength=k)
 
 
 def _swap_note(model: Path, base_file: Path, out: Path, blend) -> str:

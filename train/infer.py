@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mcdenoise.pipeline.config import ConfigError
 from mcdenoise.pipeline.numerics import repair_nonfinite
 from mcdenoise.pipeline.runs import pick_device
 
@@ -65,8 +66,12 @@ class Denoiser:
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 rotation: np.ndarray | None = None, variance: str | None = None, steps: int | None = None,
-                start: str | None = None, samples: int = 1, with_std: bool = False):
-        """HDR (H, W, 3) float32; with ``with_std`` also the per-pixel standard deviation of the samples."""
+                start: str | None = None, samples: int = 1, with_std: bool = False, strength: float | None = None):
+        """HDR (H, W, 3) float32; with ``with_std`` also the per-pixel standard deviation of the samples.
+        ``strength`` (a model on OIDN's network only) must be unset or 1."""
+        if strength is not None and float(strength) != 1.0:
+            raise ConfigError(f"strength {strength}: only a model on OIDN's network (diffusion.base: oidn) scales "
+                              "its Control Module's change; this one is on the stand-in base")
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())

@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader
 from mcdenoise.pipeline import oidn_net, oidn_weights, tza, weights
 from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves
 from mcdenoise.pipeline.color import reinhard
-from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.config import Config, ConfigError
 from mcdenoise.pipeline.errors import CheckpointError, TrainError
 from mcdenoise.pipeline.exr import atomic_write_bytes, atomic_write_json, read_json
 from mcdenoise.pipeline.fit import Task, apply_update, fit
@@ -158,6 +158,28 @@ def sample(model: ControlledOIDN, x: torch.Tensor, cond: torch.Tensor, f: Formul
         outs.append(est + s * z)
     outs = torch.stack(outs)
     return outs.mean(0), outs.std(0, unbiased=False), est
+
+
+def with_strength(mean: torch.Tensor, std: torch.Tensor, est: torch.Tensor, strength: float
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The base's output ``est`` plus ``strength`` times what the Control Module changed (``mean - est``),
+    and the samples' spread scaled alike: ControlNet's conditioning scale, read in OIDN's output space,
+    where a frozen base keeps what it knew. 1 is the trained model, 0 the base alone; in between trades
+    the gain on data like the training set for less change on data unlike it."""
+    if strength == 1.0:
+        return mean, std
+    return est + strength * (mean - est), strength * std
+
+
+def check_strength(value, what: str) -> float:
+    """``value`` as a strength in [0, 1], else a ConfigError that names ``what``."""
+    try:
+        k = float(value)
+    except (TypeError, ValueError):
+        k = float("nan")
+    if not 0.0 <= k <= 1.0:
+        raise ConfigError(f"{what}: {value!r}: expected a number from 0 (the base alone) to 1 (the trained model)")
+    return k
 
 
 # ---- the training run --------------------------------------------------------------------------
@@ -495,6 +517,8 @@ class OIDNRefiner:
         # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
         # EXR from another renderer) the base runs alone, where validation found the Control Module worse
         self.control_without_groups = bool(meta.get("control_without_groups", True))
+        # model.json ``strength`` (``export --strength``): how much of the Control Module's change it applies
+        self.strength = check_strength(meta.get("strength", 1.0), f"{folder or 'the model'}/model.json: strength")
         self.last_repaired = self.last_clamped = 0
         self.last_black = self.last_estimate_only = self.last_base_only = False
         self.last_shortened = 0        # normals longer than 1 scaled to unit length (garbage layers)
@@ -503,8 +527,10 @@ class OIDNRefiner:
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 rotation=None, variance=None, steps: int | None = None, start: str | None = None, samples: int = 1,
-                with_std: bool = False):
-        """HDR (H, W, 3) float32 (and the per-pixel std of ``samples`` samples with ``with_std``)."""
+                with_std: bool = False, strength: float | None = None):
+        """HDR (H, W, 3) float32 (and the per-pixel std of ``samples`` samples with ``with_std``);
+        ``strength``: the fraction of the Control Module's change applied (default: the model's)."""
+        strength = self.strength if strength is None else check_strength(strength, "strength")
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
@@ -519,7 +545,7 @@ class OIDNRefiner:
             hdr, std = self._oidn_only(buffers), np.zeros_like(color)
         else:
             self.last_base_only = not self.control_without_groups and not any(present(buffers).values())
-            hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples)
+            hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples, strength)
         self.last_seconds = time.perf_counter() - t0
         return (hdr, std) if with_std else hdr
 
@@ -533,18 +559,19 @@ class OIDNRefiner:
         blob = blob_path.read_bytes() if blob_path is not None and blob_path.exists() else None
         return oidn.denoise({k: v for k, v in buffers.items() if k in ("color", "albedo")}, weights=blob)
 
-    def _sample(self, buffers, spp, skip, seed, steps, start, samples):
+    def _sample(self, buffers, spp, skip, seed, steps, start, samples, strength=1.0):
         x, cond, scale = inputs(buffers, int(spp), clean_aux=self.clean_aux)
         H, W = buffers["color"].shape[:2]
         control = self.model.control
         if self.last_base_only:
             self.model.control = None
         try:
-            mean, std, _ = sample(self.model, torch.from_numpy(x)[None].to(self.device),
+            mean, std, est = sample(self.model, torch.from_numpy(x)[None].to(self.device),
                                   torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start,
                                   seed, samples)
         finally:
             self.model.control = control
+        mean, std = with_strength(mean, std, est, strength)
         # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
         # Module pushed past it by inputs unlike its training would overflow the inverse
         # transfer to inf: such pixels are clamped to the range's end and counted.
