@@ -1,6 +1,7 @@
 """The denoiser shipped in train/shipped: in the repository, small, documented, and it denoises."""
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from mcdenoise.evaluate.stability import synthetic_buffers
+from mcdenoise.pipeline.config import BASE_NETWORKS
 from mcdenoise.pipeline.exr import read_image
 from mcdenoise.pipeline.store import sha256
 from mcdenoise.train import oidn_refine
@@ -28,7 +30,8 @@ def test_shipped_model_is_in_the_repository_small_and_documented():
     assert sum(p.stat().st_size for p in files) <= 30 * 2**20
     meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
     # a Control Module on OIDN's own network (its frozen weights in base.tza, checked against model.json)
-    assert meta["format"] == oidn_refine.FORMAT and meta["base_network"] == "rt_hdr_alb_nrm"
+    assert meta["format"] == oidn_refine.FORMAT and meta["base_network"] in BASE_NETWORKS
+    assert 0 <= meta.get("strength", 1.0) <= 1
     assert sha256(SHIPPED_MODEL / "base.tza") == meta["base_sha256"] and {4, 16, 64} <= set(meta["spp"])
     card = (SHIPPED_MODEL / "README.md").read_text()
     assert "configs/ship.yaml" in card and "python -m pipeline" in card
@@ -169,20 +172,41 @@ def test_denoise_self_ensemble_is_recorded_and_averages_flipped_copies(tmp_path)
     assert not np.array_equal(outs[1], outs[4]) and _mse(outs[1], outs[4]) < 0.1 * _mse(noisy, truth)
 
 
+def _on_a_fine_tuned_base(tmp_path: Path, blend: float) -> tuple[Path, Path]:
+    """(the shipped model on another base of its network, that base's file): OIDN's weights moved by a fixed
+    random change, standing for OIDN + ``blend`` x a fine-tuning (the card beside the file says so), put in
+    by ``export --base``; whatever base the shipped model has, the base tests below start from this."""
+    from mcdenoise.pipeline import oidn_weights, tza
+    from tests.helpers import cli
+
+    network = json.loads((SHIPPED_MODEL / "model.json").read_text())["base_network"]
+    rng = np.random.default_rng(0)
+    moved = {k: tza.Tensor((t.array.astype(np.float32) * (1 + 0.05 * rng.standard_normal(t.array.shape)))
+                           .astype(np.float16), t.layout) for k, t in tza.read(oidn_weights.load(network)).items()}
+    base = tmp_path / "fine_tuned.tza"
+    base.write_bytes(tza.write(moved))
+    base.with_suffix(".json").write_text(json.dumps({"network": network, "blend": blend}))
+    out = tmp_path / "on_fine_tuned"
+    cli("export", "--from", SHIPPED_MODEL, "--base", base, "--out", out, "--quiet")
+    return out, base
+
+
 def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module(tmp_path):
     """export --base-blend: OIDN + b x what fine-tuning changed, from a base recorded at blend a."""
     from mcdenoise.pipeline import oidn_weights, tza
     from tests.helpers import cli
 
-    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
-    a = meta["base_blend"]
+    a = 0.5
+    model, _ = _on_a_fine_tuned_base(tmp_path, a)
+    meta = json.loads((model / "model.json").read_text())
+    assert meta["base_blend"] == a
     same = tmp_path / "same"
-    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(a), "--out", same, "--quiet")
-    assert (same / "base.tza").read_bytes() == (SHIPPED_MODEL / "base.tza").read_bytes()
+    cli("export", "--from", model, "--base-blend", str(a), "--out", same, "--quiet")
+    assert (same / "base.tza").read_bytes() == (model / "base.tza").read_bytes()
     half = tmp_path / "half"
-    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(a / 2), "--out", half, "--quiet")
-    stock = tza.read(oidn_weights.load("rt_hdr_alb_nrm"))
-    old, new = tza.read((SHIPPED_MODEL / "base.tza").read_bytes()), tza.read((half / "base.tza").read_bytes())
+    cli("export", "--from", model, "--base-blend", str(a / 2), "--out", half, "--quiet")
+    stock = tza.read(oidn_weights.load(meta["base_network"]))
+    old, new = tza.read((model / "base.tza").read_bytes()), tza.read((half / "base.tza").read_bytes())
     moved = 0
     for name, t in new.items():
         s, o = stock[name].array.astype(np.float32), old[name].array.astype(np.float32)
@@ -213,17 +237,10 @@ def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_mod
     stays; a file of another OIDN network is refused with a one-line error naming it, nothing written."""
     from tests.helpers import cli
 
-    moved = tmp_path / "moved"     # another rt_hdr_alb_nrm base: the shipped one moved halfway to OIDN
-    blend = json.loads((SHIPPED_MODEL / "model.json").read_text())["base_blend"] / 2
-    cli("export", "--from", SHIPPED_MODEL, "--base-blend", str(blend), "--out", moved, "--quiet")
-    base = tmp_path / "other.tza"
-    base.write_bytes((moved / "base.tza").read_bytes())
-    base.with_suffix(".json").write_text(json.dumps({"network": "rt_hdr_alb_nrm", "blend": blend}))
-    out = tmp_path / "swapped"
-    cli("export", "--from", SHIPPED_MODEL, "--base", base, "--out", out, "--quiet")
+    out, base = _on_a_fine_tuned_base(tmp_path, 0.5)
     record = json.loads((out / "model.json").read_text())
     assert (out / "base.tza").read_bytes() == base.read_bytes() != (SHIPPED_MODEL / "base.tza").read_bytes()
-    assert record["base_sha256"] == sha256(base) and record["base_blend"] == blend
+    assert record["base_sha256"] == sha256(base) and record["base_blend"] == 0.5
     assert (out / "control.safetensors").read_bytes() == (SHIPPED_MODEL / "control.safetensors").read_bytes()
     assert f"--base {base}" in (out / "README.md").read_text()
     model, _ = oidn_refine.load(out)
@@ -233,23 +250,27 @@ def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_mod
                               oidn_refine.OIDNRefiner(reference, record, "cpu").denoise(buf, spp=4))
     proc = cli("export", "--from", SHIPPED_MODEL, "--base", SHIPPED_MODEL / "oidn_ft" / "rt_hdr.tza",
                "--out", tmp_path / "never", check=False)
-    assert proc.returncode != 0 and "rt_hdr.tza: not OIDN's rt_hdr_alb_nrm" in proc.stderr
+    assert proc.returncode != 0 and f"rt_hdr.tza: not OIDN's {record['base_network']}" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "never").exists()
 
 
-def test_colour_albedo_normal_alone_run_the_shipped_base_alone_and_more_buffers_the_control_module(shipped):
-    """The shipped model.json says control_without_groups: false (chosen on the hand-made validation scenes):
-    an input with none of the Control Module's extra groups (an EXR from another renderer) gets its base
-    alone, exactly the base_only row; one more group (the variances) brings the Control Module back."""
-    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
-    assert meta["control_without_groups"] is False
+@pytest.mark.parametrize("control_without_groups", [False, True])
+def test_colour_albedo_normal_alone_get_the_base_alone_where_the_model_says_so(tmp_path, control_without_groups):
+    """model.json control_without_groups false: an input with none of the Control Module's extra groups (an EXR
+    from another renderer) gets the model's base alone, exactly the base_only row, and one more group (the
+    variances) brings the Control Module back; true: the Control Module runs on colour, albedo and normal too."""
+    model = tmp_path / "model"
+    shutil.copytree(SHIPPED_MODEL, model)
+    meta = json.loads((model / "model.json").read_text())
+    (model / "model.json").write_text(json.dumps({**meta, "control_without_groups": control_without_groups}))
+    den = load_denoiser(model, device="cpu")
+    base = load_denoiser(model, device="cpu", base_only=True)
     full = synthetic_buffers(40, 32, seed=4, noise=0.6)
     plain = {k: full[k] for k in ("color", "albedo", "normal")}
-    base = load_denoiser(SHIPPED_MODEL, device="cpu", base_only=True)
-    out = shipped.denoise(plain, spp=4)
-    assert shipped.last_base_only and not shipped.last_estimate_only
-    assert np.array_equal(out, base.denoise(plain, spp=4))
+    out = den.denoise(plain, spp=4)
+    assert den.last_base_only is not control_without_groups and not den.last_estimate_only
+    assert np.array_equal(out, base.denoise(plain, spp=4)) is not control_without_groups
     with_variance = {**plain, **{k: v for k, v in full.items() if k.endswith("variance")}}
-    out_v = shipped.denoise(with_variance, spp=4)
-    assert not shipped.last_base_only and shipped.model.control is not None
+    out_v = den.denoise(with_variance, spp=4)
+    assert not den.last_base_only and den.model.control is not None
     assert not np.array_equal(out_v, base.denoise(with_variance, spp=4))
