@@ -298,3 +298,34 @@ def test_gpu_recipe_dry_run_of_the_oidn_based_model(cleaned, tmp_path):
     # epoch 0 of the continued run is the exported model itself
     assert result["history"][0]["epoch"] == 0
     assert {"control_fp16.safetensors", "model.json", "report.md"} <= {f.name for f in files}
+    # crops whose albedo and normal are not what the model's base reads are refused, naming the crops
+    large = tmp_path / "large"
+    large.mkdir()
+    meta = json.loads((tmp_path / "model" / "model.json").read_text())
+    (large / "model.json").write_text(json.dumps({**meta, "base_network": "rt_hdr_calb_cnrm_large"}))
+    proc = run("gpu-recipe", "--model", large, "--train", tmp_path / "train.safetensors", "--val",
+               tmp_path / "val.safetensors", "--out", tmp_path / "out2", "--device", "cpu", check=False,
+               module=("-m", "mcdenoise"))
+    assert proc.returncode == 2 and str(tmp_path / "train.safetensors") in proc.stderr and "prefiltered" in proc.stderr
+    assert not (tmp_path / "out2").exists() or not any((tmp_path / "out2").iterdir())
+
+
+def test_gpu_prepare_cuts_crops_with_the_aux_the_models_base_reads(cleaned, tmp_path):
+    """A model on OIDN's clean-aux network gets crops whose albedo and normal are prefiltered by OIDN's aux
+    networks (the pack its CPU training reads), a model on the standard network the rendered ones."""
+    from mcdenoise.train.oidn_pack import load_pack, pack_clean_aux
+
+    store, _ = cleaned
+    for network, clean in (("rt_hdr_calb_cnrm_large", True), ("rt_hdr_alb_nrm", False)):
+        model = tmp_path / network
+        model.mkdir()
+        (model / "model.json").write_text(json.dumps({"format": "mcdenoise-oidn-control", "base_network": network}))
+        out = tmp_path / f"gpu_{network}"
+        run("gpu-prepare", "--model", model, "--out", out, "--no-wheels", "--train-crops", "2", "--val-crops", "1",
+            "--side", "16", f"store={store}", f"runs={tmp_path / 'runs'}", "diffusion.base=oidn")
+        assert pack_clean_aux(out / "train_crops.safetensors") is clean
+        assert pack_clean_aux(out / "val_crops.safetensors") is clean
+    # the two differ in their albedo and normal (x's channels 3..8), not in their colour
+    a, b = (load_pack(tmp_path / f"gpu_{n}" / "train_crops.safetensors") for n in ("rt_hdr_calb_cnrm_large",
+                                                                                  "rt_hdr_alb_nrm"))
+    assert bool((a["x"][:, :3] == b["x"][:, :3]).all()) and not bool((a["x"][:, 3:] == b["x"][:, 3:]).all())

@@ -71,6 +71,8 @@ def _gpu_commands(sub) -> None:
     p.add_argument("--val-crops", type=int, default=12)
     p.add_argument("--side", type=int, default=48)
     p.add_argument("--no-wheels", action="store_true", help="crop packs only")
+    p.add_argument("--model", default=None, help="the model the recipe will train, whose base decides the crops' "
+                                                "albedo and normal (default: train/shipped)")
     p.set_defaults(fn=_gpu_prepare)
 
     p = sub.add_parser("gpu-recipe", help="on a lent GPU machine (bash train/gpu_recipe.sh): train the shipped "
@@ -194,7 +196,8 @@ def _export(args) -> int:
 
 def _gpu_prepare(args) -> int:
     from .gpu_recipe import prepare
-    prepare(config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels)
+    prepare(config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels,
+            model=args.model)
     return 0
 
 

@@ -61,6 +61,7 @@ def run_refine(args: Settings, sizes: dict) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     meta = json.loads((Path(args.model) / "model.json").read_text())
+    check_crops(Path(args.train), Path(args.model), meta)
     st = meta.get("settings", {})
     side = int(oidn_refine.load_pack(Path(args.train))["x"].shape[-1])
     keys = ("weight_decay", "grad_clip", "ema", "hdr_weight", "dropout")
@@ -108,6 +109,19 @@ def run_refine(args: Settings, sizes: dict) -> int:
     return 0
 
 
+def check_crops(crops: Path, model: Path, meta: dict) -> None:
+    """TrainError unless the crops' albedo and normal are what the model's base reads (prefiltered for a
+    ``_calb_cnrm`` network, as rendered otherwise)."""
+    from . import oidn_refine
+    from .oidn_pack import pack_clean_aux
+
+    want, kind = oidn_refine.clean_aux(meta), lambda clean: "prefiltered" if clean else "rendered"
+    if pack_clean_aux(crops) != want:
+        raise TrainError(f"{crops}: crops with {kind(not want)} albedo and normal, but the model {model} (base "
+                         f"{meta.get('base_network', oidn_refine.NETWORK)}) reads {kind(want)} ones; cut them for "
+                         f"it: python -m pipeline gpu-prepare --model {model} --config …")
+
+
 def run(settings: Settings) -> int:
     """The recipe (``run_refine``) on ``settings.model`` (default: the shipped model); exit status 0."""
     from mcdenoise.pipeline import weights
@@ -139,15 +153,21 @@ WHEELS = ("diffusers==0.42.1", "huggingface_hub==2.4.0", "safetensors==0.8.0", "
 
 
 def prepare(cfg, out: Path = Path(".gpu"), train_crops: int = 48, val_crops: int = 12, side: int = 48,
-            wheels: bool = True, python: str = "3.12") -> None:
-    """Write ``out``: crop packs from the config's training packs and the wheels the GPU machine lacks."""
+            wheels: bool = True, python: str = "3.12", model: Path | None = None) -> None:
+    """Write ``out``: crop packs from the config's training packs, with albedo and normal as the base of
+    ``model`` (default: the shipped model, which the recipe trains) reads them, and the wheels the GPU
+    machine lacks."""
+    from mcdenoise.pipeline import weights
 
-    from .oidn_refine import is_oidn_base
+    from .oidn_refine import NETWORK, is_oidn_base
 
     if not is_oidn_base(cfg):
         raise TrainError("gpu-prepare cuts crops for a model on OIDN's network: use a config with diffusion.base "
                          "oidn or oidn_ft (configs/ship.yaml)")
-    _prepare_oidn(cfg, out, train_crops, val_crops, side)
+    model = Path(model or SHIPPED_MODEL)
+    network = weights.read_record(model, "oidn_control", "gpu-prepare cuts crops for a model on OIDN's network "
+                                  "(--model)").get("base_network", NETWORK)
+    _prepare_oidn(cfg, out, train_crops, val_crops, side, network)
     if wheels:
         _wheels(out, python)
 
@@ -161,17 +181,18 @@ def _wheels(out: Path, python: str) -> None:
     subprocess.run(cmd, check=True)
 
 
-def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int) -> None:
-    """Crops of the config's OIDN packs (train and val splits; built if missing) for the OIDN-based model; the
-    train crops come from the train pack the CPU run reads (``diffusion.extra_stores`` included)."""
+def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int, network: str) -> None:
+    """Crops of the config's OIDN packs (train and val splits; built if missing) for a model on OIDN's
+    ``network``; the train crops come from the train pack the CPU run reads (``diffusion.extra_stores``
+    included)."""
     from .oidn_pack import crop_pack, ensure_pack, load_pack
     from .oidn_refine import StoreSource
 
-    src = StoreSource(cfg)
+    src = StoreSource(cfg, network)
     for split, count in (("train", train_crops), ("val", val_crops)):
         pack = (src.train_pack(True) if split == "train"
                 else load_pack(ensure_pack(src.store, src.val_keys, src.pack_path("val"), clean_aux=src.clean_aux)))
         dest = out / f"{split}_crops.safetensors"
         out.mkdir(parents=True, exist_ok=True)
-        size = crop_pack(pack, dest, count, side, seed=1 if split == "val" else 0)
+        size = crop_pack(pack, dest, count, side, seed=1 if split == "val" else 0, clean_aux=src.clean_aux)
         print(f"{dest}: {count} crops of {side}², {size / 2**20:.1f} MiB", flush=True)

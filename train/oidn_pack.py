@@ -267,9 +267,11 @@ def residual_std(pack: dict[str, torch.Tensor], estimate, frames: int = 16) -> f
     return math.sqrt(float(np.mean(vals))) if vals else float("nan")
 
 
-def crop_pack(pack: dict[str, torch.Tensor], dest: Path, count: int, side: int, seed: int = 0) -> int:
+def crop_pack(pack: dict[str, torch.Tensor], dest: Path, count: int, side: int, seed: int = 0,
+              clean_aux: bool = False) -> int:
     """``count`` random ``side``² crops of a pack's items as a pack of their own (each crop its own frame and
-    target; what a GPU run carries, ``train.gpu_recipe``); returns the bytes written."""
+    target; what a GPU run carries, ``train.gpu_recipe``); ``clean_aux``: the pack's albedo and normal are
+    prefiltered (recorded, ``pack_clean_aux``); returns the bytes written."""
     rng = np.random.default_rng(seed)
     n, H, W = pack["x"].shape[0], pack["x"].shape[-2], pack["x"].shape[-1]
     if side > min(H, W) or side % oidn_net.ALIGNMENT:
@@ -282,5 +284,13 @@ def crop_pack(pack: dict[str, torch.Tensor], dest: Path, count: int, side: int, 
     out["scale"] = torch.stack([pack["scale"][i] for i, _, _ in picks])
     out["spp"] = torch.stack([pack["spp"][i] for i, _, _ in picks])
     out["frame"] = torch.arange(count, dtype=torch.int32)
-    save_safetensors(dest, out, {"format": FORMAT, "cond": json.dumps(cond_names()), "crops": str(count)})
+    save_safetensors(dest, out, {"format": FORMAT, "cond": json.dumps(cond_names()), "crops": str(count),
+                                 "aux": _aux_kind(clean_aux)})
     return dest.stat().st_size
+
+
+def pack_clean_aux(path: Path) -> bool:
+    """Whether the pack (or crop pack) at ``path`` holds albedo and normal prefiltered by OIDN's aux networks."""
+    from safetensors import safe_open
+    with safe_open(str(path), framework="pt") as f:
+        return (f.metadata() or {}).get("aux", "rendered") == _aux_kind(True)
