@@ -221,31 +221,37 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
     assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0
 
 
-def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base):
-    """A model whose samples differ: after the fit, the scaled σ covers the median error exactly."""
+@pytest.mark.parametrize("strength", [1.0, 0.5])
+def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base, strength):
+    """A model whose samples differ: after the fit, the σ that ``denoise`` returns at the model's strength
+    (the evaluator's ours_s3_k4 row) covers the median error exactly; strength scales the samples' spread
+    and the mean's change, not the error, so the fit is made at that strength."""
     torch.manual_seed(0)
     model = ControlledOIDN(base, len(oidn_pack.cond_names()))
     with torch.no_grad():
         for p in model.control.parameters():
             p.add_(0.02 * torch.randn_like(p))
-    meta = {"formulation": FORM.record()}
+    meta = {"formulation": FORM.record(), "strength": strength}
     refiner = oidn_refine.OIDNRefiner(model, meta, torch.device("cpu"))
     rng = np.random.default_rng(1)
-    items = []
+    items, buffers = [], []
     for i in range(2):
+        normal = rng.normal(size=(32, 32, 3))
         buf = {"color": rng.gamma(1.0, 0.4, (32, 32, 3)).astype(np.float32),
-               "albedo": rng.random((32, 32, 3)).astype(np.float32), "normal": rng.random((32, 32, 3)).astype(np.float32)}
+               "albedo": rng.random((32, 32, 3)).astype(np.float32),
+               "normal": (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)}
         x, cond, scale = oidn_pack.inputs(buf, 4)
         items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                       "ref": buf["color"] * 0.5 + 0.1})
+        buffers.append(buf)
     fit = oidn_refine.calibrate(refiner, items)
-    assert fit["pixels"] > 1000 and fit["scale"] > 0
+    assert fit["pixels"] > 1000 and fit["scale"] > 0 and fit["strength"] == strength
     refiner.sigma_scale = fit["scale"]
     ratios = []
-    for it in items:
-        mean, std, _ = oidn_refine.sample(model, it["x"], it["cond"], FORM, 3, 0, None, 0, 4)
-        hdr, s = refiner.to_hdr(mean, std, it["scale"], 32, 32)
-        e, s = np.abs(hdr - it["ref"]).mean(2).ravel(), s.mean(2).ravel() * fit["scale"]
+    for buf, it in zip(buffers, items):
+        hdr, s = refiner.denoise(buf, spp=4, steps=oidn_refine.SIGMA_STEPS, samples=oidn_refine.SIGMA_SAMPLES,
+                                 with_std=True)
+        e, s = np.abs(hdr - it["ref"]).mean(2).ravel(), s.mean(2).ravel()
         ratios.append(e[s > 0] / s[s > 0])
     assert np.median(np.concatenate(ratios)) == pytest.approx(0.6745, rel=1e-3)
 
@@ -358,9 +364,22 @@ def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, t
     exported, out = tmp_path / "exported", tmp_path / "half"
     cli("export", "--config", TINY, f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY, "--spp", "any",
         "--out", exported)
-    cli("export", "--from", exported, "--strength", "0.5", "--out", out)
+    proc = cli("export", "--from", exported, "--strength", "0.5", "--out", out)
     assert json.loads((out / "model.json").read_text())["strength"] == 0.5
     assert "--strength 0.5" in (out / "README.md").read_text()
+    # σ was fitted at strength 1 by the run: the export says so, and --fit-sigma fits it again at 0.5
+    assert json.loads((exported / "model.json").read_text())["sigma"].get("strength", 1.0) == 1.0
+    assert "σ's scale was fitted at strength 1" in proc.stdout and "--fit-sigma" in (out / "README.md").read_text()
+    refit = tmp_path / "refit"
+    cli("export", "--from", out, "--fit-sigma", "--out", refit, "--config", TINY, f"store={store}", *REFINE_TINY)
+    sigma = json.loads((refit / "model.json").read_text())["sigma"]
+    assert sigma["strength"] == 0.5 and sigma["frames"] == 1 and sigma["store"] == str(store)
+    assert sigma["scale"] != json.loads((out / "model.json").read_text())["sigma"]["scale"]
+    assert (refit / "control.safetensors").read_bytes() == (out / "control.safetensors").read_bytes()
+    assert "## σ fitted again" in (refit / "README.md").read_text()
+    proc = cli("export", "--from", out, "--fit-sigma", "--out", tmp_path / "none", "--config", TINY, f"store={store}",
+               *REFINE_TINY, "diffusion.val_frames=0", check=False)
+    assert proc.returncode != 0 and "val_frames" in proc.stderr and not (tmp_path / "none").exists()
     assert "strength" not in json.loads((exported / "model.json").read_text())
     np.testing.assert_array_equal(oidn_refine.load_refiner(out, "cpu").denoise(buf, spp=4),
                                   oidn_refine.load_refiner(exported, "cpu").denoise(buf, spp=4, strength=0.5))

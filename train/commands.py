@@ -56,8 +56,11 @@ def _training_commands(sub) -> None:
     p.add_argument("--strength", type=float, default=None,
                    help="instead: make an exported model (--from) apply this fraction (0..1) of what its Control "
                         "Module changes to its base's output (model.json strength), written to --out (default: --from)")
+    p.add_argument("--fit-sigma", action="store_true",
+                   help="instead: fit σ's scale of an exported model on OIDN's network (--from) again, on the val "
+                        "frames of the config's store at the model's strength, written to --out (default: --from)")
     p.add_argument("--from", dest="from_model", default="train/shipped",
-                   help="the model folder --base-blend moves, --base changes or --strength sets")
+                   help="the model folder --base-blend moves, --base changes, --strength sets or --fit-sigma fits")
     with_quiet(p)
     p.set_defaults(fn=_export)
 
@@ -172,7 +175,11 @@ def _pretrain(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export, export_oidn, rebase, set_strength, swap_base
+    from .export import export, export_oidn, fit_sigma, rebase, set_strength, swap_base
+    if args.fit_sigma:
+        fit_sigma(config(args), Path(args.from_model), Path(args.out) if args.out else None, quiet=args.quiet,
+                  config=args.config, overrides=args.overrides)
+        return 0
     if args.strength is not None:
         set_strength(Path(args.from_model), args.strength, Path(args.out) if args.out else None, quiet=args.quiet)
         return 0

@@ -321,7 +321,43 @@ def set_strength(model: Path, strength: float, out: Path | None = None, quiet: b
             f"what its Control Module changes to its base's output (it was {meta.get('strength', 1.0):g}); the "
             f"weights are unchanged. Made by:\n\n```sh\npython -m pipeline export --from {model} --strength {k:g} "
             f"--out {out}\n```\n")
+    fitted_at = (meta.get("sigma") or {}).get("strength", 1.0)
+    if meta.get("sigma") and fitted_at != k:
+        # strength scales the samples' spread and the mean's change, not the error: σ's scale is stale
+        refit = f"python -m pipeline export --from {out} --fit-sigma --config <the config of its validation store>"
+        note += f"\nσ's scale was fitted at strength {fitted_at:g}; refit it at this strength with `{refit}`.\n"
+        if not quiet:
+            print(f"{out}: σ's scale was fitted at strength {fitted_at:g}; refit it: {refit}", flush=True)
     return _updated(model, meta, out, quiet, note, strength=k)
+
+
+def fit_sigma(cfg: Config, model: Path, out: Path | None = None, quiet: bool = False, config: str | None = None,
+              overrides: list[str] | tuple = ()) -> Path:
+    """An exported model on OIDN's network with σ's scale (model.json ``sigma``, ``oidn_refine.calibrate``)
+    fitted again on the first ``diffusion.val_frames`` val frames of ``cfg``'s store at the model's own
+    strength, written to ``out`` (default: ``model`` itself) by a rename; its weights unchanged."""
+    from .oidn_refine import StoreSource, calibrate, load_refiner
+
+    model = Path(model)
+    out = Path(out) if out else model
+    meta = weights.read_record(model, "oidn_control", "give a model folder exported from a run on OIDN's network")
+    source = StoreSource(cfg, meta["base_network"])
+    keys = source.val_keys[:cfg.diffusion.val_frames]
+    if not keys:
+        raise StoreError(f"{cfg.store}: no val frames to fit σ on (diffusion.val_frames={cfg.diffusion.val_frames}); "
+                         "render the dataset or give the config of a store that has a val split")
+    fit = calibrate(load_refiner(model, cfg.diffusion.device), source.val_items(meta["spp"], len(keys)), cfg.seed)
+    fit.update(store=str(cfg.store), frames=len(keys))
+    command = shlex.join(["python", "-m", "pipeline", "export", "--from", str(model), "--fit-sigma", "--out", str(out),
+                          *(["--config", config] if config else []), *overrides])
+    note = (f"## σ fitted again ({datetime.date.today().isoformat()})\n\nσ's scale is now {fit['scale']:.3g} (was "
+            f"{(meta.get('sigma') or {}).get('scale', 1.0):.3g}), fitted at strength {fit['strength']:g} on "
+            f"{fit['pixels']} pixels of {len(keys)} val frames of `{cfg.store}` ({fit['steps']} steps, "
+            f"{fit['samples']} samples); the weights are unchanged. Made by:\n\n```sh\n{command}\n```\n")
+    if not quiet:
+        print(f"{model}: σ scale {fit['scale']:.3g} fitted at strength {fit['strength']:g} on {fit['pixels']} "
+              f"pixels of {len(keys)} val frames of {cfg.store}", flush=True)
+    return _updated(model, meta, out, quiet, note, sigma=fit)
 
 
 def _swap_note(model: Path, base_file: Path, out: Path, blend) -> str:

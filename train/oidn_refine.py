@@ -459,19 +459,22 @@ def calibrate(refiner: "OIDNRefiner", items: list[dict], seed: int = 0) -> dict:
     """One scale for the samples' per-pixel standard deviation, fitted on validation images: the
     median of |error| / σ over the pixels with σ > 0, divided by 0.6745 (the median of |N(0, 1)|), so a
     Gaussian error with the scaled σ has half its pixels within 0.6745 σ. Robust to the heavy tails of
-    rendering errors, unlike a least-squares fit."""
+    rendering errors, unlike a least-squares fit. Fitted at the refiner's ``strength``, which scales both
+    the mean's change and the samples' spread, but not the error by the same factor."""
     ratios = []
     for it in items:
         H, W = it["ref"].shape[:2]
-        mean, std, _ = sample(refiner.model, it["x"].to(refiner.device), it["cond"].to(refiner.device),
-                              refiner.formulation, SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES)
-        hdr, s = refiner.to_hdr(mean, std, it["scale"], H, W)
+        mean, std, est = sample(refiner.model, it["x"].to(refiner.device), it["cond"].to(refiner.device),
+                                refiner.formulation, SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES)
+        mean, std = with_strength(mean, std, est, refiner.strength)
+        hdr, s = refiner.to_hdr(mean.clamp(max=1.0), std, it["scale"], H, W)
         e = np.abs(hdr - it["ref"]).mean(2).ravel()
         s = s.mean(2).ravel()
         ratios.append(e[s > 0] / s[s > 0])
     r = np.concatenate(ratios) if ratios else np.zeros(0)
     scale = float(np.median(r) / 0.6745) if r.size else 1.0
-    return {"scale": scale, "steps": SIGMA_STEPS, "samples": SIGMA_SAMPLES, "pixels": int(r.size)}
+    return {"scale": scale, "steps": SIGMA_STEPS, "samples": SIGMA_SAMPLES, "pixels": int(r.size),
+            "strength": refiner.strength}
 
 
 # ---- saving and loading a run ------------------------------------------------------------------
