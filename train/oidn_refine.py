@@ -464,10 +464,8 @@ def calibrate(refiner: "OIDNRefiner", items: list[dict], seed: int = 0) -> dict:
     ratios = []
     for it in items:
         H, W = it["ref"].shape[:2]
-        mean, std, est = sample(refiner.model, it["x"].to(refiner.device), it["cond"].to(refiner.device),
-                                refiner.formulation, SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES)
-        mean, std = with_strength(mean, std, est, refiner.strength)
-        hdr, s = refiner.to_hdr(mean.clamp(max=1.0), std, it["scale"], H, W)
+        hdr, s = refiner.refine(torch.as_tensor(it["x"]), torch.as_tensor(it["cond"]), it["scale"], H, W,
+                                SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES, refiner.strength)
         e = np.abs(hdr - it["ref"]).mean(2).ravel()
         s = s.mean(2).ravel()
         ratios.append(e[s > 0] / s[s > 0])
@@ -569,18 +567,25 @@ class OIDNRefiner:
         if self.last_base_only:
             self.model.control = None
         try:
-            mean, std, est = sample(self.model, torch.from_numpy(x)[None].to(self.device),
-                                  torch.from_numpy(cond)[None].to(self.device), self.formulation, steps, skip, start,
-                                  seed, samples)
+            hdr, std_hdr = self.refine(torch.from_numpy(x)[None], torch.from_numpy(cond)[None], scale, H, W, steps,
+                                       skip, start, seed, samples, strength)
         finally:
             self.model.control = control
+        return hdr, std_hdr * self.sigma_scale
+
+    def refine(self, x: torch.Tensor, cond: torch.Tensor, scale: float, H: int, W: int, steps, skip, start, seed,
+               samples, strength: float) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) HDR and the samples' unscaled per-pixel std for OIDN-space inputs (``inputs``, batch of
+        one): ``sample``, then ``strength`` of the Control Module's change; what ``denoise`` returns and
+        ``calibrate`` fits σ on."""
+        mean, std, est = sample(self.model, x.to(self.device), cond.to(self.device), self.formulation, steps, skip,
+                                start, seed, samples)
         mean, std = with_strength(mean, std, est, strength)
         # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
         # Module pushed past it by inputs unlike its training would overflow the inverse
         # transfer to inf: such pixels are clamped to the range's end and counted.
         self.last_clamped = int((mean[..., :H, :W] > 1.0).any(dim=1).sum())
-        hdr, std_hdr = self.to_hdr(mean.clamp(max=1.0), std, scale, H, W)
-        return hdr, std_hdr * self.sigma_scale
+        return self.to_hdr(mean.clamp(max=1.0), std, scale, H, W)
 
     @staticmethod
     def to_hdr(mean: torch.Tensor, std: torch.Tensor, scale: float, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
