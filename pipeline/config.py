@@ -410,6 +410,8 @@ class DiffusionConfig(TrainingConfig):
                                           "epoch_steps steps.")
     batch_size: int = override("batch_size", 8, "Per process under torchrun.")
     crop: int = override("crop", 64, "A multiple of 2^(levels-1) of the base.")
+    loader_workers: int = doc("Processes that cut and augment the training crops beside the training process (0: "
+                              "in it). A GPU steps faster than one CPU core cuts crops: give it several.", 0)
     lr: float = override("lr", 2e-5, "Optimiser: AdamW (the authors' code: 2e-5).")
     crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
     epoch_steps: int = doc("At most this many steps per epoch, on a random subset of the epoch's crops (new each epoch), "
@@ -494,7 +496,7 @@ class DiffusionConfig(TrainingConfig):
     def check(self, bad: Bad) -> None:
         super().check(bad)
         self.at_least(bad, 1, "crops_per_frame")
-        self.at_least(bad, 0, "warmup_steps")
+        self.at_least(bad, 0, "warmup_steps", "loader_workers")
         if self.epoch_steps < 0:
             bad("epoch_steps", f"must be >= 0 (0: every crop), got {self.epoch_steps}")
         check_formulation(self, bad, val_skip=self.val_skip)

@@ -69,18 +69,46 @@ def denoise(buffers: dict[str, np.ndarray], aux: bool = True, quality: str = "hi
                       dtype=np.float32)
 
 
-def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high"
+def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high", device: str | None = None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Albedo and normal denoised by OIDN's own aux networks (an RT filter given only that image),
-    read and returned in [0, 1] and [−1, 1] (NaN as 0): the noise-free aux that ``cleanAux`` expects."""
-    filt = _aux_filter()
+    read and returned in [0, 1] and [−1, 1] (NaN as 0): the noise-free aux that ``cleanAux`` expects.
+    ``device``: a torch device to run OIDN's aux networks on in PyTorch (``pipeline.oidn_net.prefilter``,
+    quality high only); also the way when pyoidn is not installed (then on the CPU)."""
     albedo = np.ascontiguousarray(np.clip(np.nan_to_num(albedo), 0, 1), dtype=np.float32)
     if normal is not None:
         normal = np.ascontiguousarray(np.clip(np.nan_to_num(normal), -1, 1), dtype=np.float32)
+    if device is not None or available() is not None:
+        if quality != "high":
+            raise PipelineError(f"the PyTorch aux prefilter runs quality high only, not {quality!r}")
+        device = device or _torch_device()
+        return _twin_prefilter(albedo, device), None if normal is None else _twin_prefilter(normal, device, "normal")
+    filt = _aux_filter()
     albedo = np.ascontiguousarray(np.clip(filt.run("albedo", albedo, quality), 0, 1), dtype=np.float32)
     if normal is not None:
         normal = np.ascontiguousarray(np.clip(filt.run("normal", normal, quality), -1, 1), dtype=np.float32)
     return albedo, normal
+
+
+def _torch_device() -> str:
+    import torch
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _twin_prefilter(image: np.ndarray, device: str, kind: str = "albedo") -> np.ndarray:
+    import torch
+
+    from . import oidn_net
+    net = _aux_net(kind, str(device))
+    x = torch.from_numpy(image).permute(2, 0, 1)[None].to(device)
+    return oidn_net.prefilter(net, x, kind)[0].permute(1, 2, 0).cpu().numpy()
+
+
+@functools.cache
+def _aux_net(kind: str, device: str):
+    from . import oidn_net, oidn_weights
+    name = oidn_net.AUX_NETWORKS[kind]
+    return oidn_net.load_unet(name, oidn_weights.source(name, oidn_weights.default_folder())).to(device).eval()
 
 
 _QUALITY = {"high": "OIDN_QUALITY_HIGH", "balanced": "OIDN_QUALITY_BALANCED", "fast": "OIDN_QUALITY_FAST",

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import os
 import re
 from pathlib import Path
 
@@ -94,6 +95,15 @@ def _file_offset(loads: list, address: int, library: str) -> int:
         if seg["p_vaddr"] <= address < seg["p_vaddr"] + seg["p_filesz"]:
             return int(address - seg["p_vaddr"] + seg["p_offset"])
     raise WeightsError(f"{library}: symbol address {address:#x} is in no loaded segment; {FIX}")
+
+
+ENV = "MCDENOISE_OIDN_WEIGHTS"   # a folder of <network>.tza: OIDN's weights where pyoidn is not installed
+
+
+def default_folder() -> str:
+    """The folder of ``<network>.tza`` files named by the environment variable ``MCDENOISE_OIDN_WEIGHTS``
+    (a machine without pyoidn, such as a lent GPU machine), or "" for pyoidn's built-in weights."""
+    return os.environ.get(ENV, "")
 
 
 def source(name: str, weights: str = "") -> Path | None:

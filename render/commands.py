@@ -14,6 +14,10 @@ def add_commands(sub) -> None:
     """``dataset``, ``render-scene``, ``bench`` and ``plan``."""
     p = with_config(sub.add_parser("dataset", help="render the dataset into the store"))
     p.add_argument("--shard", default=None, help="i/N: render only the i-th of N contiguous blocks of frames")
+    p.add_argument("--time-limit", type=float, default=None, metavar="S",
+                   help="start no frame after S seconds (frames in flight finish; a rerun renders the rest)")
+    p.add_argument("--splits", default=None, metavar="A,B",
+                   help="render only these splits' frames, in this order (e.g. val,train)")
     with_quiet(p, "no progress bar or summary")
     p.set_defaults(fn=_dataset)
 
@@ -39,7 +43,8 @@ def add_commands(sub) -> None:
 
 def _dataset(args) -> int:
     from .dataset import run
-    stats = run(config(args), shard=args.shard, quiet=args.quiet)
+    stats = run(config(args), shard=args.shard, quiet=args.quiet, time_limit_s=args.time_limit,
+                splits=args.splits.split(",") if args.splits else None)
     return 1 if stats["failed"] else 0
 
 

@@ -216,12 +216,24 @@ def shard_of(tasks: list, shard: tuple[int, int]) -> list:
     return tasks[lo:hi]
 
 
-def run(cfg: Config, shard: str | None = None, quiet: bool = False) -> dict:
+def run(cfg: Config, shard: str | None = None, quiet: bool = False, time_limit_s: float | None = None,
+        splits: list[str] | None = None) -> dict:
+    """Render the frames of ``cfg``'s plan (of one shard) that are not complete yet. ``splits``: only the frames
+    of these splits, in this order (e.g. val before train). ``time_limit_s``: start no frame after that many
+    seconds (frames in flight finish; a rerun renders the rest, the store stays consistent because every stage
+    reads complete frames only)."""
     store = Store(cfg.store)
     check_compatible(store, cfg)
     plan = make_plan(cfg)
     write_manifests(store, cfg, plan)
     tasks = shard_of(plan.frame_tasks(cfg), parse_shard(shard))
+    if splits:
+        unknown = sorted(set(splits) - set(plan.splits))
+        if unknown:
+            raise config_mod.ConfigError(f"--splits: no split {', '.join(unknown)} (the plan has "
+                                         f"{', '.join(sorted(plan.splits))})")
+        order = {sid: i for i, name in enumerate(splits) for sid in plan.splits[name]}
+        tasks = sorted((t for t in tasks if t.scene in order), key=lambda t: order[t.scene])   # stable: frames stay in order
     todo = [t for t in tasks if not store.is_frame_complete(t.scene, t.frame, image_names(t.stacks))]
     t0 = time.perf_counter()
     stats = {"frames": len(tasks), "skipped": len(tasks) - len(todo), "rendered": 0, "failed": 0,
@@ -243,6 +255,9 @@ def run(cfg: Config, shard: str | None = None, quiet: bool = False) -> dict:
             if result["nonfinite"]:
                 bar.write(f"{task_label(task)}: repaired {result['nonfinite']} non-finite values (see inspect)")
         bar.update(1)
+        if time_limit_s is not None and time.perf_counter() - t0 > time_limit_s:
+            stats["stopped"] = True      # leaving the loop shuts the pool down after the frames in flight
+            break
     bar.close()
     stats["wall_seconds"] = time.perf_counter() - t0
     finalize_scene_manifests(store, plan)
@@ -263,6 +278,7 @@ def summary_line(stats: dict) -> str:
     rate = stats["samples"] / wall / 1e6 if wall > 0 else 0.0
     tm = stats["timing"]
     share = tm["render"] / tm["total"] * 100 if tm["total"] else 0.0
+    stopped = ", stopped at the time limit" if stats.get("stopped") else ""
     return (f"dataset: {stats['frames']} frames ({stats['rendered']} rendered, {stats['skipped']} already done, "
-            f"{stats['failed']} failed) in {wall:.1f} s, {rate:.2f} M samples/s, rendering {share:.0f}% of frame time, "
+            f"{stats['failed']} failed{stopped}) in {wall:.1f} s, {rate:.2f} M samples/s, rendering {share:.0f}% of frame time, "
             f"{stats['nonfinite']} non-finite values repaired, store {stats['store_bytes'] / 2**20:.1f} MiB")

@@ -111,6 +111,19 @@ def test_the_aux_prefilter_denoises_albedo_and_normal():
         assert np.mean((out - truth) ** 2) < 0.25 * np.mean((noisy - truth) ** 2)
 
 
+def test_the_pytorch_aux_prefilter_equals_oidns(frame):
+    """OIDN's aux networks run in PyTorch (``device=``: what a GPU machine without pyoidn runs) give what
+    pyoidn's filter gives on a real render's noisy albedo and normal, at an odd size."""
+    def db(a, b):
+        return 10 * np.log10(1 / float(np.mean((a.astype(np.float64) - b) ** 2)))
+    stock = oidn.prefilter_aux(frame["albedo"], frame["normal"])
+    twin = oidn.prefilter_aux(frame["albedo"], frame["normal"], device="cpu")
+    for ours, theirs, noisy in zip(twin, stock, (frame["albedo"], frame["normal"])):
+        assert ours.shape == theirs.shape == noisy.shape and ours.dtype == np.float32
+        assert db(ours, theirs) >= 100
+        assert db(theirs, noisy) < 60      # the filter is not the identity
+
+
 @pytest.mark.slow
 def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame):
     """``clean_aux``: the aux prefiltered, then OIDN's network for noise-free aux (at quality high its

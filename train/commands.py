@@ -66,31 +66,31 @@ def _training_commands(sub) -> None:
 
 
 def _gpu_commands(sub) -> None:
-    p = with_config(sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe (gpu-recipe): crop packs "
-                                                       "from the training packs and the wheels a bare GPU machine "
-                                                       "lacks"))
+    p = sub.add_parser("gpu-prepare", help="write .gpu/ for the GPU recipe: the packages a lent GPU machine's image "
+                                           "lacks (train/gpu_image.txt) and OIDN's aux networks")
     p.add_argument("--out", default=".gpu")
-    p.add_argument("--train-crops", type=int, default=48)
-    p.add_argument("--val-crops", type=int, default=12)
-    p.add_argument("--side", type=int, default=48)
-    p.add_argument("--no-wheels", action="store_true", help="crop packs only")
-    p.add_argument("--model", default=None, help="the model the recipe will train, whose base decides the crops' "
-                                                "albedo and normal (default: train/shipped)")
+    p.add_argument("--python", default="3.12", help="the machine's Python version (the wheels' ABI)")
+    p.add_argument("--no-wheels", action="store_true", help="OIDN's aux networks only")
     p.set_defaults(fn=_gpu_prepare)
 
-    p = sub.add_parser("gpu-recipe", help="on a lent GPU machine (bash train/gpu_recipe.sh): train the shipped "
-                                          "model further on the crops of gpu-prepare and time it",
-                       description="The GPU recipe: one short run on a lent GPU machine that trains the shipped "
-                                   "model further and times it.")
-    p.add_argument("--model", default=None, help="the model folder to train further (default: train/shipped)")
-    p.add_argument("--train", default=".gpu/train_crops.safetensors", help="the training crops (gpu-prepare)")
-    p.add_argument("--val", default=".gpu/val_crops.safetensors", help="the validation crops (gpu-prepare)")
-    p.add_argument("--out", required=True)
-    p.add_argument("--minutes", type=float, default=6.0)
+    p = sub.add_parser("gpu-recipe", help="on a lent GPU machine (bash train/gpu_recipe.sh): render a store, clean it, "
+                                          "train the shipped model on it and time denoising, in one run",
+                       description="The GPU recipe (train/gpu_recipe.py).")
+    p.add_argument("--config", default="configs/ship.yaml", help="the config whose dataset is rendered")
+    p.add_argument("--out", required=True, help="the folder of the files that come back (at most 8)")
+    p.add_argument("--model", default=None, help="the model to train on (default: train/shipped)")
+    p.add_argument("--minutes", type=float, default=9.0, help="the whole run's wall-clock budget")
+    p.add_argument("--render-share", type=float, default=0.35, help="of the budget, for rendering")
+    p.add_argument("--clean-share", type=float, default=0.08, help="of the budget, for the cleaner's training")
+    p.add_argument("--seed", type=int, default=2000, help="the store's seed (other scenes than the shipped model saw)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if there is one), cuda or cpu")
+    p.add_argument("--workers", type=int, default=12, help="render processes")
     p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--device", default="auto")
-    p.add_argument("--sizes", default="256x256,1920x1080", help="bench frame sizes WxH, comma-separated")
+    p.add_argument("--crop", type=int, default=128, help="crop side (at most the frames' side, a multiple of 16)")
+    p.add_argument("--lr", type=float, default=2e-4)
+    p.add_argument("--loader-workers", type=int, default=8, help="processes cutting training crops")
+    p.add_argument("--work", default="/tmp/mcdenoise_gpu", help="where the store and the runs go (emptied first)")
+    p.add_argument("overrides", nargs="*", default=[], help="key=value config overrides for every phase")
     p.set_defaults(fn=_gpu_recipe)
 
 
@@ -202,9 +202,11 @@ def _export(args) -> int:
 
 
 def _gpu_prepare(args) -> int:
+    import json
+
     from .gpu_recipe import prepare
-    prepare(config(args), Path(args.out), args.train_crops, args.val_crops, args.side, wheels=not args.no_wheels,
-            model=args.model)
+    record = prepare(Path(args.out), args.python, wheels=not args.no_wheels)
+    print(json.dumps(record, indent=1))
     return 0
 
 
@@ -212,7 +214,8 @@ def _gpu_recipe(args) -> int:
     import dataclasses
 
     from .gpu_recipe import Settings, run
-    return run(Settings(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Settings)}))
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Settings) if f.name != "overrides"}
+    return run(Settings(**values, overrides=tuple(args.overrides)))
 
 
 def _pack(args) -> int:

@@ -1,198 +1,500 @@
-"""The GPU recipe: one short run on a lent GPU machine that trains the shipped model further and times it.
+"""The GPU recipe: render, clean, train and time the shipped kind of model on one lent GPU machine, in one run.
 
-Prepared here (``python -m pipeline gpu-prepare --config configs/ship.yaml``, CPU): ``.gpu/`` holds
-the wheels the bare machine lacks (``pip download`` for its Python) and two crop packs cut from the
-config's OIDN packs (``train.oidn_pack``: every buffer in OIDN's space, the target beside it). Run
-there, as one command of the device tool (``carry: [".gpu"]``)::
+A lent machine (an H200 here) lives minutes and starts bare: nothing can be fetched there and at most
+64 MiB travel with the source tree. Prepared here (``python -m pipeline gpu-prepare``, CPU), ``.gpu/``
+holds what the machine's image lacks (``gpu_image.txt`` lists what it has): the packages as one
+``site.tar.xz`` (Mitsuba cut to the variants and plugins the renderer uses) and OIDN's aux networks
+(``oidn/*.tza``: pyoidn does not travel; ``pipeline.oidn`` runs them in PyTorch). There, as one
+command of the device tool (``carry: [".gpu"]``)::
 
-    bash train/gpu_recipe.sh                  # MINUTES=6 OUT=$OUT by default
+    bash train/gpu_recipe.sh                      # CONFIG=configs/ship.yaml MINUTES=9 OUT=$OUT
 
-which installs the wheels and runs ``python -m mcdenoise gpu-recipe`` (``run``; ``train.commands``
-declares its flags): it loads ``train/shipped`` (or ``--model``: a model on OIDN's network,
-``train.oidn_refine``), whose weights travel as its own ``base.tza`` (pyoidn stays behind), continues
-its Control Module with ``RefineTask`` on the carried crops for ``--minutes`` (the run ``make train``
-does, bf16 autocast on the GPU), times 1 and 3 steps at 256² and 1920×1080, and writes into ``--out``
-at most 8 files under 16 MiB: ``control_fp16.safetensors`` (the trained Control Module, float16 for
-the trip), ``model.json``, ``report.md``, ``result.json``, ``loss.png``. ``--device cpu --minutes
-0.02`` is the dry run the tests do.
+and on the CPU, the same phases in seconds (the test suite runs this)::
+
+    DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash train/gpu_recipe.sh
+
+The phases, each a command a user runs too, each timed; ``report.md`` and ``result.json`` are rewritten
+after every phase, so a run cut short still says how far it got:
+
+1. **render** ``pipeline dataset --time-limit``: a new store of the config (``--seed``: other scenes than the
+   shipped model's), Mitsuba's CUDA variant, ``executor.workers`` processes; frames not finished at the limit
+   are not in the store and every later stage reads complete frames only;
+2. **clean** ``pipeline gt-clean``: the cleaner trained there on GT1/GT2 of the new frames;
+3. **train** ``pipeline train --model diffusion --spp any``: from the shipped model (``diffusion.init``: its base
+   frozen, its Control Module trained on), batch ``--batch`` of ``--crop``² in bf16, validated on the new store's
+   val frames after every epoch, the best kept; for the time left;
+4. **bench**: ``denoise`` end to end and the networks alone at 256², 1080p and 4K, fp32 and fp16.
+
+Back in ``--out`` (at most 8 files under 16 MiB): ``control_fp16.safetensors`` and ``model.json`` (with
+``base.tza`` from the shipped model, a model folder ``pipeline denoise --model`` loads), ``report.md``,
+``result.json`` (every timing, the validation curve against megapixels trained), ``loss.png``, ``logs.txt``.
 """
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import os
 import platform
-import tempfile
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
 import time
+import zipfile
 from pathlib import Path
 
-import torch
-
-from mcdenoise.pipeline.checkpoint import save_safetensors
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.timing import best_time
 
 from .model import SHIPPED_MODEL
+
+ROOT = Path(__file__).resolve().parent.parent
+IMAGE = Path(__file__).with_name("gpu_image.txt")
 
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """One run of the recipe: the flags of ``python -m pipeline gpu-recipe`` (defaults and help there)."""
-    out: str                 # the output folder (at most 8 files under 16 MiB)
-    model: str | None        # the model folder to train further; None: the shipped model
-    train: str               # the carried crop packs (gpu-prepare)
-    val: str
-    minutes: float           # training time budget
-    batch: int
-    lr: float
+    config: str
+    out: str
+    model: str | None        # the model to train on (default: the shipped one)
+    minutes: float           # the whole recipe's wall-clock budget
+    render_share: float      # of the budget, for rendering
+    clean_share: float       # of the budget, for the cleaner's training
+    seed: int
     device: str
-    sizes: str               # bench frame sizes, WxH comma-separated
+    workers: int             # render processes
+    batch: int
+    crop: int
+    lr: float
+    loader_workers: int
+    work: str                # where the store and runs go
+    overrides: tuple = ()    # more config overrides for every phase
 
 
-def run_refine(args: Settings, sizes: dict) -> int:
-    """The recipe for a model on OIDN's network (``diffusion.base: oidn``): its own training run
-    (``train.oidn_refine.RefineTask``, the shipped model's settings) on the carried OIDN crop packs, from
-    the shipped base and Control Module; the trained Control Module and the timings into ``--out``."""
-    from mcdenoise.pipeline.config import load_config
-    from mcdenoise.pipeline.fit import fit as fit_task
+# ---- on the machine ----------------------------------------------------------------------------------
 
-    from . import oidn_refine
 
-    t0 = time.perf_counter()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    meta = json.loads((Path(args.model) / "model.json").read_text())
-    check_crops(Path(args.train), Path(args.model), meta)
-    st = meta.get("settings", {})
-    side = int(oidn_refine.load_pack(Path(args.train))["x"].shape[-1])
-    keys = ("weight_decay", "grad_clip", "ema", "hdr_weight", "dropout")
-    cfg = load_config(None, [f"diffusion.{k}={st[k]}" for k in keys if k in st] + [
-        "diffusion.base=oidn", f"diffusion.crop={side}", f"diffusion.batch_size={args.batch}",
-        f"diffusion.lr={args.lr}", "diffusion.epochs=10000", "diffusion.warmup_steps=20", "diffusion.crops_per_frame=1",
-        f"diffusion.time_budget_s={args.minutes * 60}", f"diffusion.device={args.device}"])
-    work = Path(tempfile.mkdtemp(prefix="gpu_recipe_")) / "diffusion_gpu"
-    task = oidn_refine.RefineTask(cfg, "any", quiet=True, folder=work, init=Path(args.model),
-                                  source=oidn_refine.PackSource(Path(args.train), Path(args.val)))
-    summary = fit_task(task, quiet=True)
-    hist = json.loads((work / "train.json").read_text())["history"]
-    trained = [h for h in hist if h["epoch"] > 0]
-    seconds = hist[-1]["seconds"] if trained else 0.0
-    images = len(trained) * task.steps_per_epoch * args.batch
-    model = task.model.eval()
-    save_safetensors(out / "control_fp16.safetensors", {k: v.half().contiguous().cpu()
-                                                        for k, v in model.control.state_dict().items()},
-                     {"format": oidn_refine.FORMAT})
-    (out / "model.json").write_text(json.dumps(meta, indent=1))
-    if (work / "loss.png").exists():
-        (out / "loss.png").write_bytes((work / "loss.png").read_bytes())
-    rows = []
-    for name, (h, w) in sizes.items():
-        g = torch.Generator().manual_seed(0)
-        x = torch.rand(1, 9, h + (-h % 16), w + (-w % 16), generator=g).to(task.device)
-        cond = torch.rand(1, model.cond_channels, *x.shape[-2:], generator=g).to(task.device)
-        for steps in (1, 3):
-            def go():
-                oidn_refine.sample(model, x, cond, task.form, steps=steps)
-                if task.device.type == "cuda":
-                    torch.cuda.synchronize()
-            go()
-            rows.append({"size": name, "steps": steps, "seconds": round(best_time(go, 2), 4)})
-    result = {"device": str(task.device), "gpu": torch.cuda.get_device_name(0) if task.device.type == "cuda" else None,
-              "platform": platform.platform(), "torch": torch.__version__, "minutes": args.minutes,
-              "epochs": len(trained), "train_seconds": seconds, "train_images": images,
-              "train_images_per_s": round(images / seconds, 1) if seconds else None,
-              "history": [{**h, "val": {"psnr": h["val"]["psnr"], "estimate_psnr": h["val"]["estimate_psnr"]}}
-                          for h in hist if h.get("val")], "bench": rows, "summary": summary["line"],
-              "wall_seconds": round(time.perf_counter() - t0, 1)}
-    (out / "result.json").write_text(json.dumps(result, indent=1, default=str))
-    (out / "report.md").write_text(report(result))
-    print(report(result), flush=True)
+class Recipe:
+    """The phases in order; ``self.result`` is what result.json holds, rewritten after each phase."""
+
+    def __init__(self, s: Settings):
+        import torch
+
+        self.s, self.t0 = s, time.perf_counter()
+        self.deadline = self.t0 + s.minutes * 60
+        self.cuda = s.device == "cuda" or (s.device == "auto" and torch.cuda.is_available())
+        self.out, self.work = Path(s.out), Path(s.work)
+        self.out.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(self.work, ignore_errors=True)
+        self.model = Path(s.model or SHIPPED_MODEL)
+        self.meta = json.loads((self.model / "model.json").read_text())
+        self.log = self.out / "logs.txt"
+        self.log.write_text("")
+        self.common = [f"store={self.work / 'store'}", f"runs={self.work / 'runs'}", f"seed={s.seed}", *s.overrides]
+        self.result: dict = {
+            "machine": machine_text(torch), "torch": torch.__version__, "python": platform.python_version(),
+            "config": s.config, "seed": s.seed, "model": str(self.model), "budget_s": s.minutes * 60,
+            "settings": {k: v for k, v in dataclasses.asdict(s).items() if k not in ("out", "work")}, "phases": {}}
+
+    def left(self) -> float:
+        return self.deadline - time.perf_counter()
+
+    def command(self, name: str, args: list, timeout: float | None = None) -> dict:
+        """Run ``python -m pipeline ARGS`` with the output appended to logs.txt; its time and last line."""
+        cmd = [sys.executable, "-m", "pipeline", *map(str, args)]
+        t = time.perf_counter()
+        with open(self.log, "a") as fh:
+            fh.write(f"$ {' '.join(cmd[1:])}\n")
+            fh.flush()
+            start = fh.tell()
+            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+            try:
+                rc = proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGTERM)    # a training run keeps its best epoch on disk
+                rc = proc.wait()
+                fh.write(f"(stopped after {timeout:.0f} s)\n")
+        with open(self.log) as fh:
+            fh.seek(start)
+            lines = [x.split("\r")[-1] for x in fh.read().splitlines()]
+        last = next((x for x in reversed(lines) if x.strip()), "")
+        entry = {"seconds": round(time.perf_counter() - t, 1), "rc": rc, "last": last[-400:]}
+        self.result["phases"][name] = entry
+        self.write()
+        if rc not in (0, -signal.SIGTERM):
+            raise TrainError(f"gpu-recipe: {name} failed (exit {rc}): {last}; the whole output is in {self.log}")
+        return entry
+
+    def render(self) -> None:
+        s = self.s
+        limit = max(1.0, s.minutes * 60 * s.render_share)
+        variant = ["render.variant=cuda_ad_rgb"] if self.cuda else []
+        # the val split whole (the yardstick), then the train split for the time left; the test split is not rendered
+        common = ["--config", s.config, "--quiet", f"executor.workers={s.workers}", *variant, *self.common]
+        val = self.command("render_val", ["dataset", "--splits", "val", *common])
+        self.command("render", ["dataset", "--splits", "train", "--time-limit", round(max(1.0, limit - val["seconds"]), 1),
+                                *common])
+        self.result["phases"]["render"]["seconds"] = round(val["seconds"] + self.result["phases"]["render"]["seconds"], 1)
+        from mcdenoise.pipeline.store import Store
+        store = Store(self.work / "store")
+        done = [k for k in store.frames() if store.frame_record(k.scene, k.frame)]
+        records = [store.frame_record(k.scene, k.frame) for k in done]
+        entry = self.result["phases"]["render"]
+        entry.update(frames=len(done), samples=sum(r["samples"] for r in records),
+                     splits={sp: len([k for k in store.frames(sp) if store.frame_record(k.scene, k.frame)])
+                             for sp in ("train", "val", "test")})
+        entry["frames_per_s"] = round(entry["frames"] / entry["seconds"], 3)
+        entry["msamples_per_s"] = round(entry["samples"] / entry["seconds"] / 1e6, 2)
+        entry["compile_s_per_frame"], entry["render_s_per_frame"] = frame_shares(records)
+        if not entry["splits"]["train"] or not entry["splits"]["val"]:
+            raise TrainError(f"gpu-recipe: {entry['frames']} frames rendered in {limit:.0f} s, too few for a train and "
+                             "a val split; give the recipe more minutes")
+        self.write()
+
+    def clean(self) -> None:
+        s = self.s
+        dev = "cuda" if self.cuda else "cpu"
+        self.command("clean", ["gt-clean", "--config", s.config, f"clean.time_budget_s={s.minutes * 60 * s.clean_share:.1f}",
+                               f"clean.device={dev}", *self.common])
+
+    def train(self) -> None:
+        s = self.s
+        bench_s = 60.0 if self.cuda else 5.0
+        budget = max(1.0, self.left() - bench_s)
+        dev = "cuda" if self.cuda else "cpu"
+        net = self.meta.get("base_network", "rt_hdr_calb_cnrm_large")
+        args = ["train", "--model", "diffusion", "--spp", "any", "--config", s.config, "--quiet",
+                f"diffusion.init={self.model}", "diffusion.base=oidn", f"diffusion.base_network={net}",
+                f"diffusion.batch_size={s.batch}", f"diffusion.crop={self.crop()}", f"diffusion.lr={s.lr}",
+                "diffusion.epoch_steps=50", "diffusion.crops_per_frame=64", "diffusion.epochs=100000",
+                "diffusion.warmup_steps=50", f"diffusion.device={dev}", f"diffusion.loader_workers={s.loader_workers}",
+                # the time limit of the run itself leaves room to pack the frames and to save the best
+                f"diffusion.time_budget_s={max(1.0, budget * 0.85):.1f}", "diffusion.name=gpu", *self.common]
+        self.command("train", args, timeout=budget)
+        run = self.work / "runs" / "diffusion_sppany_gpu"
+        hist = json.loads((run / "train.json").read_text())
+        mpix = s.batch * self.crop() ** 2 / 1e6
+        steps = 0
+        curve = []
+        for h in hist["history"]:
+            steps += h.get("steps", 0)
+            if h.get("val"):
+                curve.append({"epoch": h["epoch"], "seconds": h.get("seconds"), "mpix": round(steps * mpix, 3),
+                              "val_psnr": round(h["val"]["psnr"], 4),
+                              "gain_over_base": round(h["val"]["psnr"] - h["val"]["estimate_psnr"], 4),
+                              **{k: round(v, 4) for k, v in h["val"].items() if k.startswith("gain_spp")}})
+        entry = self.result["phases"]["train"]
+        entry.update(curve=curve, best=hist.get("best") and {"epoch": hist["best"]["epoch"],
+                                                             "val_psnr": hist["best"]["val"]["psnr"]},
+                     mpix_trained=curve[-1]["mpix"] if curve else 0.0,
+                     mpix_per_s=round(curve[-1]["mpix"] / curve[-1]["seconds"], 3) if curve and curve[-1]["seconds"]
+                     else None)
+        self.pack_model(run)
+        self.write()
+
+    def crop(self) -> int:
+        """``--crop``, or the largest multiple of 16 the config's frames hold."""
+        from mcdenoise.pipeline.config import load_config
+        w, h = load_config(self.s.config, list(self.s.overrides)).dataset.resolution
+        return min(self.s.crop, min(w, h) // 16 * 16)
+
+    def pack_model(self, run: Path) -> None:
+        """The run's best Control Module in float16 (half the bytes back) and its model.json."""
+        import torch
+        from safetensors.torch import load_file
+
+        from mcdenoise.pipeline.checkpoint import save_safetensors
+
+        from .oidn_refine import FORMAT
+        control = load_file(str(run / "control.safetensors"))
+        save_safetensors(self.out / "control_fp16.safetensors",
+                         {k: v.to(torch.float16).contiguous() for k, v in control.items()}, {"format": FORMAT})
+        shutil.copy(run / "model.json", self.out / "model.json")
+        if (run / "loss.png").exists():
+            shutil.copy(run / "loss.png", self.out / "loss.png")
+
+    def bench(self) -> None:
+        import torch
+        t = time.perf_counter()
+        sizes = {"256x256": (256, 256), "1920x1080": (1080, 1920), "3840x2160": (2160, 3840)} if self.cuda else \
+            {"64x64": (64, 64)}
+        try:
+            rows = bench_denoise(self.model, sizes, torch.device("cuda" if self.cuda else "cpu"))
+        except Exception as exc:    # noqa: BLE001 - the trained model is already in --out: say why, keep it
+            rows = [{"size": "-", "what": f"bench failed: {type(exc).__name__}: {exc}"[:300], "seconds": None}]
+        self.result["bench"] = rows
+        self.result["phases"]["bench"] = {"seconds": round(time.perf_counter() - t, 1)}
+        self.write()
+
+    def write(self) -> None:
+        self.result["wall_s"] = round(time.perf_counter() - self.t0, 1)
+        (self.out / "result.json").write_text(json.dumps(self.result, indent=1, default=str))
+        (self.out / "report.md").write_text(report(self.result))
+
+
+def run(s: Settings) -> int:
+    """All phases; exit status 0, or a TrainError naming the phase that failed (result.json says how far it got)."""
+    check_packages()
+    r = Recipe(s)
+    for phase in (r.render, r.clean, r.train, r.bench):
+        phase()
+    print(report(r.result), flush=True)
     return 0
 
 
-def check_crops(crops: Path, model: Path, meta: dict) -> None:
-    """TrainError unless the crops' albedo and normal are what the model's base reads (prefiltered for a
-    ``_calb_cnrm`` network, as rendered otherwise)."""
-    from . import oidn_refine
-    from .oidn_pack import pack_clean_aux
-
-    want, kind = oidn_refine.clean_aux(meta), lambda clean: "prefiltered" if clean else "rendered"
-    if pack_clean_aux(crops) != want:
-        raise TrainError(f"{crops}: crops with {kind(not want)} albedo and normal, but the model {model} (base "
-                         f"{meta.get('base_network', oidn_refine.NETWORK)}) reads {kind(want)} ones; cut them for "
-                         f"it: python -m pipeline gpu-prepare --model {model} --config …")
+def check_packages() -> None:
+    """One line naming what the machine lacks, before any phase starts."""
+    import importlib.util
+    missing = [m for m in ("torch", "numpy", "safetensors", "yaml", "tqdm", "mitsuba", "drjit", "OpenEXR", "trimesh",
+                           "diffusers", "scipy", "matplotlib")
+               if importlib.util.find_spec(m) is None]
+    if missing:
+        raise TrainError(f"gpu-recipe: this machine lacks the Python module(s) {', '.join(missing)}: carry them in "
+                         ".gpu/site.tar.xz (python -m pipeline gpu-prepare)")
 
 
-def run(settings: Settings) -> int:
-    """The recipe (``run_refine``) on ``settings.model`` (default: the shipped model); exit status 0."""
-    from mcdenoise.pipeline import weights
+def machine_text(torch) -> str:
+    cpu = f"{os.cpu_count()} cores"
+    if torch.cuda.is_available():
+        p = torch.cuda.get_device_properties(0)
+        return f"{p.name} ({p.total_memory / 2**30:.0f} GiB), {cpu}"
+    return f"CPU only, {cpu}"
 
-    args = dataclasses.replace(settings, model=settings.model or str(SHIPPED_MODEL))
-    sizes = {t: (int(t.split("x")[1]), int(t.split("x")[0])) for t in args.sizes.split(",")}
-    weights.read_record(Path(args.model), "oidn_control", "the GPU recipe continues a model on OIDN's network; "
-                        "train another model with `make train` on the GPU machine")
-    return run_refine(args, sizes)
+
+def frame_shares(records: list[dict]) -> tuple[float | None, float | None]:
+    """Mean seconds per frame spent outside rendering (Mitsuba's scene build and kernel compilation: the
+    first render of a kernel compiles it) and inside it, from the frames' timing records."""
+    if not records:
+        return None, None
+    total = sum(r["timing"]["total"] for r in records) / len(records)
+    render = sum(r["timing"]["render"] for r in records) / len(records)
+    return round(total - render, 3), round(render, 3)
+
+
+def bench_denoise(model: Path, sizes: dict, device) -> list[dict]:
+    """Seconds per frame of ``denoise`` end to end (encoding, the aux prefilter, the base, one sampler step,
+    back to HDR) and of the networks alone (ours at 1 step, its base) in fp32 and fp16 autocast."""
+    import torch
+
+    from mcdenoise.pipeline import oidn_net
+    from mcdenoise.pipeline.timing import best_time
+
+    from .oidn_refine import load_refiner, sample
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    refiner = load_refiner(model, str(device))
+    m = refiner.model.eval()
+    rows = []
+    for name, (h, w) in sizes.items():
+        if h * w <= 1920 * 1080:     # the encoding runs on the CPU: 4K end to end would take most of the bench
+            buffers = synthetic_frame(h, w)
+
+            def go(buffers=buffers):
+                refiner.denoise(buffers, spp=4)
+                sync()
+            go()
+            rows.append({"size": name, "what": "denoise end to end (fp32)", "seconds": round(best_time(go, 2), 4)})
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(1, m.base.in_channels, h + (-h % 16), w + (-w % 16), generator=g).to(device)
+        cond = torch.rand(1, m.cond_channels, *x.shape[-2:], generator=g).to(device)
+        for prec in ("fp32", "fp16") if device.type == "cuda" else ("fp32",):
+            ctx = (lambda: torch.autocast(device.type, dtype=torch.float16)) if prec == "fp16" else None
+
+            def ours():
+                with torch.no_grad(), (ctx() if ctx else torch.autocast(device.type, enabled=False)):
+                    sample(m, x, cond, refiner.formulation, steps=1)
+                sync()
+
+            def base():
+                with torch.no_grad(), (ctx() if ctx else torch.autocast(device.type, enabled=False)):
+                    m.base(x)
+                sync()
+            for what, fn in (("ours network, 1 step", ours), ("base network alone", base)):
+                fn()
+                rows.append({"size": name, "what": f"{what} ({prec})", "seconds": round(best_time(fn, 3), 4)})
+        img = torch.rand(1, 3, h, w, generator=g).to(device)
+        net = oidn_net.load_unet(oidn_net.AUX_NETWORKS["albedo"], None if _pyoidn() else _aux_file("albedo"))
+        net = net.to(device).eval()
+
+        def aux():
+            oidn_net.prefilter(net, img, "albedo")
+            sync()
+        aux()
+        rows.append({"size": name, "what": "aux prefilter, one image (fp32)", "seconds": round(best_time(aux, 3), 4)})
+    return rows
+
+
+def _pyoidn() -> bool:
+    from mcdenoise.pipeline import oidn
+    return oidn.available() is None
+
+
+def _aux_file(kind: str) -> str | None:
+    from mcdenoise.pipeline import oidn_net, oidn_weights
+    name = oidn_net.AUX_NETWORKS[kind]
+    found = oidn_weights.source(name, oidn_weights.default_folder())
+    return str(found) if found else None
+
+
+def synthetic_frame(h: int, w: int) -> dict:
+    """Every renderer buffer of one frame and its variance with plausible ranges, so every input group of the
+    model runs (an RGB-only frame would time the base alone)."""
+    import numpy as np
+
+    from mcdenoise.pipeline import schema
+    rng = np.random.default_rng(0)
+    out = {}
+    for b in schema.BUFFERS:
+        shape = (h, w, len(b.channels))
+        out[b.name] = (rng.gamma(1.0, 0.3, shape) if b.radiance else rng.random(shape)).astype(np.float32)
+        out[schema.variance_name(b.name)] = rng.gamma(1.0, 0.05, shape).astype(np.float32)
+    out["normal"] = np.broadcast_to(np.array([0, 0, 1], np.float32), (h, w, 3)).copy()
+    return out
 
 
 def report(r: dict) -> str:
-    first, last = r["history"][0]["val"], r["history"][-1]["val"]
-    first.setdefault("estimate_psnr", first.get("psnr"))
-    lines = [f"# GPU recipe: {r['gpu'] or r['device']}", "",
-             f"{r['epochs']} epochs in {r['train_seconds']} s, {r['train_images_per_s']} training crops/s; "
-             f"validation (1 step): {first['psnr']:.2f} dB before, {last['psnr']:.2f} dB after "
-             f"(first estimate {first['estimate_psnr']:.2f} dB).", "",
-             "| frame | steps | network seconds |", "| --- | --- | --- |"]
-    lines += [f"| {b['size']} | {b['steps']} | {b['seconds']} |" for b in r["bench"]]
+    p = r["phases"]
+    lines = [f"# GPU recipe on {r['machine']}", "",
+             f"Config `{r['config']}` (seed {r['seed']}), model `{r['model']}`, budget {r['budget_s']:.0f} s, "
+             f"wall {r.get('wall_s', 0):.0f} s; torch {r['torch']}, Python {r['python']}.", "",
+             "| phase | seconds | result |", "| --- | ---: | --- |"]
+    for name, e in p.items():
+        what = e.get("last", "")
+        if name == "render" and "frames" in e:
+            what = (f"{e['frames']} frames ({e['splits']}), {e['frames_per_s']} frames/s, {e['msamples_per_s']} M "
+                    f"samples/s; per frame {e['compile_s_per_frame']} s outside rendering (build, compile) and "
+                    f"{e['render_s_per_frame']} s rendering")
+        if name == "train" and "curve" in e:
+            what = f"{e['mpix_trained']} Mpix trained, {e['mpix_per_s']} Mpix/s; best {e['best']}"
+        lines.append(f"| {name} | {e['seconds']} | {what.replace('|', '/')} |")
+    curve = p.get("train", {}).get("curve")
+    if curve:
+        lines += ["", "Validation (the new store's val frames; epoch 0 is the model it started from):", "",
+                  "| epoch | seconds | Mpix trained | val PSNR | gain over base | " +
+                  " | ".join(k for k in curve[0] if k.startswith("gain_spp")) + " |",
+                  "| ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len([k for k in curve[0] if k.startswith("gain_spp")])]
+        step = max(1, len(curve) // 25)
+        for c in curve[::step] + ([curve[-1]] if (len(curve) - 1) % step else []):
+            lines.append(f"| {c['epoch']} | {c['seconds']} | {c['mpix']} | {c['val_psnr']:.3f} | "
+                         f"{c['gain_over_base']:+.3f} | " + " | ".join(f"{v:+.3f}" for k, v in c.items()
+                                                                      if k.startswith("gain_spp")) + " |")
+    if r.get("bench"):
+        lines += ["", "| frame | what | seconds |", "| --- | --- | ---: |"]
+        lines += [f"| {b['size']} | {b['what']} | {b['seconds']} |" for b in r["bench"]]
     return "\n".join(lines) + "\n"
 
 
 # ---- preparation, on this machine ------------------------------------------------------------------
 
-WHEELS = ("diffusers==0.42.1", "huggingface_hub==2.4.0", "safetensors==0.8.0", "regex==2026.11.15",
-          "OpenEXR==3.5.3", "PyYAML==6.0.3", "tqdm==4.70.1", "filelock==4.2.11", "fsspec==2026.9.0",
-          "importlib_metadata==10.2.0", "zipp==4.1.2", "packaging==26.3", "typing_extensions==4.16.0")
+# What the GPU image lacks, as pinned in requirements.lock (the image's own list: gpu_image.txt).
+CARRIED = ("mitsuba", "drjit", "OpenEXR", "trimesh", "diffusers")
+# Mitsuba's variants and plugins the renderer uses; the rest (other variants, volumes, curves,
+# polarisation, sun/sky data, spectral tables) stays behind: a 62.6 MB wheel becomes about 13 MB of xz.
+MITSUBA_VARIANTS = ("cuda_ad_rgb", "scalar_rgb")
+MITSUBA_DROP_PLUGINS = (
+    "blendphase", "bsplinecurve", "catmullrom", "constvolume", "ellipsoids", "ellipsoidsmesh", "gridvolume", "hair",
+    "heterogeneous", "hg", "homogeneous", "irradiancemeter", "linearcurve", "measured", "measured_polarized",
+    "polarizer", "pplastic", "ptracer", "radiancemeter", "rayleigh", "retarder", "sdfgrid", "sggx", "specfilm",
+    "stokes", "sunsky", "timed_sunsky", "tabphase", "volpath", "volpathmis", "volume", "batch", "lanczos",
+    "principledthin", "blender", "projector", "irregular")
 
 
-def prepare(cfg, out: Path = Path(".gpu"), train_crops: int = 48, val_crops: int = 12, side: int = 48,
-            wheels: bool = True, python: str = "3.12", model: Path | None = None) -> None:
-    """Write ``out``: crop packs from the config's training packs, with albedo and normal as the base of
-    ``model`` (default: the shipped model, which the recipe trains) reads them, and the wheels the GPU
-    machine lacks."""
-    from mcdenoise.pipeline import weights
+def image_packages() -> set[str]:
+    """The normalised names of the Python packages the GPU image has (gpu_image.txt)."""
+    names = set()
+    for line in IMAGE.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            names.add(normalise(line.split("==")[0]))
+    return names
 
-    from .oidn_refine import NETWORK, is_oidn_base
 
-    if not is_oidn_base(cfg):
-        raise TrainError("gpu-prepare cuts crops for a model on OIDN's network: use a config with diffusion.base "
-                         "oidn or oidn_ft (configs/ship.yaml)")
-    model = Path(model or SHIPPED_MODEL)
-    network = weights.read_record(model, "oidn_control", "gpu-prepare cuts crops for a model on OIDN's network "
-                                  "(--model)").get("base_network", NETWORK)
-    _prepare_oidn(cfg, out, train_crops, val_crops, side, network)
+def normalise(name: str) -> str:
+    return name.lower().replace("_", "-").replace(".", "-")
+
+
+def locked_versions() -> dict[str, str]:
+    out = {}
+    for line in (ROOT / "requirements.lock").read_text().splitlines():
+        if "==" in line and not line.startswith("#"):
+            name, version = line.split("==")
+            out[normalise(name)] = version.strip()
+    return out
+
+
+def check_carried(names=CARRIED) -> list[str]:
+    """``name==version`` of what is carried (pinned as requirements.lock pins them); a TrainError if the image
+    has one of them already (a second copy of a package breaks the image's own: huggingface_hub did)."""
+    have, locked = image_packages(), locked_versions()
+    twice = [n for n in names if normalise(n) in have]
+    if twice:
+        raise TrainError(f"{IMAGE}: the GPU image already has {', '.join(twice)}; do not carry a second copy")
+    return [f"{n}=={locked[normalise(n)]}" for n in names]
+
+
+def keep_member(name: str) -> bool:
+    """Whether a file of the carried packages travels (see MITSUBA_VARIANTS / MITSUBA_DROP_PLUGINS)."""
+    parts = name.split("/")
+    if "__pycache__" in parts or name.endswith(".pyi"):
+        return False
+    if parts[0] != "mitsuba" or len(parts) < 2:
+        return True
+    leaf = parts[-1]
+    variant = len(parts) == 2 and leaf.endswith(".so") and ("_ad_" in leaf or leaf.startswith("scalar_"))
+    if variant:
+        return leaf.split(".")[0] in MITSUBA_VARIANTS
+    if parts[1] in ("include", "cmake", "pkgconfig", "mitsuba_stubs") or parts[1:3] in (["data", "sunsky"],):
+        return False
+    if parts[1:3] == ["data", "srgb.coeff"]:
+        return False
+    if parts[1] == "plugins" and leaf.endswith(".so"):
+        return leaf[:-3] not in MITSUBA_DROP_PLUGINS
+    return True
+
+
+def prepare(out: Path = Path(".gpu"), python: str = "3.12", model: Path | None = None, wheels: bool = True) -> dict:
+    """Write ``out``: ``site.tar.xz`` (the carried packages for the machine's Python, trimmed), ``oidn/`` (OIDN's
+    aux networks) and ``carried.json`` (names, versions, sizes). Returns carried.json's content."""
+    from mcdenoise.pipeline import oidn_net, oidn_weights
+
+    out.mkdir(parents=True, exist_ok=True)
+    pins = check_carried()
+    record: dict = {"packages": pins, "python": python, "files": {}}
+    (out / "oidn").mkdir(exist_ok=True)
+    for kind, name in oidn_net.AUX_NETWORKS.items():
+        dest = out / "oidn" / f"{name}.tza"
+        dest.write_bytes(oidn_weights.load(name))
+        record["files"][str(dest.relative_to(out))] = dest.stat().st_size
     if wheels:
-        _wheels(out, python)
+        wheel_dir = out / "wheels"
+        download(pins, wheel_dir, python)
+        tmp = out / ".site.tar.xz.tmp"
+        with tarfile.open(tmp, "w:xz", preset=9) as tar:
+            for whl in sorted(wheel_dir.glob("*.whl")):
+                with zipfile.ZipFile(whl) as z:
+                    for info in z.infolist():
+                        if info.is_dir() or not keep_member(info.filename):
+                            continue
+                        data = z.read(info)
+                        ti = tarfile.TarInfo(info.filename)
+                        ti.size, ti.mode = len(data), 0o755 if info.filename.endswith(".so") else 0o644
+                        tar.addfile(ti, io.BytesIO(data))
+        tmp.replace(out / "site.tar.xz")
+        shutil.rmtree(wheel_dir)
+        record["files"]["site.tar.xz"] = (out / "site.tar.xz").stat().st_size
+    record["bytes"] = sum(record["files"].values())
+    (out / "carried.json").write_text(json.dumps(record, indent=1))
+    return record
 
 
-def _wheels(out: Path, python: str) -> None:
-    import subprocess
-    import sys
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", python,
-           "--platform", "manylinux2014_x86_64", "--platform", "manylinux_2_17_x86_64", "--platform",
-           "manylinux_2_28_x86_64", "-d", str(out / "wheels"), *WHEELS]
-    subprocess.run(cmd, check=True)
-
-
-def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int, network: str) -> None:
-    """Crops of the config's OIDN packs (train and val splits; built if missing) for a model on OIDN's
-    ``network``; the train crops come from the train pack the CPU run reads (``diffusion.extra_stores``
-    included)."""
-    from .oidn_pack import crop_pack, ensure_pack, load_pack
-    from .oidn_refine import StoreSource
-
-    src = StoreSource(cfg, network)
-    for split, count in (("train", train_crops), ("val", val_crops)):
-        pack = (src.train_pack(True) if split == "train"
-                else load_pack(ensure_pack(src.store, src.val_keys, src.pack_path("val"), clean_aux=src.clean_aux)))
-        dest = out / f"{split}_crops.safetensors"
-        out.mkdir(parents=True, exist_ok=True)
-        size = crop_pack(pack, dest, count, side, seed=1 if split == "val" else 0, clean_aux=src.clean_aux)
-        print(f"{dest}: {count} crops of {side}², {size / 2**20:.1f} MiB", flush=True)
+def download(pins: list[str], dest: Path, python: str) -> None:
+    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
+           python, "--implementation", "cp", "-d", str(dest)]
+    for tag in ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"):
+        cmd += ["--platform", tag]
+    subprocess.run(cmd + pins, check=True)

@@ -1,13 +1,20 @@
 #!/usr/bin/env bash
-# The GPU recipe (`python -m mcdenoise gpu-recipe`, train/gpu_recipe.py): run by the device tool on a
-# bare GPU machine, with `.gpu` carried (made by `python -m pipeline gpu-prepare --config
-# configs/ship.yaml`). Installs the carried wheels next to the machine's torch, trains the shipped
-# model further, times it, writes into $OUT. Arguments are gpu-recipe's flags (`--help`).
+# The GPU recipe (train/gpu_recipe.py): render, clean, train and time the shipped kind of model in one run.
+# On a lent GPU machine, with `.gpu` carried (python -m pipeline gpu-prepare):  bash train/gpu_recipe.sh
+# On the CPU, in seconds:  DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash train/gpu_recipe.sh
+# Variables: CONFIG (configs/ship.yaml), MINUTES (9: the whole run), OUT (reports/gpu), DEVICE (auto),
+# WORK (where the store and runs go); arguments are gpu-recipe's flags (python -m pipeline gpu-recipe --help).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT="${OUT:-reports/gpu}"
-MINUTES="${MINUTES:-6}"
-python -m pip install --quiet --no-index --no-deps --target .gpu/site .gpu/wheels/*.whl
-export PYTHONPATH="$PWD/.gpu/site:$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-python -m mcdenoise gpu-recipe --out "$OUT" --minutes "$MINUTES" "$@"
+if [ -f .gpu/site.tar.xz ] && ! python3 -c "import mitsuba" 2>/dev/null; then
+    SITE="${TMPDIR:-/tmp}/mcdenoise_site"
+    mkdir -p "$SITE" && tar -xJf .gpu/site.tar.xz -C "$SITE"
+    export PYTHONPATH="$SITE${PYTHONPATH:+:$PYTHONPATH}"
+fi
+[ -d .gpu/oidn ] && export MCDENOISE_OIDN_WEIGHTS="${MCDENOISE_OIDN_WEIGHTS:-$PWD/.gpu/oidn}"
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+PY="${PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}"
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+exec "$PY" -m pipeline gpu-recipe --config "${CONFIG:-configs/ship.yaml}" --out "$OUT" --minutes "${MINUTES:-9}" \
+    --device "${DEVICE:-auto}" ${WORK:+--work "$WORK"} "$@"

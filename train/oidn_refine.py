@@ -337,7 +337,9 @@ class RefineTask(Task):
         order = np.random.default_rng([self.cfg.seed, epoch]).permutation(len(self.crops))
         mine = order[self.rank::self.world][: self.per_rank].tolist()
         self.model.train()
-        return DataLoader(self.crops, batch_size=self.d.batch_size, sampler=mine, drop_last=True, num_workers=0)
+        # Items come from default_rng([seed, epoch, index]): the batches are the same with any number of workers.
+        return DataLoader(self.crops, batch_size=self.d.batch_size, sampler=mine, drop_last=True,
+                          num_workers=self.d.loader_workers, pin_memory=self.device.type == "cuda")
 
     # ---- the step
     def step(self, batch: dict, epoch: int, index: int) -> tuple[dict, bool]:
@@ -362,7 +364,8 @@ class RefineTask(Task):
 
     def entry(self, epoch: int, kept: list[dict], skipped: int) -> dict:
         mean = {k: float(np.mean([t[k] for t in kept])) for k in (kept[0] if kept else {})}
-        return {"epoch": epoch + 1, "train_loss": mean.pop("loss", None), "terms": mean, "skipped_steps": skipped,
+        return {"epoch": epoch + 1, "train_loss": mean.pop("loss", None), "terms": mean, "steps": len(kept) + skipped,
+                "skipped_steps": skipped,
                 "lr": self.optimizers.param_groups[0]["lr"]}
 
     def initial_entry(self) -> dict:
