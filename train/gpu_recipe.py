@@ -2,14 +2,14 @@
 
 Prepared here (``python -m pipeline gpu-prepare --config configs/ship.yaml``, CPU): ``.gpu/`` holds
 the wheels the bare machine lacks (``pip download`` for its Python) and two crop packs cut from the
-config's OIDN packs (``train.oidn_pack``: every buffer in OIDN's space, the target beside it). Run
+config's OIDN packs (``train.data``: every buffer in OIDN's space, the target beside it). Run
 there, as one command of the device tool (``carry: [".gpu"]``)::
 
     bash train/gpu_recipe.sh                  # MINUTES=6 OUT=$OUT by default
 
 which installs the wheels and runs ``python -m mcdenoise gpu-recipe`` (``run``; ``train.commands``
 declares its flags): it loads ``train/shipped`` (or ``--model``: a model on OIDN's network,
-``train.oidn_refine``), whose weights travel as its own ``base.tza`` (pyoidn stays behind), continues
+``train.model``), whose weights travel as its own ``base.tza`` (pyoidn stays behind), continues
 its Control Module with ``RefineTask`` on the carried crops for ``--minutes`` (the run ``make train``
 does, bf16 autocast on the GPU), times 1 and 3 steps at 256² and 1920×1080, and writes into ``--out``
 at most 8 files under 16 MiB: ``control_fp16.safetensors`` (the trained Control Module, float16 for
@@ -50,12 +50,15 @@ class Settings:
 
 def run_refine(args: Settings, sizes: dict) -> int:
     """The recipe for a model on OIDN's network (``diffusion.base: oidn``): its own training run
-    (``train.oidn_refine.RefineTask``, the shipped model's settings) on the carried OIDN crop packs, from
+    (``train.train.RefineTask``, the shipped model's settings) on the carried OIDN crop packs, from
     the shipped base and Control Module; the trained Control Module and the timings into ``--out``."""
     from mcdenoise.pipeline.config import load_config
     from mcdenoise.pipeline.fit import fit as fit_task
 
-    from . import oidn_refine
+    from .data import PackSource, load_pack
+    from .model import FORMAT
+    from .sampler import sample
+    from .train import RefineTask
 
     t0 = time.perf_counter()
     out = Path(args.out)
@@ -63,15 +66,15 @@ def run_refine(args: Settings, sizes: dict) -> int:
     meta = json.loads((Path(args.model) / "model.json").read_text())
     check_crops(Path(args.train), Path(args.model), meta)
     st = meta.get("settings", {})
-    side = int(oidn_refine.load_pack(Path(args.train))["x"].shape[-1])
+    side = int(load_pack(Path(args.train))["x"].shape[-1])
     keys = ("weight_decay", "grad_clip", "ema", "hdr_weight", "dropout")
     cfg = load_config(None, [f"diffusion.{k}={st[k]}" for k in keys if k in st] + [
         "diffusion.base=oidn", f"diffusion.crop={side}", f"diffusion.batch_size={args.batch}",
         f"diffusion.lr={args.lr}", "diffusion.epochs=10000", "diffusion.warmup_steps=20", "diffusion.crops_per_frame=1",
         f"diffusion.time_budget_s={args.minutes * 60}", f"diffusion.device={args.device}"])
     work = Path(tempfile.mkdtemp(prefix="gpu_recipe_")) / "diffusion_gpu"
-    task = oidn_refine.RefineTask(cfg, "any", quiet=True, folder=work, init=Path(args.model),
-                                  source=oidn_refine.PackSource(Path(args.train), Path(args.val)))
+    task = RefineTask(cfg, "any", quiet=True, folder=work, init=Path(args.model),
+                                  source=PackSource(Path(args.train), Path(args.val)))
     summary = fit_task(task, quiet=True)
     hist = json.loads((work / "train.json").read_text())["history"]
     trained = [h for h in hist if h["epoch"] > 0]
@@ -80,7 +83,7 @@ def run_refine(args: Settings, sizes: dict) -> int:
     model = task.model.eval()
     save_safetensors(out / "control_fp16.safetensors", {k: v.half().contiguous().cpu()
                                                         for k, v in model.control.state_dict().items()},
-                     {"format": oidn_refine.FORMAT})
+                     {"format": FORMAT})
     (out / "model.json").write_text(json.dumps(meta, indent=1))
     if (work / "loss.png").exists():
         (out / "loss.png").write_bytes((work / "loss.png").read_bytes())
@@ -91,7 +94,7 @@ def run_refine(args: Settings, sizes: dict) -> int:
         cond = torch.rand(1, model.cond_channels, *x.shape[-2:], generator=g).to(task.device)
         for steps in (1, 3):
             def go():
-                oidn_refine.sample(model, x, cond, task.form, steps=steps)
+                sample(model, x, cond, task.form, steps=steps)
                 if task.device.type == "cuda":
                     torch.cuda.synchronize()
             go()
@@ -112,13 +115,13 @@ def run_refine(args: Settings, sizes: dict) -> int:
 def check_crops(crops: Path, model: Path, meta: dict) -> None:
     """TrainError unless the crops' albedo and normal are what the model's base reads (prefiltered for a
     ``_calb_cnrm`` network, as rendered otherwise)."""
-    from . import oidn_refine
-    from .oidn_pack import pack_clean_aux
+    from .data import pack_clean_aux
+    from .model import NETWORK, clean_aux
 
-    want, kind = oidn_refine.clean_aux(meta), lambda clean: "prefiltered" if clean else "rendered"
+    want, kind = clean_aux(meta), lambda clean: "prefiltered" if clean else "rendered"
     if pack_clean_aux(crops) != want:
         raise TrainError(f"{crops}: crops with {kind(not want)} albedo and normal, but the model {model} (base "
-                         f"{meta.get('base_network', oidn_refine.NETWORK)}) reads {kind(want)} ones; cut them for "
+                         f"{meta.get('base_network', NETWORK)}) reads {kind(want)} ones; cut them for "
                          f"it: python -m pipeline gpu-prepare --model {model} --config …")
 
 
@@ -159,11 +162,8 @@ def prepare(cfg, out: Path = Path(".gpu"), train_crops: int = 48, val_crops: int
     machine lacks."""
     from mcdenoise.pipeline import weights
 
-    from .oidn_refine import NETWORK, is_oidn_base
+    from .model import NETWORK
 
-    if not is_oidn_base(cfg):
-        raise TrainError("gpu-prepare cuts crops for a model on OIDN's network: use a config with diffusion.base "
-                         "oidn or oidn_ft (configs/ship.yaml)")
     model = Path(model or SHIPPED_MODEL)
     network = weights.read_record(model, "oidn_control", "gpu-prepare cuts crops for a model on OIDN's network "
                                   "(--model)").get("base_network", NETWORK)
@@ -185,8 +185,7 @@ def _prepare_oidn(cfg, out: Path, train_crops: int, val_crops: int, side: int, n
     """Crops of the config's OIDN packs (train and val splits; built if missing) for a model on OIDN's
     ``network``; the train crops come from the train pack the CPU run reads (``diffusion.extra_stores``
     included)."""
-    from .oidn_pack import crop_pack, ensure_pack, load_pack
-    from .oidn_refine import StoreSource
+    from .data import StoreSource, crop_pack, ensure_pack, load_pack
 
     src = StoreSource(cfg, network)
     for split, count in (("train", train_crops), ("val", val_crops)):
