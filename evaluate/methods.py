@@ -215,7 +215,7 @@ class OIDN(Method):
         if why:
             raise MethodUnavailable(why)
         if self.weights is None and not self.checkpoint:
-            self.checkpoint = f"OIDN's built-in {self.network}"
+            self.checkpoint = "OIDN's built-in weights"
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn

@@ -178,7 +178,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     col = header.split(" | ").index("weights")
     assert md_rows["ours"][col] == f"{runs / 'diffusion_spp4'} (Control Module on a box blur)"
     assert md_rows["base_only"][col] == f"{runs / 'diffusion_spp4'} (its base alone: a box blur)"
-    assert md_rows["oidn"][col] == "OIDN's built-in rt_hdr_alb_nrm" and md_rows["noisy"][col] == "–"
+    assert md_rows["oidn"][col] == "OIDN's built-in weights" and md_rows["noisy"][col] == "–"
     assert md_rows["isik"][col] == str(runs / "isik_spp4")
     assert all("color.variance" in c["keys"] and "normal" in c["keys"] for c in FakeDiffusion.calls)
     assert rows["ours"]["metrics"]["l1"] < rows["noisy"]["metrics"]["l1"]
