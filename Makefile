@@ -4,7 +4,9 @@
 #                             baseline and OIDN fine-tuned (SPP=any), evaluation of every method with
 #                             the shipped diffusion denoiser at 4, 16 and 64 spp (sets itself up)
 #   make test                 lint (ruff: pycodestyle errors, pyflakes, import order) and the
-#                             test suite (sets itself up)
+#                             whole test suite, what CI runs (sets itself up)
+#   make test-fast            lint and the unit tests (not marked slow): under 2 minutes on 2 cores
+#   make train [SPP=4|any] [MODEL=...]  the shipped model's architecture and recipe on CONFIG's data
 #   make dataset [CONFIG=...] [key=value ...]
 #
 # Any `key=value` on the command line that is not one of the Make variables below is passed to
@@ -24,10 +26,10 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
 OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a)))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report pretrain train eval stability inspect verify plan bench test clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect verify plan bench test test-fast clean distclean
 
 help:
-	@sed -n '1,11p' Makefile
+	@sed -n '1,13p' Makefile
 
 # ---- set-up -------------------------------------------------------------------------------
 setup: $(STAMP) llvm
@@ -78,17 +80,15 @@ gt-clean: setup
 clean-report: setup
 	$(RUN) clean-report --config $(CONFIG) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(OVERRIDES)
 
-# `make train SPP=4` trains the Control Module on the frozen base (MODEL=isik: the Isik baseline;
-# MODEL=afgsa: AFGSA; MODEL=oidn_ft SPP=any: OIDN's network fine-tuned from its own weights). SPP=any trains one model for every sample count (diffusion_sppany, isik_sppany,
-# afgsa_sppany; make eval uses them at every spp without a run of their own). Several GPUs/nodes: run the same
-# command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
+# `make train SPP=4` trains the shipped model's architecture with its recipe (the diffusion.* defaults): a
+# Control Module on OIDN's frozen final-frame network, into <runs>/diffusion_spp4 (train/train.py). MODEL=isik:
+# the Isik baseline; MODEL=afgsa: AFGSA; MODEL=oidn_ft SPP=any: OIDN's network fine-tuned from its own weights.
+# SPP=any trains one model for every sample count (diffusion_sppany, isik_sppany, afgsa_sppany; make eval uses
+# them at every spp without a run of their own, and says which weights each row ran).
+# `make train CONFIG=configs/ship.yaml SPP=any` trains train/shipped's recipe on its data again.
+# Several GPUs/nodes: run the same command under `torchrun --nproc_per_node N -m pipeline train ...` (DDP).
 train: setup
 	$(RUN) train --model $(MODEL) --spp $(SPP) --config $(CONFIG) $(OVERRIDES)
-
-# A stand-in base (IF-II layout, restoration prior on GT_clean, real renders + pretrain.images); the
-# refine formulation can also start from a new untrained base (diffusion.base empty, train_base=true).
-pretrain: setup
-	$(RUN) pretrain --config $(CONFIG) $(OVERRIDES)
 
 # Every method on the test split per spp (eval.spp: 4, 16, 64) with 95 % intervals and paired
 # bootstrap differences, the stress presets and external scenes as their own groups: tables, error
@@ -120,6 +120,10 @@ bench: setup
 test: setup
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q tests
+
+test-fast: setup
+	$(PY) -m ruff check .
+	$(PY) -m pytest -q -m "not slow" tests
 
 # ---- housekeeping (make clean deletes outputs; it is not the GT cleaner) -------------------
 clean:

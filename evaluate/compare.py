@@ -5,8 +5,7 @@ equal-time MC rows ``entry["equal_time"]``):
 
 - ``ci[metric]``: the mean over frames with its 95 % t interval (``stats.mean_ci``);
 - ``vs[ref][metric]`` for ``ref`` in ``REFERENCES`` (OIDN as called by default, OIDN in its final-frame
-  mode with prefiltered aux, the noisy input, and ``oidn_isik``, the first
-  estimate ours refines, where it is a row: ours minus it is what the diffusion model adds): the mean per-frame
+  mode with prefiltered aux, and the noisy input, each where it is a row): the mean per-frame
   difference row − ref with its paired bootstrap 95 % interval (``stats.paired_bootstrap``),
   over the frames both have scores for;
 
@@ -20,7 +19,7 @@ from .methods import parse
 from .scoring import METRICS
 from .stats import lead, mean_ci, paired_bootstrap, paired_values
 
-REFERENCES = ("oidn", "oidn_prefilter", "noisy", "oidn_isik")
+REFERENCES = ("oidn", "oidn_prefilter", "noisy")
 
 
 def frame_values(row: dict, metric: str) -> dict[str, float]:

@@ -29,19 +29,16 @@ Names (``eval.methods``):
 - ``afgsa``: AFGSA (Yu et al. 2021, ``train.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
   all-spp run ``afgsa_sppany`` (``make train MODEL=afgsa SPP=N|any``); Isik and AFGSA both run
   through ``clean.apply.denoise`` (tiled).
-- ``oidn_isik``: the per-pixel mean of ``oidn`` and ``isik``, the first estimate ours refines by
-  default (``train/estimate.py``).
 - ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
-  spp-conditioned ``diffusion_sppany``, else the model shipped in ``train/shipped``), sampled as
-  its run was configured; ``base_only``: the same base without its Control Module (the paper's
-  ablation row). Options follow the family, separated by ``_``: first an optional run variant
-  (``ours_paper``: run ``diffusion_spp<N>_paper``, trained with ``diffusion.name=paper``), then any
-  of ``sN`` (N sampler steps), ``skipN`` (skip the first N; the paper formulation: of its 27
-  super27 steps), ``kN`` (the mean of N samples), ``small`` (the paper formulation's fixed
-  posterior variance instead of the learned one), ``noise`` / ``render`` / ``estimate`` (where
-  sampling starts), ``strengthN`` (N %: the base's output plus that fraction of what the Control Module
-  changes; a model on OIDN's network). E.g. ``ours_s1``, ``ours_s3_k4``, ``ours_paper_skip24``,
-  ``ours_paper_small_skip24``, ``base_only_s1``, ``ours_strength50``.
+  spp-conditioned ``diffusion_sppany``, else the model shipped in ``train/shipped``; the row's
+  weights column says which), sampled as its model was configured; ``base_only``: the same base
+  without its Control Module (the paper's ablation row: OIDN's network as the model holds it).
+  Options follow the family, separated by ``_``: first an optional run variant (``ours_large``: run
+  ``diffusion_spp<N>_large``, trained with ``diffusion.name=large``), then any of ``sN`` (N sampler
+  steps), ``skipN`` (skip the first N), ``kN`` (the mean of N samples), ``noise`` / ``render`` /
+  ``estimate`` (where sampling starts), ``strengthN`` (N %: the base's output plus that fraction of
+  what the Control Module changes). E.g. ``ours_s1``, ``ours_s3_k4``, ``base_only_s1``,
+  ``ours_strength50``.
 - ``_xN`` after any name (N in 2, 4, 8; last): that method's self-ensemble over N flipped and transposed
   copies of the frame (``pipeline.ensemble``), at N times its cost, e.g. ``oidn_x8``, ``ours_x8``.
   These are looked up lazily, as
@@ -51,11 +48,11 @@ Names (``eval.methods``):
       hdr = den.denoise(buffers, spp=spp, steps=N, samples=K, seed=cfg.eval.seed)
 
   A missing module or checkpoint makes the method *not available* with the reason (a row in the
-  table), never a crash and never made-up numbers.
+  table), never a crash and never made-up numbers. Every trained method's row names the weights it
+  ran (``checkpoint``: a run folder, or what it took from ``train/shipped``).
 """
 from __future__ import annotations
 
-import dataclasses
 import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -64,7 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline import ensemble
-from mcdenoise.pipeline.config import PAPER_STEPS, Config, ConfigError
+from mcdenoise.pipeline.config import Config, ConfigError
 from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.exr import StoreError
 
@@ -76,8 +73,8 @@ OIDN_STOCK = {"oidn": "rt_hdr_alb_nrm", "oidn_albedo": "rt_hdr_alb", "oidn_color
               "oidn_prefilter": "rt_hdr_calb_cnrm"}
 OIDN_FT = {"oidn_ft": "rt_hdr_alb_nrm", "oidn_ft_albedo": "rt_hdr_alb", "oidn_ft_color": "rt_hdr",
            "oidn_ft_prefilter": "rt_hdr_calb_cnrm_large"}
-FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", "oidn_isik", *_DIFFUSION)
-_TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|(?P<variance>small)|"
+FAMILIES = ("noisy", *OIDN_STOCK, *OIDN_FT, "isik", "afgsa", *_DIFFUSION)
+_TOKEN = re.compile(r"^(?:s(?P<steps>\d+)|skip(?P<skip>\d+)|k(?P<samples>\d+)|x(?P<ensemble>\d+)|"
                     r"(?P<start>noise|render|estimate)|strength(?P<strength>\d+))$")
 LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_albedo": "OIDN (colour+albedo)",
           "oidn_color": "OIDN (colour only)",
@@ -86,7 +83,7 @@ LABELS = {"noisy": "Noisy input", "oidn": "OIDN (colour+albedo+normal)", "oidn_a
           "oidn_ft_albedo": "OIDN fine-tuned on our data (colour+albedo)",
           "oidn_ft_color": "OIDN fine-tuned on our data (colour only)",
           "oidn_ft_prefilter": "OIDN's final-frame network fine-tuned on our data (prefiltered aux, cleanAux)",
-          "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)", "oidn_isik": "Mean of OIDN and Isik (ours' first estimate)",
+          "isik": "Isik et al.", "afgsa": "AFGSA (Yu et al. 2021)",
           "ours": "Ours (diffusion)", "base_only": "Base only (no Control Module)"}
 
 
@@ -96,25 +93,24 @@ class MethodUnavailable(PipelineError):
 
 @dataclass(frozen=True)
 class Spec:
-    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_strengthN][_xN]``."""
+    """A parsed method name: ``family[_variant][_sN][_skipN][_kN][_noise|_render|_estimate][_strengthN][_xN]``."""
     family: str
     variant: str = ""
     steps: int | None = None
     skip: int | None = None
     samples: int = 1
-    variance: str | None = None
     start: str | None = None
     ensemble: int = 1
     strength: float | None = None     # percent in the name (strength50 = 0.5); None: the model's own
 
 
 def parse(name: str) -> Spec:
-    """``ours_paper_skip12`` → Spec("ours", "paper", skip=12); unknown names: ConfigError."""
+    """``ours_large_skip1`` → Spec("ours", "large", skip=1); unknown names: ConfigError."""
     family = next((f for f in sorted(FAMILIES, key=len, reverse=True)
                    if name == f or name.startswith(f + "_")), None)
     if family is None:
         raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, and "
-                          "<ours|base_only>[_variant][_sN][_skipN][_kN][_small][_noise|_render|_estimate][_strengthN])")
+                          "<ours|base_only>[_variant][_sN][_skipN][_kN][_noise|_render|_estimate][_strengthN])")
     tokens = [t for t in name[len(family):].split("_") if t]
     if family not in _DIFFUSION and any(not re.fullmatch(r"x\d+", t) for t in tokens):
         raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options other than xN")
@@ -124,7 +120,7 @@ def parse(name: str) -> Spec:
         if m is None:
             if i != 0 or not re.fullmatch(r"[a-z][a-z0-9-]*", tok):
                 raise ConfigError(f"eval.methods: {name!r}: unknown option {tok!r} (a run variant comes first; "
-                                  "options are sN, skipN, kN, small, noise, render, estimate, strengthN)")
+                                  "options are sN, skipN, kN, noise, render, estimate, strengthN)")
             fields["variant"] = tok
             continue
         for key, value in m.groupdict().items():
@@ -144,7 +140,7 @@ def parse(name: str) -> Spec:
 def curve_kind(name: str) -> str:
     """The name without its step options (sN, skipN): rows of one kind form one curve over step counts."""
     spec = parse(name)
-    return "_".join([spec.family] + [p for p in (spec.variant, spec.variance, spec.start) if p]
+    return "_".join([spec.family] + [p for p in (spec.variant, spec.start) if p]
                     + ([f"k{spec.samples}"] if spec.samples > 1 else [])
                     + ([f"strength{round(spec.strength * 100)}"] if spec.strength is not None else [])
                     + ([f"x{spec.ensemble}"] if spec.ensemble > 1 else []))
@@ -159,8 +155,6 @@ def label(name: str) -> str:
         parts.append(f"{spec.skip} skipped")
     if spec.start:
         parts.append(f"from the {spec.start}")
-    if spec.variance == "small":
-        parts.append("fixed small variance")
     if spec.samples > 1:
         parts.append(f"mean of {spec.samples} samples")
     if spec.strength is not None:
@@ -175,7 +169,7 @@ class Method(ABC):
 
     name: str = ""
     device: str = "cpu"
-    checkpoint: str = ""          # the run folder a trained method loaded, reported in its row
+    checkpoint: str = ""          # the weights a method ran (a run folder, train/shipped/...), its table row's weights
 
     @abstractmethod
     def denoise(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
@@ -220,6 +214,8 @@ class OIDN(Method):
         why = oidn.available()
         if why:
             raise MethodUnavailable(why)
+        if self.weights is None and not self.checkpoint:
+            self.checkpoint = "OIDN's built-in weights"
 
     def denoise(self, buffers):
         from mcdenoise.pipeline import oidn
@@ -252,19 +248,6 @@ class CleanNet(Method):
 
 
 @dataclass
-class Mean(Method):
-    """The per-pixel mean of other methods' outputs (``oidn_isik``: ours' default first estimate, so its
-    row shows what the diffusion model starts from)."""
-    parts: tuple = ()
-    name: str = "oidn_isik"
-    device: str = "cpu"
-    checkpoint: str = ""
-
-    def denoise(self, buffers):
-        return np.mean([m.denoise(buffers) for m in self.parts], axis=0).astype(np.float32)
-
-
-@dataclass
 class Diffusion(Method):
     """``ours``/``base_only`` through ``train.infer``'s denoiser object, sampled as ``spec`` says."""
 
@@ -274,13 +257,8 @@ class Diffusion(Method):
     seed: int = 0
     name: str = "ours"
     device: str = "cpu"
-    rotation: object = None
-    checkpoint: str = ""          # the run folder it loaded (diffusion_sppany, shipped, ...)
+    checkpoint: str = ""          # the model folder it loaded (a run folder or train/shipped) and its base
     last_std: object = None       # per-pixel std of the last call's samples (kN with N > 1)
-
-    def set_frame(self, store, key) -> None:
-        from mcdenoise.train.data import frame_rotation
-        self.rotation = frame_rotation(store, key)
 
     def note(self) -> str:
         den = self.denoiser
@@ -293,22 +271,15 @@ class Diffusion(Method):
         if getattr(den, "last_base_only", False):
             return "colour, albedo and normal only: returned the model's base alone (control_without_groups)"
         n = getattr(den, "last_clamped", 0)
-        if not n:
-            return ""
-        if getattr(den, "clamp_note", ""):
-            return f"{n} {den.clamp_note}"
-        if den.formulation.estimate != "none":
-            return f"{n} pixels above the model's range (radiance 6) kept the first estimate's value"
-        return f"{n} pixels above the model's range clamped to radiance 6"
+        return f"{n} {den.clamp_note}" if n else ""
 
     def uncertainty(self):
         return self.last_std
 
     def denoise(self, buffers):
         s = self.spec
-        out, std = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, rotation=self.rotation,
-                                         variance=s.variance, steps=s.steps, start=s.start, samples=s.samples,
-                                         with_std=True, **({} if s.strength is None else {"strength": s.strength}))
+        out, std = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, steps=s.steps,
+                                         start=s.start, samples=s.samples, with_std=True, strength=s.strength)
         self.last_std = std if s.samples > 1 else None
         return np.asarray(out, dtype=np.float32)
 
@@ -362,9 +333,6 @@ class Loader:
             return self._oidn_ft(spec.family)
         if spec.family in ("isik", "afgsa"):
             return self._clean_net(spec.family, spp)
-        if spec.family == "oidn_isik":
-            isik = self._clean_net("isik", spp)
-            return Mean(parts=(OIDN(), isik), name=name, device=isik.device, checkpoint=isik.checkpoint)
         return self._diffusion(name, spec, spp)
 
     def _oidn_ft(self, family: str) -> Method:
@@ -381,14 +349,14 @@ class Loader:
                                     + ("`" if family == "oidn_ft" else f" oidn_ft.network={OIDN_FT[family]}`"))
         if not trained:
             return OIDN(weights=shipped.read_bytes(), network=OIDN_FT[family], name=family,
-                        checkpoint=f"shipped {shipped.parent.name}/{shipped.name}")
+                        checkpoint=weights_name(shipped))
         key = ("oidn_ft", str(folder))
         if key not in self._models:
             try:
                 self._models[key] = export_blob(load_run(folder, self.cfg)[0])
             except (OSError, PipelineError, ValueError, KeyError) as exc:
                 raise MethodUnavailable(f"cannot load the oidn_ft run {folder}: {type(exc).__name__}: {exc}") from None
-        return OIDN(weights=self._models[key], network=OIDN_FT[family], name=family, checkpoint=folder.name)
+        return OIDN(weights=self._models[key], network=OIDN_FT[family], name=family, checkpoint=weights_name(folder))
 
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model as load_isik
@@ -414,15 +382,14 @@ class Loader:
         if folder not in self._models:
             self._models[folder] = load(folder, self.device())[0]
         return CleanNet(model=self._models[folder], tile=tile, name=family, device=self.device(),
-                        checkpoint=folder.name)
+                        checkpoint=weights_name(folder))
 
     def diffusion_folder(self, spp: int, variant: str) -> Path:
         """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""
         from mcdenoise.train.model import find_run
 
-        cfg = dataclasses.replace(self.cfg, diffusion=dataclasses.replace(self.cfg.diffusion, control=True))
         try:
-            return find_run(cfg, spp, variant)
+            return find_run(self.cfg, spp, variant)
         except StoreError as exc:
             raise MethodUnavailable(str(exc)) from None
 
@@ -438,16 +405,23 @@ class Loader:
                 raise MethodUnavailable(f"cannot load the diffusion model from {folder}: "
                                         f"{type(exc).__name__}: {exc}") from None
         den = self._models[key]
-        f = den.formulation
-        if f.paper and not 0 <= (spec.skip or 0) < PAPER_STEPS:
-            raise MethodUnavailable(f"{name}: skip must be 0..{PAPER_STEPS - 1} of the {PAPER_STEPS} super27 steps")
-        if not f.paper and not 0 <= (spec.skip or 0) < (spec.steps or f.steps):
+        if not 0 <= (spec.skip or 0) < (spec.steps or den.formulation.steps):
             raise MethodUnavailable(f"{name}: skip must be below the number of steps")
-        if spec.strength is not None and not hasattr(den, "strength"):
-            raise MethodUnavailable(f"{name}: strengthN scales the change of a Control Module on OIDN's network; "
-                                    f"{folder} is a model on the stand-in base")
+        what = "its base alone:" if base_only else "Control Module on"
         return Diffusion(denoiser=den, spp=spp, spec=spec, seed=self.cfg.eval.seed, name=name, device=self.device(),
-                         checkpoint=folder.name)
+                         checkpoint=f"{weights_name(folder)} ({what} {den.meta.get('base_what', 'OIDN')})")
+
+
+def weights_name(path: Path) -> str:
+    """How a row names the weights it ran: ``train/shipped/...`` for what ships with the repository, else the
+    path as found (a run folder under the config's ``runs``)."""
+    from mcdenoise.train.model import SHIPPED_MODEL
+
+    path = Path(path)
+    try:
+        return str(Path("train/shipped") / path.resolve().relative_to(SHIPPED_MODEL))
+    except ValueError:
+        return str(path)
 
 
 def check_names(names: list[str]) -> None:

@@ -158,8 +158,8 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
             values[m][f"mc_equal_{n}"] = et["metrics"].get(m)
     winners = {m: best(values[m], m) for m in metric_names}
     cis = {n: r.get("ci", {}) for n, r in scored_rows(entry).items()}
-    header = ["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names] + ["s/frame", "device",
-                                                                                              "notes"]
+    header = (["method"] + [f"{METRICS[m].column} {METRICS[m].arrow}" for m in metric_names]
+              + ["s/frame", "device", "weights", "notes"])
     def cells(row: str) -> list[str]:
         return [(f"**{fmt(m, values[m].get(row))}**" if row in winners[m] else fmt(m, values[m].get(row)))
                 + fmt_half(m, cis.get(row, {}).get(m)) for m in metric_names]
@@ -168,7 +168,7 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
     for n, r in rows.items():
         if not r["available"]:
             lines.append([f"{r['label']} (`{n}`)"] + ["–"] * len(metric_names)
-                         + ["–", "–", f"not available: {r['reason']}"])
+                         + ["–", "–", "–", f"not available: {r['reason']}"])
             continue
         notes = []
         if r.get("failed_frames"):
@@ -176,10 +176,8 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
             notes.append(f"{r['failed_frames']} frame(s) failed: {'; '.join(bad)[:200]}")
         if r.get("input_repaired"):
             notes.append(f"{r['input_repaired']} NaN/Inf input values repaired")
-        if r.get("checkpoint"):
-            notes.append(f"model {r['checkpoint']}")
         lines.append([f"{r['label']} (`{n}`)"] + cells(n) + [fmt_seconds(r["seconds"]["median"]), r["device"],
-                                                            "; ".join(notes)])
+                                                            r.get("checkpoint") or "–", "; ".join(notes)])
     for n, et in entry["equal_time"].items():
         notes = [f"{et['mode']}: {et['spp']:.1f} spp for {et['wanted_spp']:.1f} wanted (means over frames)"]
         measured = [p["measured_seconds"] for p in et["per_frame"] if p.get("measured_seconds") is not None]
@@ -192,7 +190,7 @@ def method_table(entry: dict, metric_names: list[str]) -> list[str]:
             notes.append(f"render failed on {et['failed_frames']} frame(s)")
         secs = float(np.mean([p["model_seconds"] for p in et["per_frame"]]))
         lines.append([f"MC at equal time to `{n}` (≈{et['spp']:.0f} spp)"] + cells(f"mc_equal_{n}") +
-                     [f"{fmt_seconds(secs)} (render)", "renderer", "; ".join(notes)])
+                     [f"{fmt_seconds(secs)} (render)", "renderer", "–", "; ".join(notes)])
     return markdown_table(header, lines)
 
 

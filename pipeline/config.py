@@ -6,7 +6,7 @@ added without being documented. Unknown keys and wrongly typed values are errors
 file and the dotted key.
 
 Each section (a ``Section``) holds the value checks of its own keys in ``check``; ``validate``
-runs them all after loading. The trainer sections (clean, afgsa, diffusion, pretrain, oidn_ft)
+runs them all after loading. The trainer sections (clean, afgsa, diffusion, oidn_ft)
 share the settings of ``TrainingConfig``, declared, documented and checked there once. The rules
 of the diffusion formulation keys (``check_formulation``) live here too, for ``DiffusionConfig``
 and for ``train.formulation.Formulation``, which is also built from model.json records.
@@ -66,7 +66,7 @@ class Section:
 
 @dataclass
 class TrainingConfig(Section):
-    """The settings every trainer section has (clean, afgsa, diffusion, pretrain, oidn_ft), each with one
+    """The settings every trainer section has (clean, afgsa, diffusion, oidn_ft), each with one
     meaning in all of them: declared, documented and checked here once. A section re-declares one with
     ``override`` to give its own default or add to the doc; epochs and lr have no common default, so
     every section gives its own."""
@@ -299,39 +299,24 @@ class AfgsaConfig(TrainingConfig):
             bad("adv_weight/gp_weight", "must be >= 0")
 
 
-PRECISIONS = ("auto", "fp32", "bf16")   # diffusion.precision, pretrain.precision
+PRECISIONS = ("auto", "fp32", "bf16")   # diffusion.precision
 
 
 # ---- the diffusion formulation -------------------------------------------------------------------
-# What the diffusion model diffuses and predicts (train/formulation.py). The choices of its keys and
-# their rules live here, where both the config and train.formulation.Formulation read them.
+# What the diffusion model diffuses and how it samples (train/formulation.py). The choices of its keys
+# and their rules live here, where both the config and train.formulation.Formulation read them.
 
-PREDICTIONS = ("epsilon", "v", "sample")
 SCHEDULES = ("if", "zero_snr")
-SAMPLERS = ("ddim", "ddpm")
 STARTS = ("noise", "render", "estimate")
-ESTIMATES = ("none", "oidn", "isik", "oidn+isik")   # train/estimate.py
-LOSS_NORMS = ("none", "crop")
-TRAIN_STEPS = 1000   # IF's training timesteps; the refine formulation's sampler spaces `steps` of them
-# The paper formulation samples with IF's super27 respacing of the 1000 training steps
-# (train.diffusion.super27): this many steps, of which diffusion.skip / val_skip skip the first.
-PAPER_STEPS = 27
+TRAIN_STEPS = 1000   # IF's training timesteps; the sampler spaces `steps` of them
 
 
-def is_paper(f) -> bool:
-    """IF's own path (ε-prediction on IF's schedule): ``f`` has the formulation fields."""
-    return f.prediction == "epsilon" and f.schedule == "if"
-
-
-def check_formulation(f, bad: Bad, val_skip: int | None = None) -> None:
-    """Refuse formulation fields that cannot work together: ``f`` is a ``DiffusionConfig`` or a
-    ``train.formulation.Formulation``, ``bad`` gets the key inside the ``diffusion`` section. The paper
-    formulation skips 0..PAPER_STEPS-1 of super27 (``skip``, and ``val_skip`` when given); the refine
-    formulation runs ``steps`` of the 1000 and skips fewer than that (its ``val_skip`` is unused)."""
-    _check_formulation_choices(f, bad)
-    _check_formulation_combination(f, bad)
-    if f.loss_norm not in LOSS_NORMS:
-        bad("loss_norm", f"expected one of {', '.join(LOSS_NORMS)}, got {f.loss_norm!r}")
+def check_formulation(f, bad: Bad) -> None:
+    """Refuse formulation fields that cannot work: ``f`` is a ``DiffusionConfig`` or a
+    ``train.formulation.Formulation``, ``bad`` gets the key inside the ``diffusion`` section."""
+    for key, choices in (("schedule", SCHEDULES), ("start", STARTS)):
+        if getattr(f, key) not in choices:
+            bad(key, f"expected one of {', '.join(choices)}, got {getattr(f, key)!r}")
     if not f.residual_scale > 0:
         bad("residual_scale", f"expected > 0, got {f.residual_scale}")
     if not 0 <= f.t_focus <= 1:
@@ -340,40 +325,12 @@ def check_formulation(f, bad: Bad, val_skip: int | None = None) -> None:
         bad("snr_gamma", f"expected > 0, got {f.snr_gamma}")
     if not f.snr_floor >= 0:
         bad("snr_floor", f"expected >= 0, got {f.snr_floor}")
-    _check_formulation_steps(f, bad, val_skip)
-
-
-def _check_formulation_choices(f, bad: Bad) -> None:
-    for key, choices in (("prediction", PREDICTIONS), ("schedule", SCHEDULES), ("sampler", SAMPLERS),
-                         ("start", STARTS), ("estimate", ESTIMATES)):
-        if getattr(f, key) not in choices:
-            bad(key, f"expected one of {', '.join(choices)}, got {getattr(f, key)!r}")
-
-
-def _check_formulation_combination(f, bad: Bad) -> None:
-    if f.prediction == "epsilon" and f.schedule == "zero_snr":
-        bad("prediction", "epsilon with diffusion.schedule=zero_snr: at zero terminal SNR the noise says nothing "
-                          "about the image; use v or sample")
-    if is_paper(f) and (f.residual or f.estimate != "none"):
-        bad("residual" if f.residual else "estimate",
-            "the paper formulation (prediction=epsilon, schedule=if) diffuses the image from the noisy render: set "
-            "diffusion.residual=false and diffusion.estimate=none")
-    if f.residual and f.estimate == "none":
-        bad("residual", "true needs a first estimate (diffusion.estimate=oidn, isik or oidn+isik)")
-
-
-def _check_formulation_steps(f, bad: Bad, val_skip: int | None) -> None:
-    if is_paper(f):
-        skips = {"skip": f.skip, **({} if val_skip is None else {"val_skip": val_skip})}
-        for key, skip in skips.items():
-            if not 0 <= skip < PAPER_STEPS:
-                bad(key, f"the paper formulation skips 0..{PAPER_STEPS - 1} of IF's {PAPER_STEPS} super27 steps "
-                         f"(at least one must run), got {skip}")
-        return
     if not 1 <= f.steps <= TRAIN_STEPS:
         bad("steps", f"need 1 <= steps <= {TRAIN_STEPS}, got {f.steps}")
     if not 0 <= f.skip < f.steps:
         bad("skip", f"need 0 <= skip < steps ({f.steps}), got {f.skip}")
+    if f.start == "noise" and f.skip:
+        bad("skip", f"sampling from pure noise starts at t = T: skip must be 0, got {f.skip}")
 
 
 # OIDN networks a Control Module can sit on (colour + albedo + normal, as rendered or prefiltered)
@@ -382,184 +339,92 @@ BASE_NETWORKS = ("rt_hdr_alb_nrm", "rt_hdr_calb_cnrm", "rt_hdr_calb_cnrm_large")
 
 @dataclass
 class DiffusionConfig(TrainingConfig):
-    base: str = doc("The frozen base. 'oidn': OIDN's own network (rt_hdr_alb_nrm, weights from oidn.weights or "
-                    "pyoidn) under a Control Module reading every buffer, in OIDN's output space "
-                    "(train/oidn_refine.py); 'oidn_ft': the same on this config's oidn_ft run; a .tza file: those "
-                    "OIDN weights. Else a base model folder in the diffusers layout (config.json, "
-                    "diffusion_pytorch_model.safetensors, prompt_embeds.safetensors; a DeepFloyd IF-II checkpoint's "
-                    "unet/ folder works the same way). Empty: for the paper formulation the small stand-in shipped "
-                    "in train/base_model_paper, for the refine formulation a new IF-II-layout base with a zero last "
-                    "layer written into the run folder (it returns the first estimate exactly and must train: "
-                    "diffusion.train_base=true).", "")
-    base_network: str = doc("Base oidn or oidn_ft: which of OIDN's networks is the base. 'rt_hdr_alb_nrm' (what "
-                            "make eval's oidn row runs: colour, albedo and normal as rendered); 'rt_hdr_calb_cnrm' or "
-                            "'rt_hdr_calb_cnrm_large' (OIDN's final-frame mode, the oidn_prefilter row: albedo and "
-                            "normal first denoised by OIDN's aux networks; _large is the 3.9 M-parameter UNetLarge, "
-                            "2.4x slower to train). With oidn_ft, that network's oidn_ft run.", "rt_hdr_alb_nrm")
-    extra_stores: list = doc("Base oidn: more stores whose train splits train the Control Module with the config's "
-                             "own (one pack each, beside it in <runs>/pack/); validation stays on the config's "
-                             "store. E.g. renders of your own scenes added to the ship data.", factory=list)
-    init: str = doc("Base oidn: a trained model folder (a run folder or an exported one such as train/shipped) "
-                    "the run starts from: its frozen base replaces diffusion.base and its Control Module trains "
-                    "on (a warm start, e.g. on new data) with that model's formulation and train_steps (the "
-                    "config's are not used; the run says which differ); empty: a new, zero-initialised Control "
-                    "Module.", "")
-    tonemap: str = doc("Radiance to model space: 'log' (A·log(1+x), A=0.51, paper eq. 5) or 'gamma' "
-                       "(A·x^γ, A=0.47, γ=1/2.4, eq. 4); both clamp to [0, 6] first.", "log")
-    epochs: int = override("epochs", 100, "An epoch: crops_per_frame crops of every train frame, at most "
-                                          "epoch_steps steps.")
+    """The diffusion denoiser: a Control Module on OIDN's frozen network. The defaults are the recipe of the
+    shipped model (train/shipped/model.json "settings")."""
+    base: str = doc("The frozen base the Control Module sits on (train/model.py): 'oidn' (OIDN's own "
+                    "base_network, weights from oidn.weights or pyoidn), 'oidn_ft' (this config's oidn_ft run of "
+                    "base_network, make train MODEL=oidn_ft) or a .tza file of base_network's weights.", "oidn")
+    base_network: str = doc("Which of OIDN's networks is the base: 'rt_hdr_calb_cnrm_large' (OIDN's final-frame "
+                            "mode, the oidn_prefilter row: albedo and normal first denoised by OIDN's aux networks; "
+                            "the 3.9 M-parameter UNetLarge), 'rt_hdr_calb_cnrm' (the same, small) or "
+                            "'rt_hdr_alb_nrm' (what make eval's oidn row runs: colour, albedo and normal as "
+                            "rendered; 2.4x faster to train).", "rt_hdr_calb_cnrm_large")
+    extra_stores: list = doc("More stores whose train splits train the Control Module with the config's own (one "
+                             "pack each, beside it in <runs>/pack/); validation stays on the config's store. E.g. "
+                             "renders of your own scenes added to the ship data.", factory=list)
+    init: str = doc("A trained model folder (a run folder or an exported one such as train/shipped) the run "
+                    "starts from: its frozen base replaces diffusion.base and its Control Module trains on (a warm "
+                    "start, e.g. on new data) with that model's formulation and train_steps (the config's are not "
+                    "used; the run says which differ); empty: a new, zero-initialised Control Module.", "")
+    epochs: int = override("epochs", 16, "An epoch: crops_per_frame crops of every train frame, at most "
+                                         "epoch_steps steps.")
     batch_size: int = override("batch_size", 8, "Per process under torchrun.")
-    crop: int = override("crop", 64, "A multiple of 2^(levels-1) of the base.")
+    crop: int = override("crop", 64, "A multiple of 16 (OIDN's alignment).")
     loader_workers: int = doc("Processes that cut and augment the training crops beside the training process (0: "
                               "in it). A GPU steps faster than one CPU core cuts crops: give it several.", 0)
-    lr: float = override("lr", 2e-5, "Optimiser: AdamW (the authors' code: 2e-5).")
-    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 4)
+    lr: float = override("lr", 2e-4, "Optimiser: AdamW on the Control Module.")
+    crops_per_frame: int = doc("Random crops drawn from each training frame per epoch.", 2)
     epoch_steps: int = doc("At most this many steps per epoch, on a random subset of the epoch's crops (new each epoch), "
                            "so validation, checkpoints and the time budget come that often on a large training set; "
-                           "0: every crop.", 0)
-    weight_decay: float = doc("AdamW weight decay (the authors' code: 0.01).", 0.01)
+                           "0: every crop.", 80)
+    weight_decay: float = doc("AdamW weight decay.", 0.01)
     warmup_steps: int = doc("Linear learning-rate warm-up steps, then a cosine decay to 0 over the run.", 100)
-    train_base: bool = doc("Train the base as well as the Control Module. The paper freezes it (false); with the "
-                           "refine formulation's new base (diffusion.base empty) it must train (docs/diffusion.md: a "
-                           "frozen base that returns the estimate passes the Control Module no gradient).", True)
-    control: bool = doc("Use the Control Module; false trains/evaluates the base alone (the paper's ablation row).",
-                        True)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
     shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
                         "own (make eval's ours rows, make denoise), and its oidn_ft weights for make eval's "
                         "oidn_ft_albedo and oidn_ft_color rows.", True)
-    name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'paper' for the paper's "
-                    "formulation beside the default one); make eval's ours_<name> rows read it.", "")
-    prediction: str = doc("What the network predicts: 'sample' (x0; an untrained zero last layer returns the first "
-                          "estimate exactly), 'v' (Salimans & Ho 2022) or 'epsilon' (the paper, with IF's "
-                          "learned-range variance and hybrid loss when schedule=if). See train/formulation.py.",
-                          "sample")
+    name: str = doc("Run variant: the run folder is diffusion_spp<N>[_<name>] (e.g. 'large' beside the default "
+                    "one); make eval's ours_<name> rows read it.", "")
     schedule: str = doc("Noise schedule: 'zero_snr' (IF's cosine betas rescaled to zero terminal SNR, trailing "
-                        "timesteps; Lin et al. 2023) or 'if' (IF's cosine schedule as is; with epsilon: the paper).",
-                        "zero_snr")
-    estimate: str = doc("First estimate the model refines and reads as its image input: 'oidn' (OIDN with albedo "
-                        "and normal), 'isik' (the Isik network of isik_run), 'oidn+isik' (their mean; both are also "
-                        "condition channels) or 'none' (the noisy render, as the paper). See train/estimate.py.",
-                        "oidn+isik")
-    isik_run: str = doc("Isik run folder of the 'isik' estimates; empty: <runs>/isik_sppany "
-                        "(make train MODEL=isik SPP=any).", "")
-    residual: bool = doc("Diffuse the residual (x - estimate)/residual_scale instead of the image.", True)
-    residual_scale: float = doc("Scale s of the diffused residual in model space (about its standard deviation "
-                                "over the training pairs, so the residual is of unit order like an image; the OIDN "
-                                "residual of the default data: 0.026 at 4 spp, 0.014 at 64).", 0.05)
+                        "timesteps, Lin et al. 2023: one step from t = T is the network's direct estimate) or 'if' "
+                        "(IF's cosine schedule as is).", "zero_snr")
+    residual_scale: float = doc("Scale s of the diffused residual (x - x_est)/s around the base's output in OIDN's "
+                                "output space (about its standard deviation over the training pairs, so the residual "
+                                "is of unit order).", 0.02)
     snr_gamma: float = doc("gamma of the min-SNR loss weighting (Hang et al. 2023).", 5.0)
     snr_floor: float = doc("Floor of the min-SNR weight in x0-error terms (min(SNR, gamma) is 0 at SNR = 0, the "
                            "step whose output is the one-step estimate).", 1.0)
-    hdr_weight: float = doc("Base oidn: weight of the second loss term, the L1 in OIDN's PU space relative to OIDN's "
-                            "own (highlights keep their relative error there, as HDR-FLIP sees them), beside the "
-                            "tonemapped MSE relative to OIDN's (what PSNR reads).", 0.5)
-    dropout: float = doc("Base oidn: probability that a training crop lacks a buffer group (the variances, the "
-                         "radiance split, the material buffers; each on its own), so one model serves inputs without "
-                         "them.", 0.15)
-    loss_norm: str = doc("Refine formulation: 'crop' divides each training crop's loss by its first estimate's "
-                         "error, so every crop counts by its relative gain, as a mean of per-frame PSNRs does; "
-                         "'none': the plain weighted MSE, which the few hard crops dominate (and what runs from "
-                         "before this key trained with). The paper formulation keeps IF's hybrid loss. See "
-                         "train/formulation.py and docs/diffusion.md.", "crop")
+    hdr_weight: float = doc("Weight of the second loss term, the L1 in OIDN's PU space relative to OIDN's own "
+                            "(highlights keep their relative error there, as HDR-FLIP sees them), beside the "
+                            "tonemapped MSE relative to OIDN's (what PSNR reads); train/loss.py.", 0.5)
+    dropout: float = doc("Probability that a training crop lacks a buffer group (the variances, the radiance split, "
+                         "the material buffers; each on its own), so one model serves inputs without them.", 0.15)
     t_focus: float = doc("Probability that a training timestep is drawn from the timesteps the sampler visits with "
-                         "one of train_steps steps (else uniform over 0..999).", 0.8)
+                         "one of train_steps steps (else uniform over 0..999).", 0.9)
     train_steps: list = doc("Step counts whose timesteps t_focus draws from (each count equally likely).",
-                            factory=lambda: [1, 3, 9])
-    sampler: str = doc("Sampler of the refine formulation: 'ddim' (deterministic) or 'ddpm' (diffusers).", "ddim")
-    steps: int = doc("Sampler steps (trailing spacing over the 1000 training steps) of the refine formulation; "
-                     "the paper formulation always uses IF's 27 super27 steps.", 1)
-    start: str = doc("Where sampling starts: 'estimate' (the first estimate q-sampled at the first step run), "
+                            factory=lambda: [1])
+    steps: int = doc("Sampler steps (DDIM, trailing spacing over the 1000 training steps).", 1)
+    start: str = doc("Where sampling starts: 'estimate' (the base's output q-sampled at the first step run), "
                      "'render' (the noisy render q-sampled there) or 'noise' (pure noise at t = T).", "estimate")
-    samples: int = doc("Samples averaged per frame by make denoise / validation (their per-pixel standard "
-                       "deviation is the uncertainty layer of denoise's output).", 1)
-    skip: int = doc("Sampler: steps skipped at the start (paper formulation: of the 27 super27 steps; the noisy "
-                    "render is q-sampled at the first step kept, skip 12 starts at t=900 and runs 15 steps, as the "
-                    "authors' code; refine formulation: of the 'steps' trailing steps).", 0)
-    threshold_ratio: float = doc("Dynamic thresholding percentile of the predicted clean image (IF: 0.95).", 0.95)
-    variance: str = doc("Paper formulation's sampler variance: 'learned' (IF's learned range, the paper) or 'small' "
-                        "(the fixed posterior variance; ignores the network's variance output). eval compares both "
-                        "as ours_paper[_skipN] and ours_paper_small[_skipN].", "learned")
+    samples: int = doc("Samples averaged per frame by make denoise (their per-pixel standard deviation is the "
+                       "uncertainty layer of denoise's output).", 1)
+    skip: int = doc("Sampler steps skipped at the start (of the 'steps' trailing steps).", 0)
     ema: float = doc("Decay of an exponential moving average of the trained weights (diffusers' EMAModel, with "
                      "its warm-up), which is what validation scores and the run saves; 0: the weights themselves.",
                      0.999)
-    pack: bool = doc("Train from compact packs (<runs>/pack/<split>_<estimate>.safetensors, built on first use or "
-                     "by make pack: decoded once, float16, only what the model reads; train/pack.py) instead of "
-                     "decoding the store's EXRs for every item.", True)
     val_frames: int = doc("Validation frames sampled after every epoch and before the first (val PSNR with the "
-                          "configured sampler; the paper formulation samples at val_skip). SPP=any models cycle "
-                          "through the sample counts.", 8)
-    val_skip: int = doc("Paper formulation: sampler skip used for the per-epoch validation (cheaper than the full "
-                        "27 steps; 0..26). The refine formulation validates with skip.", 12)
-    tile: int = doc("Inference tile side in pixels; larger frames are denoised in overlapping tiles.", 256)
-    tile_overlap: int = doc("Overlap between inference tiles, blended linearly.", 32)
+                          "configured sampler, at the run's smallest, middle and largest spp).", 16)
 
     def check(self, bad: Bad) -> None:
         super().check(bad)
-        self.at_least(bad, 1, "crops_per_frame")
-        self.at_least(bad, 0, "warmup_steps", "loader_workers")
+        self.at_least(bad, 1, "crops_per_frame", "samples")
+        self.at_least(bad, 0, "warmup_steps", "val_frames", "loader_workers")
         if self.epoch_steps < 0:
             bad("epoch_steps", f"must be >= 0 (0: every crop), got {self.epoch_steps}")
-        check_formulation(self, bad, val_skip=self.val_skip)
-        self.one_of(bad, "tonemap", ("log", "gamma"))
+        if self.crop % 16:
+            bad("crop", f"must be a multiple of 16 (OIDN's alignment), got {self.crop}")
+        check_formulation(self, bad)
+        if not self.train_steps or not all(isinstance(n, int) and 1 <= n <= TRAIN_STEPS for n in self.train_steps):
+            bad("train_steps", f"expected step counts from 1 to {TRAIN_STEPS}, got {self.train_steps!r}")
         self.one_of(bad, "precision", PRECISIONS)
-        self.one_of(bad, "variance", ("learned", "small"))
-        if not 0 < self.threshold_ratio <= 1:
-            bad("threshold_ratio", "must be in (0, 1]")
-        if self.tile_overlap < 0 or self.tile <= 2 * self.tile_overlap:
-            bad("tile/tile_overlap", "need tile > 2 * tile_overlap >= 0")
+        if self.base not in ("oidn", "oidn_ft") and not self.base.endswith(".tza"):
+            bad("base", f"expected 'oidn', 'oidn_ft' or a .tza file of OIDN's weights, got {self.base!r}")
         if self.init and not (Path(self.init) / "model.json").is_file():
             bad("init", f"{self.init}: not a trained model folder (no model.json there)")
         self.one_of(bad, "base_network", BASE_NETWORKS)
         for root in self.extra_stores:
             if not (Path(root) / "dataset.json").is_file():
                 bad("extra_stores", f"{root}: no dataset there (no dataset.json); render it: make dataset store={root}")
-        if self.extra_stores and not self.on_oidn():
-            bad("extra_stores", "only a model on OIDN's network reads them (diffusion.base=oidn, oidn_ft or a .tza "
-                                "file, or diffusion.init)")
-
-    def on_oidn(self) -> bool:
-        """Whether the model is a Control Module on OIDN's network (train/oidn_refine.py)."""
-        return bool(self.init) or self.base in ("oidn", "oidn_ft") or self.base.endswith(".tza")
-
-
-@dataclass
-class PretrainConfig(TrainingConfig):
-    epochs: int = override("epochs", 100, "An epoch: crops_per_image crops of every image; 0 writes the "
-                                          "initialised base (with the refine formulation its zero last layer "
-                                          "returns the first estimate exactly; train it with "
-                                          "diffusion.train_base=true).")
-    lr: float = override("lr", 2e-4, "Optimiser: AdamW.")
-    weight_decay: float = doc("AdamW weight decay.", 0.01)
-    warmup_steps: int = override("warmup_steps", 100, parent=DiffusionConfig)
-    precision: str = override("precision", "auto", parent=DiffusionConfig)
-    channels: list = doc("Channels per level of a new base (IF-II layout; the last level has attention).",
-                         factory=lambda: [32, 64, 96, 128])
-    layers_per_block: int = doc("ResNet layers per level of a new base.", 1)
-    images: list = doc("Extra folders of images (.png/.jpg, sRGB) or EXRs (R,G,B radiance) for the prior, besides "
-                       "every GT_clean frame of the store.", factory=list)
-    crops_per_image: int = doc("Crops per image per epoch.", 4)
-    scales: list = doc("Down-sampling factors of the super-resolution degradation (one drawn per crop).",
-                       factory=lambda: [2, 4])
-    noise: float = doc("Largest std of the synthetic degradation's noise (model space, drawn uniformly).", 0.1)
-    fireflies: float = doc("Fraction of pixels the synthetic degradation turns into fireflies.", 0.002)
-    real: float = doc("Probability that a crop's degraded input is a real low-spp render of its frame (through the "
-                      "first estimate, diffusion.estimate) instead of a synthetic degradation.", 0.75)
-    out: str = doc("Where make pretrain writes the new base; empty: <runs>/base (use it with diffusion.base=...).",
-                   "")
-
-    def check(self, bad: Bad) -> None:
-        super().check(bad)
-        self.at_least(bad, 1, "crops_per_image")
-        self.at_least(bad, 0, "warmup_steps")
-        self.one_of(bad, "precision", PRECISIONS)
-        if not self.channels or not all(isinstance(c, int) and c > 0 and c % 16 == 0 for c in self.channels):
-            bad("channels", f"expected positive multiples of 16 (group norm), got {self.channels!r}")
-        if not self.scales or not all(isinstance(k, int) and k >= 1 for k in self.scales):
-            bad("scales", f"expected integers >= 1, got {self.scales!r}")
-
-    def check_epochs(self, bad: Bad) -> None:
-        if self.epochs < 0:
-            bad("epochs", "must be >= 0 (0: write the initialised base)")
 
 
 @dataclass
@@ -644,16 +509,16 @@ class EvalConfig(Section):
                         "oidn_color, oidn_prefilter (OIDN's final-frame mode: aux prefiltered, cleanAux), oidn_ft, "
                         "oidn_ft_albedo and oidn_ft_color (OIDN fine-tuned on the store: make "
                         "train MODEL=oidn_ft), isik, "
-                        "afgsa, oidn_isik (their mean: ours' first estimate), ours, base_only (the base without the "
-                        "Control Module); ours and base_only take options after an optional run variant: sN (sampler "
-                        "steps), skipN, kN (mean of N samples), small (paper formulation: fixed posterior variance), "
-                        "noise/render/estimate (start), e.g. ours_s3_k4 or ours_paper_skip24 (run "
-                        "diffusion_spp<N>_paper; see evaluate/methods.py). Any method takes _xN last: its self-ensemble "
+                        "afgsa, ours (the diffusion denoiser: this config's run, else train/shipped; the table's "
+                        "weights column says which), base_only (its base without the Control Module); ours and "
+                        "base_only take options after an optional run variant: sN (sampler steps), skipN, kN (mean "
+                        "of N samples), noise/render/estimate (start), strengthN, e.g. ours_s3_k4 or ours_large (run "
+                        "diffusion_spp<N>_large; see evaluate/methods.py). Any method takes _xN last: its self-ensemble "
                         "over N (2, 4, 8) flipped/transposed copies of the frame at N times its time (oidn_x8, "
                         "ours_x8). A method whose model is missing is listed as not available.",
                         factory=lambda: ["noisy", "oidn", "oidn_x8", "oidn_prefilter", "oidn_albedo", "oidn_color",
                                          "oidn_ft",
-                                         "oidn_ft_albedo", "oidn_ft_color", "isik", "afgsa", "oidn_isik", "ours",
+                                         "oidn_ft_albedo", "oidn_ft_color", "isik", "afgsa", "ours",
                                          "ours_x8", "ours_s3_k4", "base_only"])
     spp: list = doc("Sample counts of the noisy input; one table each (paper: 4, 16, 64). Counts the store cannot "
                     "pool from its stacks are reported as skipped.", factory=lambda: [4, 16, 64])
@@ -711,7 +576,6 @@ class Config:
                              factory=AfgsaConfig)
     diffusion: DiffusionConfig = doc("Diffusion denoiser: frozen base + Control Module (make train SPP=4).",
                                      factory=DiffusionConfig)
-    pretrain: PretrainConfig = doc("The small stand-in base (make pretrain).", factory=PretrainConfig)
     oidn: OidnConfig = doc("Where OIDN's weights come from.", factory=OidnConfig)
     oidn_ft: OidnFtConfig = doc("OIDN fine-tuned on the store (make train MODEL=oidn_ft SPP=any).",
                                 factory=OidnFtConfig)

@@ -6,11 +6,10 @@ One folder per model and sample count (``spp<N>``, or ``sppany`` for one model s
 - ``isik`` (the Isik baseline): ``<runs>/isik_spp<N>``;
 - ``afgsa``: ``<runs>/afgsa_spp<N>``; trained against another target than gt_clean
   (``afgsa.target``): ``<runs>/afgsa_<target>_spp<N>``;
-- ``base`` (the stand-in diffusion base of ``make pretrain``): ``<runs>/base`` (or ``pretrain.out``);
 - ``oidn_ft`` (OIDN fine-tuned, one model for every spp): ``<runs>/oidn_ft_<network>``
   (``oidn_ft.network``, or the network given as ``variant``);
 - ``diffusion``: ``<runs>/diffusion_spp<N>``, with ``_<variant>`` (``diffusion.name``, or the
-  variant given) and ``_base_only`` (``diffusion.control`` false) appended.
+  variant given) appended.
 
 ``find_run``: the run that serves a sample count, its own (``spp<N>``) else the one for every
 count (``sppany``); the evaluator, ``denoise`` and the reports find Isik, AFGSA and diffusion runs by it.
@@ -24,7 +23,7 @@ from typing import Callable
 
 from .config import Config
 
-MODELS = ("cleaner", "isik", "afgsa", "base", "oidn_ft", "diffusion")
+MODELS = ("cleaner", "isik", "afgsa", "oidn_ft", "diffusion")
 
 
 def spp_tag(spp: int | str) -> str:
@@ -38,8 +37,6 @@ def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str 
     runs = Path(cfg.runs)
     if model == "cleaner":
         return runs / "cleaner"
-    if model == "base":
-        return Path(cfg.pretrain.out) if cfg.pretrain.out else runs / "base"
     if model == "isik":
         return runs / f"isik_{spp_tag(spp)}"
     if model == "afgsa":
@@ -49,8 +46,7 @@ def run_dir(cfg: Config, model: str, spp: int | str | None = None, variant: str 
         return runs / f"oidn_ft_{variant or cfg.oidn_ft.network}"
     if model == "diffusion":
         variant = cfg.diffusion.name if variant is None else variant
-        name = f"diffusion_{spp_tag(spp)}" + (f"_{variant}" if variant else "")
-        return runs / (name if cfg.diffusion.control else name + "_base_only")
+        return runs / (f"diffusion_{spp_tag(spp)}" + (f"_{variant}" if variant else ""))
     raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
 
 

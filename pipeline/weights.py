@@ -29,10 +29,8 @@ from .exr import atomic_write_json, read_json
 FORMATS = {
     "affinity": "mcdenoise-affinity",          # the GT cleaner and the Isik baseline (clean.model)
     "afgsa": "mcdenoise-afgsa",                # AFGSA (train.afgsa)
-    "control": "mcdenoise-control",            # a Control Module on an IF-II-layout base (train.model)
-    "oidn_control": "mcdenoise-oidn-control",  # a Control Module on OIDN's network (train.oidn_refine)
+    "oidn_control": "mcdenoise-oidn-control",  # the diffusion denoiser: a Control Module on OIDN's network (train.model)
     "oidn_ft": "mcdenoise-oidn-ft",            # OIDN's network fine-tuned (train.oidn_ft)
-    "base": "mcdenoise-base",                  # a stand-in base's training state (train.pretrain)
 }
 RECORD = "model.json"
 

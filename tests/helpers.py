@@ -129,23 +129,6 @@ def save_untrained_isik(folder: Path) -> None:
     save_best(folder, model, {"hparams": model.hparams, "epoch": 0})
 
 
-# ---- a tiny diffusion model -------------------------------------------------------------------------
-
-def tiny_unet_config() -> dict:
-    from mcdenoise.train import base as base_lib
-    return base_lib.default_config([16, 32], layers_per_block=1, text_dim=16, attention_head_dim=8)
-
-
-def tiny_model(aux=None, control=True, seed=0):
-    """A controlled denoiser on a two-level base (``aux`` condition channels; default: ``AUX_CHANNELS``)."""
-    from mcdenoise.train import base as base_lib
-    from mcdenoise.train.control import ControlledDenoiser, ControlModule
-    from mcdenoise.train.data import AUX_CHANNELS
-
-    unet, prompt = base_lib.build(tiny_unet_config(), seed=seed)
-    return ControlledDenoiser(unet, prompt, ControlModule(unet, AUX_CHANNELS if aux is None else aux) if control else None)
-
-
 def cornell_box(rfilter: str, size: int = 64, spp: int = 4, seed: int = 1) -> np.ndarray:
     """Mitsuba's Cornell box, stock path tracer, with the film's reconstruction filter ``rfilter``: (size, size, 3)."""
     from mcdenoise.pipeline.mitsuba_env import import_mitsuba

@@ -1,4 +1,6 @@
 """Config loading: defaults, overrides, errors that name the key, docs in sync with the code."""
+import json
+import re
 from pathlib import Path
 
 import pytest
@@ -107,31 +109,24 @@ def test_overrides_may_follow_options(capsys):
 # ---- sections: each checks its own keys; the trainer sections share TrainingConfig ---------------
 
 SHARED = {"epochs", "batch_size", "crop", "lr", "grad_clip", "nan_limit", "time_budget_s", "device"}
-# Every key each trainer section had before TrainingConfig (pretrain: plus the five it borrowed from
-# diffusion), written out: a YAML file, a `section.key=value` or a run fingerprint keeps working.
+# Every key of each trainer section, written out: a YAML file, a `section.key=value` or a run fingerprint
+# keeps working.
 TRAINER_KEYS = {
     "clean": SHARED | {"weight_decay", "crops_per_frame", "smape_eps", "kernel_size", "dilations", "channels",
                        "embed_channels", "affinity_channels", "range_term", "range_patch", "tile"},
     "afgsa": SHARED | {"target", "crops_per_frame", "lr_critic", "adv_weight", "gp_weight", "channels",
                        "extractor_channels", "blocks", "heads", "block_size", "halo", "critic_channels",
                        "critic_levels", "tile"},
-    "diffusion": SHARED | {"base", "tonemap", "crops_per_frame", "epoch_steps", "weight_decay", "warmup_steps",
-                           "train_base", "control", "precision", "shipped", "name", "prediction", "schedule",
-                           "estimate", "isik_run", "residual", "residual_scale", "snr_gamma", "snr_floor",
-                           "hdr_weight", "dropout", "loss_norm", "t_focus", "train_steps", "sampler", "steps",
-                           "start", "samples", "skip", "threshold_ratio", "variance", "ema", "pack", "val_frames",
-                           "val_skip", "tile", "tile_overlap",
-                           "init",    # added after TrainingConfig: a warm start from a trained model folder
-                           "extra_stores",    # more stores' train splits beside the config's
-                           "base_network"},   # which of OIDN's networks the Control Module sits on
-    "pretrain": SHARED | {"channels", "layers_per_block", "images", "crops_per_image", "weight_decay", "scales",
-                          "noise", "fireflies", "real", "out", "warmup_steps", "precision"},
+    "diffusion": SHARED | {"base", "base_network", "extra_stores", "init", "crops_per_frame", "epoch_steps",
+                           "weight_decay", "warmup_steps", "precision", "shipped", "name", "schedule",
+                           "residual_scale", "snr_gamma", "snr_floor", "hdr_weight", "dropout", "t_focus",
+                           "train_steps", "steps", "start", "samples", "skip", "ema", "val_frames"},
     "oidn_ft": SHARED | {"network", "crops_per_frame", "epoch_steps", "lr_end", "warmup_steps", "weight_decay",
                          "loss", "l2sp", "distill", "diversify", "trainable", "augment", "blend", "val_frames",
                          "target", "fine_levels"},
 }
 TRAINER_DEFAULTS = {   # section: (epochs, lr), the defaults each section gives the shared keys without one
-    "clean": (12, 1e-3), "afgsa": (12, 5e-4), "diffusion": (100, 2e-5), "pretrain": (100, 2e-4),
+    "clean": (12, 1e-3), "afgsa": (12, 5e-4), "diffusion": (16, 2e-4),
     "oidn_ft": (30, 5e-5),
 }
 
@@ -145,10 +140,27 @@ def test_trainer_sections_keep_their_keys_and_defaults(section):
         "batch_size": 8, "crop": 64, "grad_clip": 1.0, "nan_limit": 10, "time_budget_s": 0.0, "device": "auto"}
 
 
-def test_pretrain_has_the_defaults_it_borrowed_from_diffusion():
-    cfg = load_config(None)
-    for key in ("warmup_steps", "grad_clip", "nan_limit", "precision", "device"):
-        assert getattr(cfg.pretrain, key) == getattr(cfg.diffusion, key), key
+def test_the_diffusion_defaults_are_the_shipped_models_recipe():
+    """make train trains what ships: every setting train/shipped/model.json records is the default."""
+    from mcdenoise.train.model import SHIPPED_MODEL
+    settings = json.loads((SHIPPED_MODEL / "model.json").read_text())["settings"]
+    d = to_dict(load_config(None))["diffusion"]
+    recipe = {k: v for k, v in settings.items() if k not in ("base_sha256", "formulation", "seed", "spp")}
+    assert {k: d[k] for k in recipe} == recipe
+    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
+    assert (d["base"], d["base_network"], meta["base_blend"]) == ("oidn", meta["base_network"], 0.0)
+
+
+def test_ship_yaml_is_the_shipped_models_recipe_on_its_data():
+    """configs/ship.yaml holds the recipe itself (not only a model card's command line): its diffusion section
+    and seed give the shipped model's settings."""
+    from mcdenoise.train.model import SHIPPED_MODEL
+    meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
+    cfg = load_config(ROOT / "configs" / "ship.yaml")
+    d = to_dict(cfg)["diffusion"]
+    recipe = {k: v for k, v in meta["settings"].items() if k not in ("base_sha256", "formulation", "seed", "spp")}
+    assert {k: d[k] for k in recipe} == recipe and cfg.seed == meta["settings"]["seed"]
+    assert cfg.store == meta["store"] and (d["base"], d["base_network"]) == ("oidn", meta["base_network"])
 
 
 @pytest.mark.parametrize("section", sorted(TRAINER_KEYS))
@@ -160,13 +172,10 @@ def test_a_bad_shared_setting_is_named_with_its_section(section, override):
         load_config(None, [f"{section}.{override}"])
 
 
-def test_epochs_zero_is_refused_except_for_pretrain():
+def test_epochs_zero_is_refused():
     for section in ("clean", "afgsa", "diffusion", "oidn_ft"):
         with pytest.raises(ConfigError, match=rf"{section}\.epochs: must be >= 1"):
             load_config(None, [f"{section}.epochs=0"])
-    assert load_config(None, ["pretrain.epochs=0"]).pretrain.epochs == 0   # writes the initialised base
-    with pytest.raises(ConfigError, match=r"pretrain\.epochs: must be >= 0"):
-        load_config(None, ["pretrain.epochs=-1"])
 
 
 def test_section_checks_keep_their_messages():
@@ -174,8 +183,9 @@ def test_section_checks_keep_their_messages():
         ("oidn_ft.crop=40", r"oidn_ft\.crop: must be a positive multiple of 16"),
         ("afgsa.heads=3", r"afgsa\.channels/heads: 32 channels must split into 3 heads"),
         ("dataset.stress_split=both", r"dataset\.stress_split: expected 'stress' or 'mixed', got 'both'"),
-        ("pretrain.precision=fp16", r"pretrain\.precision: expected 'auto', 'fp32' or 'bf16', got 'fp16'"),
-        ("diffusion.tile=64", r"diffusion\.tile/tile_overlap: need tile > 2 \* tile_overlap"),
+        ("diffusion.precision=fp16", r"diffusion\.precision: expected 'auto', 'fp32' or 'bf16', got 'fp16'"),
+        ("diffusion.base=", r"diffusion\.base: expected 'oidn', 'oidn_ft' or a \.tza file"),
+        ("diffusion.crop=40", r"diffusion\.crop: must be a multiple of 16"),
         ("eval.equal_time=never", r"eval\.equal_time: expected 'render', 'pool' or 'none', got 'never'"),
     ]:
         with pytest.raises(ConfigError, match=message):
@@ -184,35 +194,23 @@ def test_section_checks_keep_their_messages():
 
 # ---- the formulation keys: one set of rules for the config and train.formulation -----------------
 
-PAPER = ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false",
-         "diffusion.estimate=none"]
-
-
-def test_refine_skip_counts_in_its_own_steps():
+def test_skip_counts_in_the_samplers_steps():
     d = load_config(None, ["diffusion.steps=50", "diffusion.skip=30"]).diffusion
     assert (d.steps, d.skip) == (50, 30)
     with pytest.raises(ConfigError, match=r"diffusion\.skip: need 0 <= skip < steps \(50\), got 50"):
         load_config(None, ["diffusion.steps=50", "diffusion.skip=50"])
     with pytest.raises(ConfigError, match=r"diffusion\.steps: need 1 <= steps <= 1000, got 1001"):
         load_config(None, ["diffusion.steps=1001"])
-    # val_skip is the paper formulation's: unused by the refine formulation, so not refused there
-    assert load_config(None, ["diffusion.val_skip=40"]).diffusion.val_skip == 40
 
 
-def test_paper_skips_count_in_super27():
-    assert load_config(None, [*PAPER, "diffusion.skip=12"]).diffusion.skip == 12
-    for key in ("skip", "val_skip"):
-        with pytest.raises(ConfigError, match=rf"<defaults>: diffusion\.{key}: the paper formulation skips 0\.\.26"):
-            load_config(None, [*PAPER, f"diffusion.{key}=27"])
-
-
-def test_a_formulation_error_is_a_config_error_naming_the_key():
-    with pytest.raises(ConfigError, match=r"diffusion\.residual: true needs a first estimate"):
-        load_config(None, ["diffusion.estimate=none"])
-    with pytest.raises(ConfigError, match=r"diffusion\.prediction: epsilon with diffusion\.schedule=zero_snr"):
-        load_config(None, ["diffusion.prediction=epsilon"])
-    with pytest.raises(ConfigError, match=r"diffusion\.estimate: the paper formulation"):
-        load_config(None, ["diffusion.prediction=epsilon", "diffusion.schedule=if", "diffusion.residual=false"])
+def test_retired_keys_are_unknown():
+    """The stand-in stack's keys are gone: a config that still sets one is told so, naming the key."""
+    for key, named in (("diffusion.prediction=epsilon", "diffusion.prediction"),
+                       ("diffusion.estimate=none", "diffusion.estimate"), ("diffusion.train_base=true",
+                       "diffusion.train_base"), ("diffusion.tonemap=log", "diffusion.tonemap"),
+                       ("pretrain.epochs=1", "pretrain")):
+        with pytest.raises(ConfigError, match=r"unknown config key " + re.escape(named) + " "):
+            load_config(None, [key])
 
 
 @pytest.mark.parametrize("key", ["polished_probability", "texture_probability", "walls_probability"])

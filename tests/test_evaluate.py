@@ -74,13 +74,13 @@ class FakeDiffusion:
     calls: list = []
 
     def __init__(self, folder, device, base_only):
-        from mcdenoise.train.sampler import PAPER
-        self.folder, self.device, self.base_only, self.formulation = Path(folder), device, base_only, PAPER
+        from mcdenoise.train.formulation import Formulation
+        self.folder, self.device, self.base_only = Path(folder), device, base_only
+        self.formulation, self.meta = Formulation(steps=27), {"base_what": "a box blur"}
 
-    def denoise(self, buffers, spp, skip, seed, rotation=None, variance=None, steps=None, start=None, samples=1,
-                with_std=False):
+    def denoise(self, buffers, spp, skip, seed, steps=None, start=None, samples=1, with_std=False, strength=None):
         FakeDiffusion.calls.append({"spp": spp, "skip": skip, "seed": seed, "base_only": self.base_only,
-                                    "variance": variance, "keys": sorted(buffers)})
+                                    "start": start, "keys": sorted(buffers)})
         time.sleep(FAKE_DENOISE_SECONDS * (27 - (skip or 0)) / 27)
         c = buffers["color"]
         if self.base_only:
@@ -123,7 +123,7 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     (runs / "diffusion_spp4" / "model.json").write_text("{}")
     monkeypatch.setitem(sys.modules, "mcdenoise.train.infer", fake_infer_module())
     FakeDiffusion.calls.clear()
-    methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_small_skip18"]
+    methods = ["noisy", "oidn", "oidn_color", "isik", "ours", "ours_skip18", "base_only", "ours_render_skip18"]
     cfg = load_config(TINY, [f"store={store_root}", f"runs={runs}", f"eval.methods={json.dumps(methods)}",
                              "eval.equal_time=pool", "eval.equal_time_methods=[ours, oidn, isik]", "eval.device=cpu",
                              "eval.seed=5", "diffusion.shipped=false"])   # no fallback to train/shipped
@@ -163,12 +163,23 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     assert not e16["methods"]["ours"]["available"] and "diffusion_spp16" in e16["methods"]["ours"]["reason"]
     assert "metrics" not in e16["methods"]["ours"]
 
-    # ours plugged in through train.infer: spp, skip, seed, base_only and the variance reach the denoiser
+    # ours plugged in through train.infer: spp, skip, seed, base_only and the start reach the denoiser
     # (None: the run's own setting)
-    seen = {(c["spp"], c["skip"], c["base_only"], c["seed"], c["variance"]) for c in FakeDiffusion.calls}
+    seen = {(c["spp"], c["skip"], c["base_only"], c["seed"], c["start"]) for c in FakeDiffusion.calls}
     assert seen == {(4, None, False, 5, None), (4, 18, False, 5, None), (4, None, True, 5, None),
-                    (4, 18, False, 5, "small")}
-    assert "fixed small variance" in (out / "eval.md").read_text()
+                    (4, 18, False, 5, "render")}
+    assert "from the render" in (out / "eval.md").read_text()
+    # every row names the weights it ran, in the table's weights column: the run folder for ours
+    md_rows = {}                                              # the first table: 4 spp
+    for line in (out / "eval.md").read_text().splitlines():
+        if line.startswith("| ") and "(`" in line:
+            md_rows.setdefault(line.split("(`")[1].split("`)")[0], line.split(" | "))
+    header = next(line for line in (out / "eval.md").read_text().splitlines() if line.startswith("| method"))
+    col = header.split(" | ").index("weights")
+    assert md_rows["ours"][col] == f"{runs / 'diffusion_spp4'} (Control Module on a box blur)"
+    assert md_rows["base_only"][col] == f"{runs / 'diffusion_spp4'} (its base alone: a box blur)"
+    assert md_rows["oidn"][col] == "OIDN's built-in weights" and md_rows["noisy"][col] == "–"
+    assert md_rows["isik"][col] == str(runs / "isik_spp4")
     assert all("color.variance" in c["keys"] and "normal" in c["keys"] for c in FakeDiffusion.calls)
     assert rows["ours"]["metrics"]["l1"] < rows["noisy"]["metrics"]["l1"]
     assert rows["base_only"]["metrics"]["l1"] > rows["noisy"]["metrics"]["l1"]
@@ -227,10 +238,11 @@ def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_
         return {spp: result["groups"]["test"]["spp"][spp]["methods"]["isik"] for spp in ("4", "16")}
 
     rows = isik_rows()
-    assert all(r["available"] and r["checkpoint"] == "isik_sppany" and r["failed_frames"] == 0 for r in rows.values())
-    assert "model isik_sppany" in (out / "eval.md").read_text()
+    assert all(r["available"] and r["checkpoint"] == str(runs / "isik_sppany") and r["failed_frames"] == 0
+               for r in rows.values())
+    assert f"| {runs / 'isik_sppany'} |" in (out / "eval.md").read_text()
     save_untrained_isik(runs / "isik_spp4")                  # a per-spp run wins where it exists
-    assert [r["checkpoint"] for r in isik_rows().values()] == ["isik_spp4", "isik_sppany"]
+    assert [r["checkpoint"] for r in isik_rows().values()] == [str(runs / "isik_spp4"), str(runs / "isik_sppany")]
 
     record["spp_choices"] = [4, 8]                           # isik_sppany never saw 16 spp: not used there
     (runs / "isik_sppany" / "model.json").write_text(json.dumps(record))

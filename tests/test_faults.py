@@ -288,8 +288,8 @@ TRAIN_CASES = [
                             "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1", "oidn_ft.device=cpu"]), id="oidn_ft"),
     pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
                            ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
-                            "diffusion.val_skip=24", "diffusion.val_frames=1", "diffusion.warmup_steps=2",
-                            "diffusion.estimate=oidn", "pretrain.channels=[16,32]"],   # the EMA state resumes too
+                            "diffusion.val_frames=1", "diffusion.warmup_steps=2", "diffusion.device=cpu",
+                            "diffusion.base_network=rt_hdr_alb_nrm"],   # the EMA state resumes too
                            best="control.safetensors"), id="diffusion"),
 ]
 

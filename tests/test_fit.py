@@ -117,25 +117,6 @@ def _buffers(rng, size=6):
     return out
 
 
-def test_cleaner_and_diffusion_encodings_share_the_table():
-    from mcdenoise.clean.data import channel_names, frame_inputs
-    from mcdenoise.train.data import aux_names, condition
-
-    b = _buffers(np.random.default_rng(0))
-    clean, diff = frame_inputs(b)[0], condition(b, 16)
-    assert aux_names() == channel_names() + ["spp"] and diff.shape[0] == clean.shape[0] + 1
-    names = channel_names()
-    for i, name in enumerate(names):
-        key = name.split(".")[0]
-        kind = "variance" if name.endswith(".variance") else dict((k, t) for k, _, t in features.TABLE)[key]
-        if kind in ("variance", "depth", "identity"):
-            np.testing.assert_array_equal(clean[i], diff[i], err_msg=name)
-        elif kind == "normal":       # as stored vs clipped to [-1, 1] and mapped to [0, 1]
-            np.testing.assert_array_equal(clean[i], b["normal"][..., "XYZ".index(name[-1])])
-            np.testing.assert_allclose(diff[i], (np.clip(clean[i], -1, 1) + 1) / 2, rtol=0, atol=1e-7)
-    np.testing.assert_allclose(diff[-1], np.log2(16) / 6)
-
-
 def test_a_missing_buffer_is_its_background_before_the_encoding():
     b = _buffers(np.random.default_rng(1))
     full = features.encode(b, features.Encoding(normals01=True, spp=True), spp=4)

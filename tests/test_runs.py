@@ -13,17 +13,16 @@ def test_every_model_has_its_folder(tmp_path):
     assert run_dir(cfg, "isik", "any") == tmp_path / "isik_sppany"
     assert run_dir(cfg, "afgsa", 16) == tmp_path / "afgsa_spp16"
     assert run_dir(cfg, "diffusion", 64) == tmp_path / "diffusion_spp64"
-    assert run_dir(cfg, "diffusion", "any", "paper") == tmp_path / "diffusion_sppany_paper"
+    assert run_dir(cfg, "diffusion", "any", "large") == tmp_path / "diffusion_sppany_large"
     with pytest.raises(ValueError, match="model must be one of"):
         run_dir(cfg, "oidn", 4)
 
 
 def test_settings_that_name_the_folder(tmp_path):
-    cfg = load_config(None, [f"runs={tmp_path}", "afgsa.target=gt1", "diffusion.name=wide", "diffusion.control=false",
-                             "diffusion.train_base=true"])
+    cfg = load_config(None, [f"runs={tmp_path}", "afgsa.target=gt1", "diffusion.name=wide"])
     assert run_dir(cfg, "afgsa", 4) == tmp_path / "afgsa_gt1_spp4"
-    assert run_dir(cfg, "diffusion", 4) == tmp_path / "diffusion_spp4_wide_base_only"
-    assert run_dir(cfg, "diffusion", 4, "") == tmp_path / "diffusion_spp4_base_only"
+    assert run_dir(cfg, "diffusion", 4) == tmp_path / "diffusion_spp4_wide"
+    assert run_dir(cfg, "diffusion", 4, "") == tmp_path / "diffusion_spp4"
 
 
 def test_stage_spellings_delegate(tmp_path):

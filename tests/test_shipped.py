@@ -13,7 +13,7 @@ from mcdenoise.evaluate.stability import synthetic_buffers
 from mcdenoise.pipeline.config import BASE_NETWORKS
 from mcdenoise.pipeline.exr import read_image
 from mcdenoise.pipeline.store import sha256
-from mcdenoise.train import oidn_refine
+from mcdenoise.train import infer, model as tmodel
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import SHIPPED_MODEL
 from tests.helpers import cornell_box, write_rgb_exr
@@ -30,7 +30,7 @@ def test_shipped_model_is_in_the_repository_small_and_documented():
     assert sum(p.stat().st_size for p in files) <= 30 * 2**20
     meta = json.loads((SHIPPED_MODEL / "model.json").read_text())
     # a Control Module on OIDN's own network (its frozen weights in base.tza, checked against model.json)
-    assert meta["format"] == oidn_refine.FORMAT and meta["base_network"] in BASE_NETWORKS
+    assert meta["format"] == tmodel.FORMAT and meta["base_network"] in BASE_NETWORKS
     assert 0 <= meta.get("strength", 1.0) <= 1
     assert sha256(SHIPPED_MODEL / "base.tza") == meta["base_sha256"] and {4, 16, 64} <= set(meta["spp"])
     card = (SHIPPED_MODEL / "README.md").read_text()
@@ -68,14 +68,14 @@ def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped, monke
     frame = synthetic_buffers(32, 32, seed=5, noise=0.7)
     shipped.denoise(frame, spp=4)
     assert shipped.last_clamped == 0
-    real = oidn_refine.sample
+    real = infer.sample
 
     def past_the_end(model, x, *args):      # the first rows pushed past OIDN's range, as a wild input could
         mean, std, rest = real(model, x, *args)
         mean[..., :4, :] += 2.0
         return mean, std, rest
 
-    monkeypatch.setattr(oidn_refine, "sample", past_the_end)
+    monkeypatch.setattr(infer, "sample", past_the_end)
     out = shipped.denoise(frame, spp=4)
     assert np.isfinite(out).all() and shipped.last_clamped >= 4 * 32
     assert out.max() <= 65504.0 / autoexposure(frame["color"]) * 1.0001
@@ -223,7 +223,7 @@ def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module
     cli("export", "--from", half, "--base-blend", "0", "--out", zero, "--quiet")
     back = tza.read((zero / "base.tza").read_bytes())
     assert all(np.array_equal(back[k].array, stock[k].array) for k in stock)
-    oidn_refine.load(zero)
+    tmodel.load(zero)
     proc = cli("export", "--from", zero, "--base-blend", "0.3", "--out", tmp_path / "never", check=False)
     assert proc.returncode != 0 and "base_blend 0, its base is OIDN itself" in proc.stderr
     # a base whose blend is not recorded cannot be moved: a one-line error naming the file, nothing written
@@ -243,11 +243,11 @@ def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_mod
     assert record["base_sha256"] == sha256(base) and record["base_blend"] == 0.5
     assert (out / "control.safetensors").read_bytes() == (SHIPPED_MODEL / "control.safetensors").read_bytes()
     assert f"--base {base}" in (out / "README.md").read_text()
-    model, _ = oidn_refine.load(out)
-    reference, _ = oidn_refine.load(SHIPPED_MODEL)
+    model, _ = tmodel.load(out)
+    reference, _ = tmodel.load(SHIPPED_MODEL)
     buf = synthetic_buffers(24, 24, seed=2, noise=0.5)
-    assert not np.array_equal(oidn_refine.OIDNRefiner(model, record, "cpu").denoise(buf, spp=4),
-                              oidn_refine.OIDNRefiner(reference, record, "cpu").denoise(buf, spp=4))
+    assert not np.array_equal(infer.Denoiser(model, record, "cpu").denoise(buf, spp=4),
+                              infer.Denoiser(reference, record, "cpu").denoise(buf, spp=4))
     proc = cli("export", "--from", SHIPPED_MODEL, "--base", SHIPPED_MODEL / "oidn_ft" / "rt_hdr.tza",
                "--out", tmp_path / "never", check=False)
     assert proc.returncode != 0 and f"rt_hdr.tza: not OIDN's {record['base_network']}" in proc.stderr

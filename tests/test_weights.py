@@ -9,13 +9,13 @@ from mcdenoise.pipeline.errors import CheckpointError
 def test_a_saved_model_reads_back_as_its_kind_only(tmp_path):
     tensors = {"w": torch.arange(6, dtype=torch.float32).reshape(2, 3)}
     weights.save(tmp_path / "m", "oidn_ft", tensors, {"epoch": 3, "format": "stale"}, weights="x.safetensors")
-    record = weights.read_record(tmp_path / "m", ("control", "oidn_ft"), "retrain")
+    record = weights.read_record(tmp_path / "m", ("oidn_control", "oidn_ft"), "retrain")
     assert record == {"format": "mcdenoise-oidn-ft", "epoch": 3} and weights.kind(tmp_path / "m") == "oidn_ft"
     assert torch.equal(weights.load_tensors(tmp_path / "m" / "x.safetensors")["w"], tensors["w"])
-    with pytest.raises(CheckpointError, match=r"m/model.json: format 'mcdenoise-oidn-ft', not a control model; run it"):
-        weights.read_record(tmp_path / "m", "control", "run it")
+    with pytest.raises(CheckpointError, match=r"m/model.json: format 'mcdenoise-oidn-ft', not a oidn_control model; run it"):
+        weights.read_record(tmp_path / "m", "oidn_control", "run it")
     with pytest.raises(CheckpointError, match=r"nothing: no trained model here \(model.json missing\); train"):
-        weights.read_record(tmp_path / "nothing", "control", "train")
+        weights.read_record(tmp_path / "nothing", "oidn_control", "train")
     assert weights.kind(tmp_path / "nothing") is None
 
 

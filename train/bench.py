@@ -2,35 +2,27 @@
 
     python -m pipeline bench-denoise [--config FILE] [key=value ...]     (also run by make bench)
 
-Times ``train.infer.Denoiser.denoise`` (input encoding, the first estimate, the sampler, tiling) on
-a synthetic frame, with the trained run of ``--spp`` (or the spp-conditioned one) if there is one,
-else the base with a fresh (zero) Control Module and the configured formulation: the network's
-cost is the same either way. The paper formulation always runs IF's super27 steps, so its rows
-are the last N of them (skip 27 − N). Each setting is timed after one warm-up call, best of
-``repeats``; the per-megapixel time is measured on a frame of 2×2 ``tile``-sized tiles (overlap
-included), so it includes the tiling overhead.
+Times ``train.infer.Denoiser.denoise`` (input encoding, OIDN's base, the sampler) on a synthetic frame,
+with the trained run of ``--spp`` (or the spp-conditioned one, else the shipped model). Each setting is
+timed after one warm-up call, best of ``repeats``; the per-megapixel time is measured on a 512² frame.
 """
 from __future__ import annotations
 
-import dataclasses
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from mcdenoise.pipeline import schema, weights
-from mcdenoise.pipeline.config import PAPER_STEPS, Config
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json
-from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.timing import best_time
 from mcdenoise.pipeline.versions import machine
 
-from . import base as base_lib
-from .formulation import Formulation
-from .infer import Denoiser
-from .model import build, estimator, find_run, load, load_run_estimator
+from .infer import Denoiser, load_denoiser
+from .model import find_run
 
-STEPS = (1, 3, 9, PAPER_STEPS)
+STEPS = (1, 3, 9, 27)
+BIG = 512   # side of the per-megapixel frame
 
 
 def _frame(side: int, seed: int = 0) -> dict:
@@ -46,35 +38,15 @@ def _frame(side: int, seed: int = 0) -> dict:
     return out
 
 
-def _denoiser(cfg: Config, spp, device) -> tuple[Denoiser, str]:
-    f = cfg.diffusion
-    try:
-        folder = find_run(cfg, spp)
-        model, meta = load(folder, device)
-        name = str(folder)
-    except StoreError:
-        if not cfg.diffusion.base and not Formulation.from_config(f).paper:   # a new base, written to a temp folder
-            tmp = Path(tempfile.mkdtemp(prefix="bench_base_"))
-            base_lib.write_new(tmp, cfg.pretrain.channels, cfg.pretrain.layers_per_block, cfg.seed)
-            cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(f, base=str(tmp)))
-        model = build(cfg).to(device).eval()
-        meta = {"tonemap": f.tonemap, "formulation": Formulation.from_config(f).record(),
-                "threshold_ratio": f.threshold_ratio, "variance": f.variance}
-        name = "base + fresh Control Module"
-        return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision, estimator(cfg, device)), name
-    return Denoiser(model, meta, device, f.tile, f.tile_overlap, f.precision, load_run_estimator(folder, meta, device)), name
-
-
 def _time(den: Denoiser, buffers: dict, steps: int, repeats: int) -> float:
-    kw = {"skip": PAPER_STEPS - steps} if den.formulation.paper else {"steps": steps, "skip": 0}
-    return best_time(lambda: den.denoise(buffers, spp=4, **kw), repeats)
+    return best_time(lambda: den.denoise(buffers, spp=4, steps=steps, skip=0), repeats)
 
 
 def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str = "reports/bench") -> dict:
-    f = cfg.diffusion
-    device = pick_device(f.device)
-    den, name = _denoiser(cfg, spp, device)
-    small, big = _frame(side), _frame(2 * f.tile - f.tile_overlap, 1)   # big: 2x2 tiles
+    folder = find_run(cfg, spp)
+    den = load_denoiser(folder, cfg.diffusion.device)
+    device, name = den.device, str(folder)
+    small, big = _frame(side), _frame(BIG, 1)
     _time(den, _frame(32, 2), 1, 1)   # warm-up
     rows = []
     for steps in STEPS:
@@ -84,15 +56,14 @@ def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str =
         rows.append({"steps": steps, "side": side, "seconds_frame": round(t, 3),
                      "seconds_per_megapixel": round(tb / (px / 1e6), 3),
                      "tiled_frame": f"{big['color'].shape[1]}x{big['color'].shape[0]}"})
-    ac = den.autocast
     mach = machine()
     result = {"device": str(device), "machine": mach, "model": name, "formulation": den.formulation.record(),
               "parameters_millions": round(sum(p.numel() for p in den.model.parameters()) / 1e6, 2),
-              "precision": str(ac) if ac else "fp32", "rows": rows,
+              "precision": "fp32", "rows": rows,
               "estimate_only": den.last_estimate_only}   # True would mean the network never ran
     lines = [f"Diffusion inference ({result['model']}, {result['parameters_millions']} M parameters, "
              f"{result['device']}{' ' + mach['cuda'] if mach.get('cuda') else ''}, {result['precision']}, "
-             f"{mach.get('torch_threads')} threads; first estimate {den.formulation.estimate})", "",
+             f"{mach.get('torch_threads')} threads)", "",
              f"| steps | {side}² frame (s) | per megapixel (s) |", "| --- | --- | --- |"]
     lines += [f"| {r['steps']} | {r['seconds_frame']:.3f} | {r['seconds_per_megapixel']:.2f} |" for r in rows]
     md = "\n".join(lines) + "\n"
@@ -114,7 +85,6 @@ def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((
     from mcdenoise.pipeline.runs import run_dir as model_dir
 
     from .oidn_ft import export_blob, load_run
-    from .oidn_refine import OIDNRefiner, load as load_refine
 
     folder = model_dir(cfg, "oidn_ft", variant="rt_hdr_alb_nrm")
     if (folder / "model.safetensors").exists():
@@ -125,8 +95,7 @@ def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((
     refiner = None
     try:
         run = find_run(cfg, "any")
-        if weights.kind(run) == "oidn_control":
-            refiner = OIDNRefiner(*load_refine(run), torch.device("cpu"))
+        refiner = load_denoiser(run, "cpu")
     except StoreError:
         pass
     rows = []

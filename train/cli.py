@@ -1,8 +1,8 @@
-"""Command-line entry points of the diffusion stage, called by ``python -m pipeline``.
+"""The ``denoise`` and ``pack`` commands of ``python -m pipeline``.
 
-    train --model diffusion --spp 4|16|64|any   → cmd_train(cfg, spp)      runs/<..>/diffusion_spp4/
-    pretrain                                    → cmd_pretrain(cfg)        runs/<..>/base/ (or pretrain.out)
     denoise (--frame SCENE/FRAME | --exr FILE)  → cmd_denoise(...)         an EXR with the denoised colour
+                                                  cmd_denoise_oidn(...)    the same with OIDN itself
+    pack                                        → cmd_pack(cfg, splits)    <runs>/pack/<split>_oidn_base*.safetensors
 """
 from __future__ import annotations
 
@@ -19,29 +19,7 @@ from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import StoreError, write_image
 from mcdenoise.pipeline.store import FrameKey, Store
 
-from .data import frame_rotation
-from .model import estimator_and_id, find_run
-from .pack import ensure_pack, pack_path
-from .pretrain import pretrain
-from .train import train
-
-
-def cmd_train(cfg: Config, spp, quiet: bool = False) -> int:
-    """Train the diffusion denoiser for ``spp`` (or 'any'): on OIDN's network (``train.oidn_refine``) or on
-    the IF-II-layout base (``train.train``)."""
-    from . import oidn_refine
-    if oidn_refine.is_oidn_base(cfg):
-        oidn_refine.train(cfg, spp, quiet=quiet)
-    else:
-        train(cfg, spp, quiet=quiet)
-    return 0
-
-
-def cmd_pretrain(cfg: Config, quiet: bool = False) -> int:
-    """Train a new stand-in base (IF-II layout) as a restoration prior (``train.pretrain``)."""
-    pretrain(cfg, quiet=quiet)
-    return 0
-
+from .model import find_run
 
 DEFAULT_EXR_SPP = 16
 
@@ -89,21 +67,19 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         if not quiet:
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     f = cfg.diffusion
-    den = load_denoiser(find_run(cfg, spp), f.device, base_only, f.tile, f.tile_overlap, f.precision)
+    den = load_denoiser(find_run(cfg, spp), f.device, base_only)
     buffers, source = _read_input(cfg, frame, exr, spp)
-    rotation = frame_rotation(Store(cfg.store), _frame_key(frame)) if frame is not None else None
     samples = f.samples if samples is None else int(samples)
     if samples < 1:
         raise TrainError(f"--samples {samples}: expected at least 1")
     def run(b):   # colour and std side by side, so that one self-ensemble turns both back
         return np.concatenate(den.denoise(b, int(spp), skip=skip, seed=cfg.seed if seed is None else seed,
-                                          rotation=rotation, variance=f.variance, steps=steps, samples=samples,
-                                          with_std=True, strength=strength), axis=2)
+                                          steps=steps, samples=samples, with_std=True, strength=strength), axis=2)
     t0 = time.perf_counter()
     out6 = ensemble_mean(run, buffers, ensemble)
     hdr, std, seconds = out6[..., :3], out6[..., 3:], time.perf_counter() - t0
-    meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name, "variance": f.variance,
-            "skip": den.meta.get("skip") if skip is None else skip, "steps": steps, "samples": samples,
+    meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name,
+            "skip": den.formulation.skip if skip is None else skip, "steps": steps, "samples": samples,
             "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
             "clamped_pixels": den.last_clamped, "black_input": den.last_black,
             "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
@@ -222,15 +198,14 @@ def _frame_key(frame: str) -> FrameKey:
 
 
 def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
-    """Write the training packs of ``splits`` (``train.pack``) for the configured first estimate."""
-    store = Store(cfg.store)
-    if not store.manifest_path.exists():
-        raise TrainError(f"{store.root}: no dataset; run `make dataset` first")
-    est, est_id = estimator_and_id(cfg)
+    """Write the training packs of ``splits`` (``train.data.ensure_pack``) for the configured base's inputs."""
+    from .data import StoreSource, ensure_pack
+
+    source = StoreSource(cfg)
     for split in splits:
-        keys = store.frames_with(split)
+        keys = source.store.frames_with(split)
         if not keys:
-            raise TrainError(f"{store.root}: no {split} frame with gt_clean; run `make gt-clean`")
-        path = ensure_pack(store, keys, pack_path(cfg.runs, split, est.kind), cfg.diffusion.tonemap, est, quiet, est_id)
+            raise TrainError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
+        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux)
         print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0

@@ -1,5 +1,5 @@
 """The denoisers' subcommands of ``python -m pipeline``: ``train`` (every model: the diffusion denoiser,
-oidn_ft, and the Isik and AFGSA baselines), ``pretrain``, ``export``, ``gpu-prepare``, ``gpu-recipe``,
+oidn_ft, and the Isik and AFGSA baselines), ``export``, ``gpu-prepare``, ``gpu-recipe``,
 ``pack``, ``denoise``, ``afgsa-report`` and ``bench-denoise``.
 
 ``add_commands`` declares them (see ``pipeline.commands``); each handler imports what it runs
@@ -33,10 +33,6 @@ def _training_commands(sub) -> None:
                         "for all")
     with_quiet(p)
     p.set_defaults(fn=_train)
-
-    p = with_config(sub.add_parser("pretrain", help="train the stand-in base (IF-II layout, restoration prior)"))
-    with_quiet(p)
-    p.set_defaults(fn=_pretrain)
 
     p = with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
                                                   "(the shipped model: train/shipped), or (--format oidn) an "
@@ -95,7 +91,7 @@ def _gpu_commands(sub) -> None:
 
 
 def _inference_commands(sub) -> None:
-    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/pack.py)"))
+    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/data.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
     with_quiet(p)
     p.set_defaults(fn=_pack)
@@ -108,7 +104,7 @@ def _inference_commands(sub) -> None:
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
     p.add_argument("--out", required=True, help="output EXR")
     p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
-    p.add_argument("--steps", type=int, default=None, help="sampler steps, refine formulation (default: the run's)")
+    p.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's)")
     p.add_argument("--samples", type=int, default=None,
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
     p.add_argument("--seed", type=int, default=None)
@@ -165,13 +161,9 @@ def _train(args) -> int:
         from .oidn_ft import train as train_oidn_ft
         train_oidn_ft(cfg, args.spp, quiet=args.quiet)
         return 0
-    from .cli import cmd_train
-    return cmd_train(cfg, args.spp, quiet=args.quiet)
-
-
-def _pretrain(args) -> int:
-    from .cli import cmd_pretrain
-    return cmd_pretrain(config(args), quiet=args.quiet)
+    from .train import train
+    train(cfg, args.spp, quiet=args.quiet)
+    return 0
 
 
 def _export(args) -> int:

@@ -1,220 +1,312 @@
-"""What the diffusion denoiser sees: model-space radiance, the auxiliary condition, augmentation, pairs.
+"""The data: what the denoiser reads (every buffer in OIDN's space), its training packs and crops, and
+where a training run's frames come from (``StoreSource``).
 
-**Radiance** (noisy input and target) lives in [−1, 1] (``to_model`` / ``from_model``, exact
-inverses on [0, 6]): clamp to [0, 6], range-compress with ``pipeline.color.log_compress``
-(A·log(1 + x), A = 0.51; paper eq. 5) or, with ``tonemap: gamma``, ``gamma_compress``
-(A·x^γ, A = 0.47, γ = 1/2.4; eq. 4), then ``2y − 1``. Both compressions map 6 to ~0.99.
+**Inputs** (``inputs``, the one place every caller encodes a frame): OIDN's own network input
+``x`` (``pipeline.oidn_net.network_input``: colour × OIDN's autoexposure in PU, albedo, normal) and
+the condition ``cond``: ``pipeline.features``' table in OIDN's space (each radiance buffer as
+PU(radiance × the same exposure), normals as stored, depth relative, the material features, one
+relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer
+group saying whether the input had it (``GROUPS``). A group an input lacks (an EXR from another
+renderer has no variances, no radiance split, no material buffers) is its background value, 0,
+with its presence map 0: the network is trained with such inputs (``DROPOUT``), so it serves
+them rather than falling back.
 
-**Condition** F (``condition``, channels listed by ``aux_names``): ``pipeline.features``' table,
-every buffer of the schema, with this model's choices (``encoding``):
-
-- the noisy radiance buffers (``color`` and its five components): as the radiance above;
-- ``normal``: in **camera space** (x right, y up, z towards the camera), mapped to [0, 1] by
-  (n + 1)/2. Camera space makes flips and rotations of the image act on normals consistently
-  (``augment``) and makes the condition independent of where the scene sits in the world. The
-  camera comes from ``frame.json``'s ``camera_to_world`` (or the scene's camera description);
-  without either, world-space normals are used as they are;
-- ``depth``, the other features and the per-buffer relative variances: as the table says (the
-  same encoding the cleaner uses);
-- the sample count: a constant map log2(spp)/6 (1 at 64 spp), so one model can serve any spp.
-
-A buffer the store left out (a feature a scene does not need) is its documented background
-value, 0, so the channel count never depends on the scene.
+**Pack** (``ensure_pack``): the store decoded once: per frame and (spp, variant) of
+``PACK_VARIANTS`` (disjoint stack subsets), ``x`` and
+``cond`` in float16 with the exposure, and GT_clean per frame in float32 HDR. ``Crops`` draws
+training items from it: a random crop, OIDN's augmentation (flips, transposes, one permutation
+of the colour channels for every colour-like channel and the target, one of the normal axes) and
+the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
 """
 from __future__ import annotations
 
 import functools
+import json
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from mcdenoise.pipeline import color, features
-from mcdenoise.pipeline.store import FrameKey, Store
+from mcdenoise.pipeline import features, oidn_net, oidn_weights, schema
+from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.pipeline.progress import progress
+from mcdenoise.pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
 
-from .estimate import Estimator, extra_names
-
-CLAMP = 6.0
-
-
-# ---- radiance ↔ model space ------------------------------------------------------------------
-
-
-def to_model(x, tonemap: str = "log"):
-    """HDR radiance → [−1, 1] (clamped to [0, 6] first)."""
-    x = color.clamp(x, 0.0, CLAMP)
-    y = color.log_compress(x) if tonemap == "log" else color.gamma_compress(x)
-    return 2.0 * y - 1.0
-
-
-def from_model(y, tonemap: str = "log"):
-    """[−1, 1] → HDR radiance in [0, 6]; the exact inverse of ``to_model`` on [0, 6]."""
-    y = (color.clamp(y, -1.0, 1.0) + 1.0) / 2.0
-    x = color.inverse_log_compress(y) if tonemap == "log" else color.inverse_gamma_compress(y)
-    return color.clamp(x, 0.0, CLAMP)
+FORMAT = "mcdenoise-oidn-pack"
+# Buffer groups an input may lack, each with a presence map in the condition.
+GROUPS = {
+    "variance": tuple(schema.variance_name(b.name) for b in schema.BUFFERS),
+    "components": schema.RADIANCE_COMPONENTS,
+    "materials": ("depth", "roughness", "metallic", "transmission"),
+}
+DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
+_COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
+# Noise realizations per frame in a pack, by spp: disjoint subsets of the store's stacks
+PACK_VARIANTS = {4: 2, 16: 1, 64: 1}
 
 
-# ---- the condition ---------------------------------------------------------------------------
+def variant_stacks(spp: int, stack_spp: int, variant: int, stacks: int) -> list[int]:
+    """The disjoint stack indices of ``variant`` at ``spp`` (ValueError if the store has too few)."""
+    k = spp // stack_spp
+    if spp % stack_spp or (variant + 1) * k > stacks:
+        raise ValueError(f"spp {spp} variant {variant} needs stacks {variant * k}..{(variant + 1) * k - 1}, "
+                         f"the store has {stacks} of {stack_spp} spp")
+    return list(range(variant * k, (variant + 1) * k))
 
 
-def encoding(tonemap: str = "log") -> features.Encoding:
-    """This model's choices of the feature table: radiance in model space, normals in [0, 1], the spp channel."""
-    return features.Encoding(radiance=functools.partial(to_model, tonemap=tonemap), normals01=True, spp=True)
-
-
-def aux_names(estimate: str = "none") -> list[str]:
-    """One name per condition channel, in order; a first estimate of several components adds them
-    (``train.estimate.extra_names``)."""
-    return features.names(encoding()) + extra_names(estimate)
-
-
-AUX_CHANNELS = len(aux_names())
-
-
-def camera_rotation(record: dict | None, scene_manifest: dict | None, frame: int) -> np.ndarray | None:
-    """3×3 world→camera rotation (rows: right, up, towards-camera) of a frame, or None if unknown."""
-    m = (record or {}).get("camera_to_world")
-    if m is not None:
-        m = np.asarray(m, np.float64)[:3, :3]
-        left, up, fwd = m[:, 0], m[:, 1], m[:, 2]
-    else:
-        try:
-            pose = scene_manifest["description"]["camera"]["frames"][frame]
-        except (KeyError, IndexError, TypeError):
-            return None
-        o, t, u = (np.asarray(pose[k], np.float64) for k in ("origin", "target", "up"))
-        fwd = (t - o) / np.linalg.norm(t - o)
-        left = np.cross(u, fwd)
-        left /= np.linalg.norm(left)
-        up = np.cross(fwd, left)
-    # Mitsuba's camera frame is (left, up, forward); image x grows to the right, z towards us.
-    return np.stack([-left, up, -fwd]).astype(np.float32)
-
-
-def condition(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,
-              tonemap: str = "log") -> np.ndarray:
-    """The condition F (AUX_CHANNELS, H, W) float32 from one image's buffers (H, W, C arrays)."""
-    return features.encode(buffers, encoding(tonemap), spp, rotation)
-
-
-def model_inputs(buffers: dict[str, np.ndarray], spp: int, rotation: np.ndarray | None = None,
-                 tonemap: str = "log", estimates: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(noisy radiance (3, H, W) in [−1, 1], condition (C, H, W)) of one image; ``estimates``: the first
-    estimate's components (HDR), appended to the condition when there are several (``aux_names``)."""
-    aux = condition(buffers, spp, rotation, tonemap)
-    if estimates and len(estimates) > 1:
-        aux = np.concatenate([aux] + [to_planar(e, tonemap) for e in estimates], axis=0)
-    return to_planar(buffers["color"], tonemap), aux
-
-
-def to_planar(hdr: np.ndarray, tonemap: str = "log") -> np.ndarray:
-    """(H, W, 3) HDR → (3, H, W) float32 in model space."""
-    return np.ascontiguousarray(np.moveaxis(to_model(hdr.astype(np.float32), tonemap), 2, 0), np.float32)
-
-
-# ---- augmentation ----------------------------------------------------------------------------
-
-_N0 = aux_names().index("normal.X")
-_NORMAL = slice(_N0, _N0 + 3)
-
-
-def augment(arrays: list[np.ndarray], flip_x: bool, flip_y: bool, rot: int, aux_index: int | None = None) -> list[np.ndarray]:
-    """Flip and rotate (C, H, W) arrays alike; in ``arrays[aux_index]`` turn the camera-space normals too.
-
-    Normals are stored in [0, 1] as (n + 1)/2. A horizontal flip mirrors x (n_x → −n_x), a
-    vertical flip mirrors y, a quarter turn counter-clockwise (``np.rot90``) maps (x, y) → (−y, x).
-    """
-    out = []
-    for i, a in enumerate(arrays):
-        a = a.copy()
-        is_aux = i == aux_index
-        n = a[_NORMAL] * 2.0 - 1.0 if is_aux else None
-        if flip_x:
-            a = a[..., :, ::-1]
-            if is_aux:
-                n = n[..., :, ::-1] * np.array([-1, 1, 1], np.float32)[:, None, None]
-        if flip_y:
-            a = a[..., ::-1, :]
-            if is_aux:
-                n = n[..., ::-1, :] * np.array([1, -1, 1], np.float32)[:, None, None]
-        for _ in range(rot % 4):
-            a = np.rot90(a, 1, axes=(-2, -1))
-            if is_aux:
-                n = np.rot90(n, 1, axes=(-2, -1))
-                n = np.stack([-n[1], n[0], n[2]])
-        a = np.ascontiguousarray(a)
-        if is_aux:
-            a[_NORMAL] = (n + 1.0) / 2.0
-        out.append(a)
+def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[int, int]:
+    """``variants`` limited to what a store with ``stacks`` stacks of ``stack_spp`` can pool disjointly."""
+    out = {}
+    for spp, count in variants.items():
+        if poolable(spp, stack_spp, stacks):
+            n = min(int(count), stacks // (spp // stack_spp))
+            if n > 0:
+                out[int(spp)] = n
     return out
 
 
-def random_crop(arrays: list[np.ndarray], crop: int, rng: np.random.Generator) -> list[np.ndarray]:
-    H, W = arrays[0].shape[-2:]
-    crop = min(crop, H, W)
-    y, x = int(rng.integers(0, H - crop + 1)), int(rng.integers(0, W - crop + 1))
-    return [a[..., y:y + crop, x:x + crop] for a in arrays]
+def _pu(x: np.ndarray, scale: float) -> np.ndarray:
+    return oidn_net.to_pu(torch.from_numpy(np.maximum(np.nan_to_num(x, nan=0.0), 0.0) * scale)).numpy()
 
 
-# ---- training pairs --------------------------------------------------------------------------
+def _encoding(scale: float) -> features.Encoding:
+    return features.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
 
 
-def frame_rotation(store: Store, key: FrameKey) -> np.ndarray | None:
-    return camera_rotation(store.frame_record(key.scene, key.frame), store.scene_manifest(key.scene), key.frame)
+def cond_names() -> list[str]:
+    """One name per condition channel: the feature table, ``spp``, then ``has.<group>``."""
+    return features.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
 
 
-class DenoisePairs(Dataset):
-    """Low-spp buffers of a frame (random stacks in training, the first ones in validation) → gt_clean.
+def present(buffers: dict) -> dict[str, bool]:
+    """Which of ``GROUPS`` an input has (all of a group's buffers)."""
+    return {g: all(k in buffers for k in keys) for g, keys in GROUPS.items()}
 
-    Items: ``noisy`` (3, h, w), ``aux`` (AUX_CHANNELS, h, w), ``target`` (3, h, w), all float32
-    in model space, and ``image`` (3, h, w), the first estimate (``estimator``, run on the whole
-    frame before cropping) or, without one, the noisy radiance again. ``spp_choices`` with several
-    values draws the sample count per item (the ``SPP=any`` model); in validation (``crop=None``)
-    item i uses ``spp_choices[i % len]``, so every sample count is validated. Randomness from
-    ``default_rng([seed, epoch, index])``: reproducible epochs, exact resume.
-    """
 
-    def __init__(self, store: Store, keys: list[FrameKey], spp_choices: list[int], crop: int | None,
-                 crops_per_frame: int = 1, seed: int = 0, tonemap: str = "log", augment: bool = True,
-                 estimator: Estimator | None = None):
-        if not keys:
-            raise ValueError("no frames")
-        self.store, self.keys, self.spp_choices = store, list(keys), [int(s) for s in spp_choices]
-        self.crop, self.seed, self.tonemap, self.do_augment = crop, int(seed), tonemap, augment
-        self.estimator = estimator or Estimator()
-        self.crops_per_frame = int(crops_per_frame) if crop else 1
-        self.epoch = 0
-        self._rot: dict = {}
-        self._target_cache: dict = {}
+def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal"),
+           clean_aux: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
+    at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole.
+    ``clean_aux``: OIDN's input has albedo and normal prefiltered by OIDN's aux networks (the base is a
+    ``_calb_cnrm`` network); the condition keeps them as rendered."""
+    have = present(buffers)
+    keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
+    scale = oidn_net.autoexposure(keep["color"])
+    missing = [a for a in aux if a not in keep]
+    if missing:
+        raise StoreError(f"the OIDN-based denoiser needs {', '.join(missing)} (OIDN's network for these inputs "
+                         "reads them)")
+    net_aux = [keep[a] for a in aux]
+    if clean_aux:
+        from mcdenoise.pipeline import oidn
+        net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"]))
+    x = oidn_net.network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
+    cond = features.encode(keep, _encoding(scale), spp)
+    flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
+                            (len(GROUPS), *cond.shape[1:]))
+    cond = np.concatenate([cond, flags], 0)
+    H, W = cond.shape[1:]
+    cond = np.pad(cond, ((0, 0), (0, -H % oidn_net.ALIGNMENT), (0, -W % oidn_net.ALIGNMENT)))
+    return x, cond.astype(np.float32), scale
+
+
+# ---- the pack ----------------------------------------------------------------------------------
+
+
+def pack_path(runs: str | Path, split: str, clean_aux: bool = False) -> Path:
+    """``<runs>/pack/<split>_oidn_base[_calb].safetensors`` (``_calb``: OIDN's input with prefiltered aux, for a
+    ``_calb_cnrm`` base)."""
+    return Path(runs) / "pack" / f"{split}_oidn_base{'_calb' if clean_aux else ''}.safetensors"
+
+
+def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
+    """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``."""
+    xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
+    for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
+        sm = store.scene_manifest(key.scene)
+        n, total = int(sm["stack_spp"]), int(sm["stacks"])
+        variants = fit_variants(PACK_VARIANTS, n, total)
+        need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
+        images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
+        for spp, count in sorted(variants.items()):
+            for v in range(count):
+                x, cond, scale = inputs(combine_stacks([images[s] for s in variant_stacks(spp, n, v, total)], n), spp,
+                                        clean_aux=clean_aux)
+                xs.append(x.astype(np.float16))
+                conds.append(cond.astype(np.float16))
+                scales.append(scale)
+                spps.append(spp)
+                frames.append(i)
+        gt = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+        targets.append(np.pad(np.moveaxis(gt, 2, 0), ((0, 0), (0, xs[-1].shape[1] - gt.shape[0]),
+                                                       (0, xs[-1].shape[2] - gt.shape[1]))).astype(np.float32))
+    sizes = {x.shape for x in xs}
+    if len(sizes) != 1:
+        raise StoreError(f"{store.root}: frames of several sizes ({sorted(sizes)}); the pack needs one size")
+    tensors = {"x": torch.from_numpy(np.stack(xs)), "cond": torch.from_numpy(np.stack(conds)),
+               "scale": torch.tensor(scales, dtype=torch.float32), "spp": torch.tensor(spps, dtype=torch.int32),
+               "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(np.stack(targets))}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
+            "cond": json.dumps(cond_names()), "sizes": json.dumps([list(s) for s in sizes]),
+            "aux": _aux_kind(clean_aux)}
+    save_safetensors(path, tensors, meta)
+    return path
+
+
+def _aux_kind(clean_aux: bool) -> str:
+    return "prefiltered" if clean_aux else "rendered"
+
+
+def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
+    """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout or
+    other aux."""
+    if path.exists():
+        from safetensors import safe_open
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+        if (meta.get("format") == FORMAT and meta.get("store") == str(store.root)
+                and json.loads(meta.get("cond", "[]")) == cond_names()
+                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]
+                and meta.get("aux", "rendered") == _aux_kind(clean_aux)):
+            return path
+    return build_pack(store, keys, path, quiet, clean_aux)
+
+
+def load_pack(path: Path) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+    return load_file(str(path))
+
+
+def concat_packs(packs: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """One pack of several (each item keeps its own frame's target)."""
+    if len(packs) == 1:
+        return packs[0]
+    offsets = np.cumsum([0] + [len(p["target"]) for p in packs[:-1]])
+    out = {k: torch.cat([p[k] for p in packs]) for k in packs[0] if k != "frame"}
+    out["frame"] = torch.cat([p["frame"] + int(o) for p, o in zip(packs, offsets)])
+    return out
+
+
+# ---- training items ----------------------------------------------------------------------------
+
+
+def _channel_groups(aux: int) -> tuple[list[list[int]], list[list[int]]]:
+    """(RGB triples of colour-like channels, XYZ triples of normals) as indices into x ⊕ cond."""
+    names = [f"x.{i}" for i in range(3 + 3 * aux)] + cond_names()
+    colours = [[0, 1, 2]] + ([[3, 4, 5]] if aux >= 1 else [])
+    normals = [[6, 7, 8]] if aux >= 2 else []
+    for key in _COLOURS:
+        colours.append([names.index(f"{key}.{c}") for c in "RGB"])
+    normals.append([names.index(f"normal.{c}") for c in "XYZ"])
+    return colours, normals
+
+
+class Crops(Dataset):
+    """Random crops of a pack, augmented; item ``index`` of an epoch from ``default_rng([seed, epoch, index])``.
+
+    Items: ``x`` (OIDN's input), ``cond``, ``target`` (PU of GT_clean at the item's exposure), ``scale``, ``spp``."""
+
+    def __init__(self, pack: dict[str, torch.Tensor], crop: int, per_frame: int, seed: int, spps: list[int] | None = None,
+                 augment: bool = True, dropout: float = DROPOUT):
+        self.pack, self.crop, self.per_frame, self.seed = pack, int(crop), int(per_frame), int(seed)
+        self.augment, self.dropout, self.epoch = augment, float(dropout), 0
+        keep = torch.ones(len(pack["spp"]), dtype=torch.bool) if not spps else torch.isin(pack["spp"], torch.tensor(spps))
+        self.items = torch.nonzero(keep).flatten().tolist()
+        self.frames = sorted({int(pack["frame"][i]) for i in self.items})
+        self.by_frame = {f: [i for i in self.items if int(pack["frame"][i]) == f] for f in self.frames}
+        aux = (pack["x"].shape[1] - 3) // 3
+        self.colours, self.normals = _channel_groups(aux)
+        names = cond_names()
+        nx = pack["x"].shape[1]
+        self.groups = {g: [nx + names.index(f"has.{g}")] + [nx + j for j, n in enumerate(names)
+                                                            if n.split(".")[0] in GROUPS[g] or n in GROUPS[g]]
+                       for g in GROUPS}
+        H, W = pack["x"].shape[-2:]
+        if self.crop > min(H, W) or self.crop % oidn_net.ALIGNMENT:
+            raise StoreError(f"crop {self.crop}: must be a multiple of {oidn_net.ALIGNMENT} up to the frames' {min(H, W)}")
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
-        return len(self.keys) * self.crops_per_frame
-
-    def _target(self, key: FrameKey) -> np.ndarray:
-        if key not in self._target_cache:
-            gt = self.store.read_image(key.scene, key.frame, "gt_clean", buffers=["color"])[0]["color"]
-            self._target_cache[key] = to_planar(gt, self.tonemap)
-        return self._target_cache[key]
+        return len(self.frames) * self.per_frame
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        key = self.keys[index // self.crops_per_frame]
-        train = self.crop is not None
         rng = np.random.default_rng([self.seed, self.epoch, index])
-        spp = int(rng.choice(self.spp_choices)) if train else self.spp_choices[index % len(self.spp_choices)]
-        buffers = self.store.read(key.scene, key.frame, spp, rng=rng if train else None)
-        if key not in self._rot:
-            self._rot[key] = frame_rotation(self.store, key)
-        est, parts = self.estimator(buffers)
-        noisy, aux = model_inputs(buffers, spp, self._rot[key], self.tonemap, parts)
-        image = noisy if est is None else to_planar(est, self.tonemap)
-        arrays = [noisy, aux, self._target(key), image]
-        if train:
-            arrays = random_crop(arrays, self.crop, rng)
-            if self.do_augment:
-                arrays = augment(arrays, bool(rng.integers(2)), bool(rng.integers(2)), int(rng.integers(4)),
-                                 aux_index=1)
-        return {k: torch.from_numpy(np.ascontiguousarray(a))
-                for k, a in zip(("noisy", "aux", "target", "image"), arrays)}
+        options = self.by_frame[self.frames[index // self.per_frame]]
+        i = options[int(rng.integers(len(options)))]
+        p = self.pack
+        H, W = p["x"].shape[-2:]
+        c = self.crop
+        y, x0 = int(rng.integers(0, H - c + 1)), int(rng.integers(0, W - c + 1))
+        win = (slice(None), slice(y, y + c), slice(x0, x0 + c))
+        full = torch.cat([p["x"][i][win], p["cond"][i][win]]).float()
+        target = p["target"][int(p["frame"][i])][win].float()
+        if self.augment:
+            full, target = self._augment(full, target, rng)
+        for g, idx in self.groups.items():
+            if rng.random() < self.dropout:
+                full[idx] = 0.0
+        nx = p["x"].shape[1]
+        scale = float(p["scale"][i])
+        return {"x": full[:nx].contiguous(), "cond": full[nx:].contiguous(),
+                "target": oidn_net.to_pu(target * scale), "scale": torch.tensor(scale), "spp": p["spp"][i].long()}
+
+    def _augment(self, full: torch.Tensor, target: torch.Tensor, rng: np.random.Generator):
+        colour, axes = rng.permutation(3).tolist(), rng.permutation(3).tolist()
+        src = list(range(full.shape[0]))
+        for g in self.colours:
+            for k in range(3):
+                src[g[k]] = g[colour[k]]
+        for g in self.normals:
+            for k in range(3):
+                src[g[k]] = g[axes[k]]
+        full, target = full[src], target[colour]
+        if rng.integers(2):
+            full, target = full.flip(-1), target.flip(-1)
+        if rng.integers(2):
+            full, target = full.flip(-2), target.flip(-2)
+        if rng.integers(2):
+            full, target = full.transpose(-1, -2), target.transpose(-1, -2)
+        return full.contiguous(), target.contiguous()
+
+
+# ---- where a training run's frames come from --------------------------------------------------
+
+
+class StoreSource:
+    """The data of a config's store: the train split as the pack (``train.data``), the first
+    ``val_frames`` val frames whole, each at the run's smallest, middle and largest sample count."""
+
+    def __init__(self, cfg: Config, network: str | None = None):
+        """``network``: the base's (default ``diffusion.base_network``); a ``_calb_cnrm`` one reads prefiltered aux."""
+        self.cfg, self.store = cfg, Store(cfg.store)
+        self.clean_aux = oidn_weights.clean_aux(network or cfg.diffusion.base_network)
+        self.train_keys, self.val_keys = self.store.training_frames()
+        self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
+
+    def spps(self, spp) -> list[int]:
+        return self.store.spp_choices(spp)
+
+    def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
+        packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux))]
+        for i, (store, keys) in enumerate(self.extra):
+            packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux)))
+        return concat_packs(packs)
+
+    def pack_path(self, split: str) -> Path:
+        return pack_path(self.cfg.runs, split, self.clean_aux)
+
+    def val_items(self, spps: list[int], frames: int) -> list[dict]:
+        items = []
+        for key in self.val_keys[:frames]:
+            ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+            for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
+                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp, clean_aux=self.clean_aux)
+                items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
+                              "ref": ref, "spp": spp})
+        return items

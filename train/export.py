@@ -1,15 +1,16 @@
-"""Export a trained run as a self-contained model folder (``python -m pipeline export``; the shipped model).
+"""Export a trained run as a self-contained model folder (``python -m pipeline export``; the shipped model),
+and change an exported one after training (its strength, σ's scale, its base).
 
     python -m pipeline export --config configs/ship.yaml --spp any --out train/shipped
 
 The folder holds everything ``train.model.load`` needs, named relative to itself, so it works from
 any checkout and any working directory:
 
-    model.json            the run's record; "base": "base", "isik": "isik" (relative), SHA-256 of each
-    control.safetensors   the Control Module
-    base/                 the base it was trained with (when the base trained too, its trained weights)
-    isik/                 the Isik network of the first estimate (when the estimate uses it)
-    README.md             the model card: data, formulation, training, validation numbers, the command
+    model.json            the run's record (the base's SHA-256, the formulation, the metrics, the settings)
+    control.safetensors   the Control Module (float16)
+    base.tza              the frozen base (OIDN's float16 weights)
+    oidn_ft/              OIDN fine-tuned for inputs without albedo or normal (kept when already in --out)
+    README.md             the model card: data, formulation, training, validation numbers, the commands
 
 Weights are stored in float16 (half the size in the repository and in a GPU run's 64 MiB; loading
 turns them back into float32): the shipped model is evaluated from the exported files, so the
@@ -29,32 +30,26 @@ from mcdenoise.pipeline import weights
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import CheckpointError
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json
-from mcdenoise.pipeline.store import sha256
 
-from . import base as base_lib
-from .estimate import KINDS
-from .model import formulation, run_dir
+from .model import run_dir
 
 
 def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None,
            overrides: list[str] | tuple = ()) -> Path:
-
+    """The run ``diffusion_spp<spp>[_<name>]`` as a model folder: model.json, control.safetensors (float16),
+    base.tza (the frozen OIDN weights), README.md; an ``oidn_ft/`` folder already in ``out`` (OIDN fine-tuned
+    for inputs without albedo or normal) is kept."""
     folder = run_dir(cfg, spp)
-    meta = weights.read_record(folder, ("control", "oidn_control"), f"run `make train SPP={spp}` first")
-    if weights.kind(folder) == "oidn_control":
-        return export_refine(cfg, folder, meta, out, quiet, config, overrides)
-    state = weights.load_tensors(folder / "control.safetensors")
+    meta = weights.read_record(folder, "oidn_control", f"run `make train SPP={spp}` first")
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    _base(meta, state, folder, tmp / "base")
-    record = {**meta, "base": "base", "base_sha256": sha256(tmp / "base" / base_lib.WEIGHTS), "train_base": False}
-    if "isik" in KINDS[formulation(meta).estimate]:
-        shutil.copytree(Path(meta["isik"]), tmp / "isik", ignore=shutil.ignore_patterns("last.safetensors", "*.png"))
-        record.update(isik="isik", isik_sha256=sha256(tmp / "isik" / "model.safetensors"))
-    control = {k: _half(v) for k, v in state.items() if k.startswith("control.")}
-    record["exported"] = {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}
-    weights.save(tmp, "control", control, record, weights="control.safetensors")
+    if (out / "oidn_ft").is_dir():
+        shutil.copytree(out / "oidn_ft", tmp / "oidn_ft")
+    shutil.copy(folder / "base.tza", tmp / "base.tza")
+    state = weights.load_tensors(folder / "control.safetensors")
+    record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
+    weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
     (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
     return _publish(tmp, out, folder, quiet)
 
@@ -71,93 +66,6 @@ def _publish(tmp: Path, out: Path, folder: Path, quiet: bool) -> Path:
 
 def _half(v):
     return v.half().contiguous() if v.is_floating_point() else v
-
-
-def _base(meta: dict, state: dict, run: Path, dest: Path) -> None:
-    """The base folder the run needs (float16 weights), with the trained weights when the base trained too."""
-    from safetensors.torch import load_file, save_file
-
-    src = Path(meta["base"])
-    src = src if src.is_absolute() else (run / src).resolve()
-    shutil.copytree(src, dest, ignore=shutil.ignore_patterns("*.train", base_lib.WEIGHTS))
-    trained = ({k[5:]: v for k, v in state.items() if k.startswith("base.")} if meta.get("train_base")
-               else load_file(str(src / base_lib.WEIGHTS)))
-    save_file({k: _half(v) for k, v in trained.items()}, str(dest / base_lib.WEIGHTS), metadata={"format": "pt"})
-
-
-def model_card(cfg: Config, record: dict, run: Path, config: str = "<config>", out: Path | None = None,
-               overrides: list[str] | tuple = ()) -> str:
-    """The shipped model's README: what it is, what it saw, how it was trained, on what, how well it did;
-    the command lines carry the ``overrides`` the run was trained and exported with."""
-    train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
-    m = train.get("machine") or {}
-    hist = train.get("history", [])
-    best = train.get("best") or {}
-    f = record.get("formulation", {})
-    d = cfg.dataset
-    lines = [
-        "# The shipped denoiser", "",
-        f"Exported from `{run}` on {record['exported']['date']}; loaded by `python -m pipeline denoise --exr IN.exr --out "
-        "OUT.exr` and `make eval`'s `ours` rows wherever a config has no trained run of its own "
-        "(`diffusion.shipped`).", "",
-        "## What it is", "",
-        f"- First estimate: `{f.get('estimate')}` (train/estimate.py); the diffusion model refines its residual "
-        f"(`residual: {f.get('residual')}`, scale {f.get('residual_scale')}), predicting `{f.get('prediction')}` "
-        f"over the `{f.get('schedule')}` schedule; default sampler {f.get('sampler')}, {f.get('steps')} step(s) "
-        f"from `{f.get('start')}`.",
-        "- Base: the stand-in IF-II-layout UNet in `base/`; Control Module: `control.safetensors`; the Isik "
-        "network of the first estimate: `isik/` (when used).",
-        f"- Sample counts: {record.get('spp')} (the spp map is an input).", "",
-        "## Data", "",
-        f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
-        f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
-        f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
-        f"configs/default.yaml's scenes (another seed).{_split_sizes(cfg.store)}", "",
-        "## Training", "",
-        f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; "
-        f"lr {cfg.diffusion.lr}, batch {cfg.diffusion.batch_size}, crop {cfg.diffusion.crop}, "
-        f"train_base {cfg.diffusion.train_base}, time budget {cfg.diffusion.time_budget_s:g} s, loss "
-        f"`{f.get('loss_norm', 'none')}`-normalised, t_focus {f.get('t_focus')} on the {list(cfg.diffusion.train_steps)}"
-        f"-step samplers' timesteps. Best epoch {best.get('epoch')} by validation PSNR (epoch 0 is the untrained "
-        f"model, i.e. the first estimate){_gain(best)}.", "",
-        *(["**Training did not improve on the first estimate on the validation frames, so this model returns "
-           "its first estimate exactly** (the network's last layer is still zero, and several samples agree). "
-           "The later epochs stay in the run folder; rerunning the training command with a larger "
-           "`diffusion.time_budget_s` continues them, and the GPU recipe trains this model further.", ""]
-          if best.get("epoch") == 0 else []),
-        f"Machine: {m.get('cuda') or m.get('processor', '?')}, {m.get('platform', '?')}, {m.get('cpus', '?')} CPUs, "
-        f"{m.get('torch_threads', '?')} "
-        f"torch threads, {m.get('ranks', '?')} rank(s), torch {m.get('torch', '?')}, device {m.get('device', '?')}.", "",
-        "| epoch | val PSNR dB | first estimate dB | gain dB | noisy dB | seconds |",
-        "| --- | --- | --- | --- | --- | --- |"]
-    for h in hist:
-        v = h.get("val") or {}
-        lines.append(f"| {h['epoch']} | {v.get('psnr', float('nan')):.3f} | {v.get('estimate_psnr', float('nan')):.3f} "
-                     f"| {_gain_db(v):+.4f} | {v.get('noisy_psnr', float('nan')):.2f} | {h.get('seconds')} |")
-    spp = record.get("spp")
-    extra = "".join(f" {shlex.quote(o)}" for o in overrides)
-    lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
-              *data_commands(config, overrides),
-              *([f"python -m pipeline train --model isik --spp {spp} --config {config}"]
-                if "isik" in KINDS[f.get("estimate", "none")] else []),
-              f"python -m pipeline pack --config {config}",
-              f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
-              f"python -m pipeline export --config {config} --spp {spp} --out {out or 'train/shipped'}{extra}",
-              "```"]
-    lines += ["", "Evaluation against OIDN, Isik and the noisy input on the default test set: "
-              "docs/example_report/eval.md.", ""]
-    return "\n".join(lines)
-
-
-def _gain_db(val: dict) -> float:
-    """Validation PSNR over the first estimate's (nan when either is missing)."""
-    return val.get("psnr", float("nan")) - val.get("estimate_psnr", float("nan"))
-
-
-def _gain(best: dict) -> str:
-    v = best.get("val") or {}
-    gain = _gain_db(v)
-    return "" if gain != gain else f": {gain:+.4f} dB over the first estimate on {v.get('frames', '?')} validation frames"
 
 
 def _split_sizes(store: str) -> str:
@@ -211,25 +119,6 @@ def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, confi
         print(f"exported {folder} (blend {record['blend']:g}) -> {out} ({len(blob) / 2**20:.2f} MiB, float16 TZA; "
               f"OIDN runs it as its '{name}' network: denoise --oidn-weights {out})", flush=True)
     return out
-
-
-def export_refine(cfg: Config, folder: Path, meta: dict, out: Path, quiet: bool = False, config: str | None = None,
-                  overrides: list[str] | tuple = ()) -> Path:
-    """A run of the diffusion denoiser on OIDN (``diffusion.base: oidn``) as a model folder: model.json,
-    control.safetensors (float16), base.tza (the frozen OIDN weights), README.md; an ``oidn_ft/`` folder
-    already in ``out`` (OIDN fine-tuned for inputs without albedo or normal) is kept."""
-
-    tmp = out.parent / (out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    if (out / "oidn_ft").is_dir():
-        shutil.copytree(out / "oidn_ft", tmp / "oidn_ft")
-    shutil.copy(folder / "base.tza", tmp / "base.tza")
-    state = weights.load_tensors(folder / "control.safetensors")
-    record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
-    weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
-    (tmp / "README.md").write_text(refine_card(cfg, record, folder, config or "<config>", out, overrides))
-    return _publish(tmp, out, folder, quiet)
 
 
 def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file: str = "", quiet: bool = False) -> Path:
@@ -309,9 +198,9 @@ def _updated(model: Path, meta: dict, out: Path, quiet: bool, note: str, blob: b
 
 def set_strength(model: Path, strength: float, out: Path | None = None, quiet: bool = False) -> Path:
     """An exported model on OIDN's network that applies ``strength`` of its Control Module's change
-    (model.json ``strength``; ``oidn_refine.with_strength``), written to ``out`` (default: ``model`` itself)
+    (model.json ``strength``; ``train.sampler.with_strength``), written to ``out`` (default: ``model`` itself)
     by a rename; its weights unchanged."""
-    from .oidn_refine import check_strength
+    from .sampler import check_strength
 
     model = Path(model)
     out = Path(out) if out else model
@@ -333,10 +222,11 @@ def set_strength(model: Path, strength: float, out: Path | None = None, quiet: b
 
 def fit_sigma(cfg: Config, model: Path, out: Path | None = None, quiet: bool = False, config: str | None = None,
               overrides: list[str] | tuple = ()) -> Path:
-    """An exported model on OIDN's network with σ's scale (model.json ``sigma``, ``oidn_refine.calibrate``)
+    """An exported model on OIDN's network with σ's scale (model.json ``sigma``, ``train.infer.calibrate``)
     fitted again on the first ``diffusion.val_frames`` val frames of ``cfg``'s store at the model's own
     strength, written to ``out`` (default: ``model`` itself) by a rename; its weights unchanged."""
-    from .oidn_refine import StoreSource, calibrate, load_refiner
+    from .data import StoreSource
+    from .infer import calibrate, load_denoiser
 
     model = Path(model)
     out = Path(out) if out else model
@@ -346,7 +236,7 @@ def fit_sigma(cfg: Config, model: Path, out: Path | None = None, quiet: bool = F
     if not keys:
         raise StoreError(f"{cfg.store}: no val frames to fit σ on (diffusion.val_frames={cfg.diffusion.val_frames}); "
                          "render the dataset or give the config of a store that has a val split")
-    fit = calibrate(load_refiner(model, cfg.diffusion.device), source.val_items(meta["spp"], len(keys)), cfg.seed)
+    fit = calibrate(load_denoiser(model, cfg.diffusion.device), source.val_items(meta["spp"], len(keys)), cfg.seed)
     fit.update(store=str(cfg.store), frames=len(keys))
     command = shlex.join(["python", "-m", "pipeline", "export", "--from", str(model), "--fit-sigma", "--out", str(out),
                           *(["--config", config] if config else []), *overrides])
@@ -384,7 +274,7 @@ def data_commands(config: str, overrides) -> list[str]:
     return [f"python -m pipeline {c} --config {config}{data}" for c in ("dataset", "gt-clean")]
 
 
-def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
+def model_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
     """The model card of an exported OIDN-based denoiser: what it is, its data, training, validation, commands."""
     train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
     hist, best, m = train.get("history", []), train.get("best") or {}, train.get("machine") or {}
@@ -405,10 +295,10 @@ def refine_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ov
         "(OIDN's own float16 format; sha256 in model.json).",
         "- Control Module (`control.safetensors`, float16): a copy of OIDN's encoder reading OIDN's input, every other "
         f"buffer ({len(record.get('cond_channels', []))} condition channels, model.json `cond_channels`), z_t and t, "
-        "into OIDN's decoder through zero-initialised 1x1 convolutions (train/oidn_control.py).",
+        "into OIDN's decoder through zero-initialised 1x1 convolutions (train/model.py).",
         f"- Refine formulation around OIDN's output in OIDN's space: x0-prediction, `{f.get('schedule')}` schedule, "
         f"residual scale {f.get('residual_scale')}, default sampler {f.get('sampler')} with {f.get('steps')} step(s) "
-        f"from `{f.get('start')}` (train/oidn_refine.py).",
+        f"from `{f.get('start')}` (train/sampler.py).",
         f"- Sample counts: {record.get('spp')} (the spp map is an input). Inputs without variances, the radiance split "
         "or the material buffers are served (trained with buffer-group dropout); without albedo and normal OIDN runs "
         "instead (`oidn_ft/` networks when present).",

@@ -172,7 +172,9 @@ class Recipe:
                 "diffusion.warmup_steps=50", f"diffusion.device={dev}", f"diffusion.loader_workers={s.loader_workers}",
                 # the time limit of the run itself leaves room to pack the frames and to save the best
                 f"diffusion.time_budget_s={max(1.0, budget * 0.85):.1f}", "diffusion.name=gpu", *self.common]
-        self.command("train", args, timeout=budget)
+        # On a lease the run is stopped at its budget (its best epoch is on disk); the CPU's dry run goes on until
+        # its first epoch is done, whatever the budget.
+        self.command("train", args, timeout=budget + 30 if self.cuda else None)
         run = self.work / "runs" / "diffusion_sppany_gpu"
         hist = json.loads((run / "train.json").read_text())
         mpix = s.batch * self.crop() ** 2 / 1e6
@@ -207,7 +209,7 @@ class Recipe:
 
         from mcdenoise.pipeline.checkpoint import save_safetensors
 
-        from .oidn_refine import FORMAT
+        from .model import FORMAT
         control = load_file(str(run / "control.safetensors"))
         save_safetensors(self.out / "control_fp16.safetensors",
                          {k: v.to(torch.float16).contiguous() for k, v in control.items()}, {"format": FORMAT})
@@ -281,13 +283,14 @@ def bench_denoise(model: Path, sizes: dict, device) -> list[dict]:
     from mcdenoise.pipeline import oidn_net
     from mcdenoise.pipeline.timing import best_time
 
-    from .oidn_refine import load_refiner, sample
+    from .infer import load_denoiser
+    from .sampler import sample
 
     def sync():
         if device.type == "cuda":
             torch.cuda.synchronize()
 
-    refiner = load_refiner(model, str(device))
+    refiner = load_denoiser(model, str(device))
     m = refiner.model.eval()
     rows = []
     for name, (h, w) in sizes.items():

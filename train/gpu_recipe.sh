@@ -7,14 +7,14 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT="${OUT:-reports/gpu}"
-if [ -f .gpu/site.tar.xz ] && ! python3 -c "import mitsuba" 2>/dev/null; then
+PY="${PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}"
+if [ -f .gpu/site.tar.xz ] && ! "$PY" -c "import mitsuba" 2>/dev/null; then
     SITE="${TMPDIR:-/tmp}/mcdenoise_site"
     mkdir -p "$SITE" && tar -xJf .gpu/site.tar.xz -C "$SITE"
     export PYTHONPATH="$SITE${PYTHONPATH:+:$PYTHONPATH}"
 fi
 [ -d .gpu/oidn ] && export MCDENOISE_OIDN_WEIGHTS="${MCDENOISE_OIDN_WEIGHTS:-$PWD/.gpu/oidn}"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
-PY="${PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
 exec "$PY" -m pipeline gpu-recipe --config "${CONFIG:-configs/ship.yaml}" --out "$OUT" --minutes "${MINUTES:-9}" \
     --device "${DEVICE:-auto}" ${WORK:+--work "$WORK"} "$@"

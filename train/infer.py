@@ -1,131 +1,151 @@
-"""Denoise a frame with a trained run: the evaluator's and ``python -m pipeline denoise``'s entry point.
+"""Inference: denoise a frame with a trained model folder (a run or ``train/shipped``), and σ's calibration.
 
-    den = load_denoiser(run_dir(cfg, 4))                 # or base_only=True: the ablation row
+    den = load_denoiser(find_run(cfg, 4))                  # or base_only=True: the ablation row
     hdr = den.denoise(store.read(scene, frame, 4), spp=4, seed=0)          # (H, W, 3) float32
     hdr, std = den.denoise(buffers, spp=4, samples=8, with_std=True)       # mean of 8 and their std
 
-``buffers`` are what ``Store.read`` returns (HxWxC arrays by buffer name, variances included);
-missing feature buffers count as their background value. Non-finite input values are replaced
-by 0 and counted in ``den.last_repaired`` (never passed to the network). Frames larger than
-``diffusion.tile`` are denoised in overlapping tiles, so memory is bounded at any size.
-
-What the model cannot represent is said, not hidden:
-
-- the model space holds radiance in [0, 6] (as the paper); with a first estimate (the refine
-  formulation) a pixel whose estimate is above 6 keeps the estimate's value, without one the
-  output is clamped at 6. ``den.last_clamped`` counts such pixels;
-- a frame whose noisy radiance is exactly 0 everywhere carried no light at all: it is returned
-  black (``den.last_black``), never an invented image;
-- an input without the renderer's variance, albedo and normal (``train.estimate.RENDERER_BUFFERS``,
-  e.g. an EXR with only R, G, B) is not what the network was trained on: the refine formulation
-  returns its first estimate, OIDN with whatever albedo and normal there are
-  (``den.last_estimate_only``).
+What the model cannot represent is said, not hidden: non-finite input values are replaced by 0
+(``last_repaired``), an all-black input is returned black (``last_black``), an input without albedo
+and normal gets OIDN on what there is (``last_estimate_only``), pixels past OIDN's output range are
+clamped (``last_clamped``).
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from mcdenoise.pipeline.config import ConfigError
-from mcdenoise.pipeline.numerics import repair_nonfinite
+from mcdenoise.pipeline import oidn_net, oidn_weights
+from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 from mcdenoise.pipeline.runs import pick_device
 
-from .data import CLAMP, from_model, model_inputs, to_planar
-from .estimate import Estimator, has_renderer_buffers
-from .model import formulation, load, load_run_estimator, run_dir
-from .sampler import sample_tiled
-from .train import autocast_dtype
+from .data import inputs, present
+from .formulation import Formulation
+from .model import ControlledOIDN, clean_aux, load, oidn_ft_blob
+from .sampler import check_strength, sample, with_strength
 
-__all__ = ["Denoiser", "load_denoiser", "run_dir"]
+# ---- uncertainty -------------------------------------------------------------------------------
+
+SIGMA_STEPS, SIGMA_SAMPLES = 3, 4     # the sampling the evaluator's uncertainty row uses (ours_s3_k4)
 
 
-def hdr_std(mean_model: np.ndarray, std_model: np.ndarray, tonemap: str) -> np.ndarray:
-    """A model-space standard deviation in HDR units: times the local slope of ``from_model``."""
-    h = 1e-3
-    slope = (from_model(torch.from_numpy(mean_model + h), tonemap) -
-             from_model(torch.from_numpy(mean_model - h), tonemap)).numpy() / (2 * h)
-    return np.abs(slope) * std_model
+def calibrate(refiner: "Denoiser", items: list[dict], seed: int = 0) -> dict:
+    """One scale for the samples' per-pixel standard deviation, fitted on validation images: the
+    median of |error| / σ over the pixels with σ > 0, divided by 0.6745 (the median of |N(0, 1)|), so a
+    Gaussian error with the scaled σ has half its pixels within 0.6745 σ. Robust to the heavy tails of
+    rendering errors, unlike a least-squares fit. Fitted at the refiner's ``strength``, which scales both
+    the mean's change and the samples' spread, but not the error by the same factor."""
+    ratios = []
+    for it in items:
+        H, W = it["ref"].shape[:2]
+        hdr, s = refiner.refine(torch.as_tensor(it["x"]), torch.as_tensor(it["cond"]), it["scale"], H, W,
+                                SIGMA_STEPS, 0, None, seed, SIGMA_SAMPLES, refiner.strength)
+        e = np.abs(hdr - it["ref"]).mean(2).ravel()
+        s = s.mean(2).ravel()
+        ratios.append(e[s > 0] / s[s > 0])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    scale = float(np.median(r) / 0.6745) if r.size else 1.0
+    return {"scale": scale, "steps": SIGMA_STEPS, "samples": SIGMA_SAMPLES, "pixels": int(r.size),
+            "strength": refiner.strength}
 
 
 class Denoiser:
-    def __init__(self, model, meta: dict, device: torch.device, tile: int = 256, overlap: int = 32,
-                 precision: str = "auto", estimator: Estimator | None = None):
-        self.model, self.meta, self.device = model, meta, device
-        self.formulation = formulation(meta)
-        self.estimator = estimator or Estimator(self.formulation.estimate)
-        self.tile, self.overlap = int(tile), int(overlap)
-        self.autocast = autocast_dtype(precision, device)
-        self.name = "base_only" if model.control is None else "ours"
+    """A trained model folder as the evaluator and ``denoise`` use it."""
+
+    clamp_note = "pixels beyond OIDN's output range (65504 after exposure) clamped to its end"   # with last_clamped
+
+    def __init__(self, model: ControlledOIDN, meta: dict, device, base_only: bool = False, folder: Path | None = None):
+        self.model, self.meta, self.device, self.folder = model, meta, device, folder
+        self.formulation = Formulation.from_record(meta["formulation"])
+        self.sigma_scale = float((meta.get("sigma") or {}).get("scale", 1.0))
+        self.clean_aux = clean_aux(meta)   # a _calb_cnrm base reads albedo and normal prefiltered by OIDN
+        if base_only:
+            self.model.control = None
+        self.name = "base_only" if base_only else "ours"
+        # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
+        # EXR from another renderer) the base runs alone, where validation found the Control Module worse
+        self.control_without_groups = bool(meta.get("control_without_groups", True))
+        # model.json ``strength`` (``export --strength``): how much of the Control Module's change it applies
+        self.strength = check_strength(meta.get("strength", 1.0), f"{folder or 'the model'}/model.json: strength")
         self.last_repaired = self.last_clamped = 0
-        self.last_black = self.last_estimate_only = False
+        self.last_black = self.last_estimate_only = self.last_base_only = False
+        self.last_shortened = 0        # normals longer than 1 scaled to unit length (garbage layers)
         self.last_seconds = 0.0
+        self.fallback = ""
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
-                rotation: np.ndarray | None = None, variance: str | None = None, steps: int | None = None,
-                start: str | None = None, samples: int = 1, with_std: bool = False, strength: float | None = None):
-        """HDR (H, W, 3) float32; with ``with_std`` also the per-pixel standard deviation of the samples.
-        ``strength`` (a model on OIDN's network only) must be unset or 1."""
-        if strength is not None and float(strength) != 1.0:
-            raise ConfigError(f"strength {strength}: only a model on OIDN's network (diffusion.base: oidn) scales "
-                              "its Control Module's change; this one is on the stand-in base")
+                steps: int | None = None, start: str | None = None, samples: int = 1, with_std: bool = False,
+                strength: float | None = None):
+        """HDR (H, W, 3) float32 (and the per-pixel std of ``samples`` samples with ``with_std``);
+        ``strength``: the fraction of the Control Module's change applied (default: the model's)."""
+        strength = self.strength if strength is None else check_strength(strength, "strength")
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
-        tonemap = self.meta.get("tonemap", "log")
-        est, parts = self.estimator(buffers)
-        noisy, aux = model_inputs(buffers, spp, rotation, tonemap, parts)
-        self.last_black = not np.any(buffers["color"])
-        self.last_estimate_only = est is not None and not has_renderer_buffers(buffers)
+        self.last_clamped, self.last_base_only = 0, False
+        self.last_shortened = shorten_normals(buffers["normal"]) if "normal" in buffers else 0
+        color = buffers["color"]
+        self.last_black = not np.any(color)
+        self.last_estimate_only = not all(a in buffers for a in ("albedo", "normal"))
         if self.last_black:
-            hdr, std = np.zeros_like(buffers["color"]), np.zeros_like(buffers["color"])
-        elif self.last_estimate_only:   # not the buffers the network was trained on: the first estimate alone
-            hdr, std = est, np.zeros_like(est)
+            hdr = std = np.zeros_like(color)
+        elif self.last_estimate_only:   # the base reads albedo and normal: OIDN on what there is
+            hdr, std = self._oidn_only(buffers), np.zeros_like(color)
         else:
-            hdr, std = self._sample(noisy, aux, est, tonemap, skip, seed, variance, steps, start, samples)
-            hdr, self.last_clamped = self._beyond_range(hdr, est if est is not None else buffers["color"])
+            self.last_base_only = not self.control_without_groups and not any(present(buffers).values())
+            hdr, std = self._sample(buffers, spp, skip, seed, steps, start, samples, strength)
         self.last_seconds = time.perf_counter() - t0
         return (hdr, std) if with_std else hdr
 
-    def _sample(self, noisy, aux, est, tonemap, skip, seed, variance, steps, start, samples):
-        t = lambda a: torch.from_numpy(a)[None].to(self.device)  # noqa: E731
-        image = t(to_planar(est, tonemap)) if est is not None else None
-        skip = int(self.meta.get("skip", 0) if skip is None else skip)
-        # The requested sampling, checked like a config (a one-line ConfigError naming the key).
-        f = dataclasses.replace(self.formulation, skip=skip, steps=self.formulation.steps if steps is None else steps,
-                                start=start or self.formulation.start)
-        mean, std = sample_tiled(self.model, t(noisy), t(aux), image=image, tile=self.tile, overlap=self.overlap,
-                                 samples=samples, formulation=f, steps=steps, skip=skip, start=start, seed=seed,
-                                 threshold_ratio=float(self.meta.get("threshold_ratio", 0.95)),
-                                 autocast_dtype=self.autocast,
-                                 variance=variance or self.meta.get("variance", "learned"))
-        mean_m, std_m = mean[0].float().cpu().numpy(), std[0].float().cpu().numpy()
-        hdr = from_model(torch.from_numpy(mean_m), tonemap).numpy()
-        return np.moveaxis(hdr, 0, 2), np.moveaxis(hdr_std(mean_m, std_m, tonemap), 0, 2)
+    def _oidn_only(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
+        """OIDN on the layers there are: with the model folder's fine-tuned weights for them
+        (``oidn_ft/<network>.tza``, OIDN fine-tuned on our data) when it has them, else OIDN's own."""
+        from mcdenoise.pipeline import oidn
+        network = oidn_weights.network_for("albedo" in buffers, False)
+        blob_path = oidn_ft_blob(self.folder, network) if self.folder is not None else None
+        self.fallback = str(blob_path) if blob_path is not None and blob_path.exists() else f"OIDN {network}"
+        blob = blob_path.read_bytes() if blob_path is not None and blob_path.exists() else None
+        return oidn.denoise({k: v for k, v in buffers.items() if k in ("color", "albedo")}, weights=blob)
 
-    def _beyond_range(self, hdr: np.ndarray, source: np.ndarray) -> tuple[np.ndarray, int]:
-        """Pixels whose first estimate (or input) exceeds the model's range: the estimate's value where
-        there is one, else the clamp at CLAMP; returns the image and how many pixels that touched."""
-        over = (source > CLAMP).any(axis=2)
-        if self.formulation.estimate != "none" and over.any():
-            hdr = np.where(over[..., None], source, hdr)
-        return np.ascontiguousarray(hdr, dtype=np.float32), int(over.sum())
+    def _sample(self, buffers, spp, skip, seed, steps, start, samples, strength=1.0):
+        x, cond, scale = inputs(buffers, int(spp), clean_aux=self.clean_aux)
+        H, W = buffers["color"].shape[:2]
+        control = self.model.control
+        if self.last_base_only:
+            self.model.control = None
+        try:
+            hdr, std_hdr = self.refine(torch.from_numpy(x)[None], torch.from_numpy(cond)[None], scale, H, W, steps,
+                                       skip, start, seed, samples, strength)
+        finally:
+            self.model.control = control
+        return hdr, std_hdr * self.sigma_scale
+
+    def refine(self, x: torch.Tensor, cond: torch.Tensor, scale: float, H: int, W: int, steps, skip, start, seed,
+               samples, strength: float) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) HDR and the samples' unscaled per-pixel std for OIDN-space inputs (``inputs``, batch of
+        one): ``sample``, then ``strength`` of the Control Module's change; what ``denoise`` returns and
+        ``calibrate`` fits σ on."""
+        mean, std, est = sample(self.model, x.to(self.device), cond.to(self.device), self.formulation, steps, skip,
+                                start, seed, samples)
+        mean, std = with_strength(mean, std, est, strength)
+        # OIDN's output space ends at 1 (PU of float16's largest value, 65504 after exposure); a Control
+        # Module pushed past it by inputs unlike its training would overflow the inverse
+        # transfer to inf: such pixels are clamped to the range's end and counted.
+        self.last_clamped = int((mean[..., :H, :W] > 1.0).any(dim=1).sum())
+        return self.to_hdr(mean.clamp(max=1.0), std, scale, H, W)
+
+    @staticmethod
+    def to_hdr(mean: torch.Tensor, std: torch.Tensor, scale: float, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) HDR of an OIDN-space mean and its std (times the local slope of the inverse transfer)."""
+        hdr = oidn_net.network_output(mean, scale, (H, W))
+        slope = (oidn_net.network_output(mean + 1e-4, scale, (H, W)) - hdr) / 1e-4
+        as_image = lambda t: np.ascontiguousarray(t[0].permute(1, 2, 0).float().cpu().numpy())  # noqa: E731
+        return as_image(hdr), as_image(slope.abs() * std[..., :H, :W])
 
 
-def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = False, tile: int = 256,
-                  overlap: int = 32, precision: str = "auto") -> Denoiser:
-    """A trained run (``train.model.run_dir``); ``base_only`` drops the Control Module (the ablation). A run on
-    OIDN's network (``diffusion.base: oidn``) is ``train.oidn_refine``'s denoiser, with the same interface."""
-    from mcdenoise.pipeline import weights
-
-    from . import oidn_refine
-    if weights.kind(Path(folder)) == "oidn_control":
-        return oidn_refine.load_refiner(folder, device, base_only)
+def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = False) -> Denoiser:
     dev = pick_device(device)
     model, meta = load(folder, dev)
-    if base_only:
-        model.control = None
-    return Denoiser(model, meta, dev, tile, overlap, precision, load_run_estimator(folder, meta, dev))
+    return Denoiser(model, meta, dev, base_only, Path(folder))

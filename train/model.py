@@ -1,64 +1,179 @@
-"""Assemble the controlled denoiser from a config, and save / load a trained run.
+"""The network: OIDN's network, frozen, with a Control Module (paper Fig. 1); where models are, save and load.
 
-A run folder (``runs/<name>/diffusion_spp{N}``, ``diffusion_sppany``) holds:
+The base is OIDN's UNet (``pipeline.oidn_net``) with OIDN's weights, or an ``oidn_ft`` run's;
+it never trains. It reads what OIDN reads (colour, albedo, normal in OIDN's input space) and its
+output, decoded without help, is OIDN's own output: the first estimate.
 
-- ``control.safetensors``: the Control Module's weights (and ``base.*`` when the base trained
-  too), the best epoch by validation PSNR;
-- ``model.json``: what is needed to rebuild it: the base folder and the SHA-256 of its weights
-  (a changed base is refused: the Control Module only fits the base it was trained with), the
-  condition's channel names, the tonemap, the spp, the sampler defaults, the metrics;
-- ``last.safetensors``: the resumable state (``pipeline.checkpoint``), ``loss.png``, ``train.json``.
+The Control Module is a trainable copy of the base's encoder (``enc_conv0`` … ``enc_conv5b``, or the
+large layout's ``enc_conv1a`` … ``enc_conv5b``,
+initialised from the base's weights, as ControlNet copies its base), whose first convolution
+reads OIDN's input plus the condition (every other buffer of the frame, the spp, which buffer
+groups are present) and the diffusion state z_t, and whose levels get the timestep embedding
+as a per-channel bias. Its features enter the base's decoder through zero-initialised 1×1
+convolutions at every skip the decoder reads (the input, ``pool1`` … ``pool3``, the bottleneck)
+and at its output:
+
+    feats = base.encode(x)                          x: OIDN's input (frozen base, no gradient)
+    x_est = base.decode(feats)                      the first estimate, OIDN's output
+    r     = zero_conv(control(x ⊕ cond ⊕ z_t, t))   residuals per skip, and for the output
+    x̂₀    = base.decode(feats, r) + r_output
+
+Every zero convolution, the weights of the first convolution's extra input channels and the
+timestep projections start at zero, so at initialisation x̂₀ = x_est exactly (tested): training
+can only start at OIDN.
+
+A model folder (a run ``<runs>/diffusion_spp<N>[_<name>]``, an export such as ``train/shipped``) holds
+``control.safetensors`` (the Control Module), ``base.tza`` (the frozen base's float16 weights, so the
+folder is self-contained, its SHA-256 in model.json) and ``model.json`` (``save`` / ``load``).
 """
 from __future__ import annotations
 
+import copy
+import hashlib
+import math
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
+from torch import nn
 
-from mcdenoise.pipeline import runs, weights
+from mcdenoise.pipeline import oidn_net, oidn_weights, runs, tza, weights
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.errors import CheckpointError, StoreError, TrainError
-from mcdenoise.pipeline.store import sha256
+from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.exr import atomic_write_bytes
 
-from . import base as base_lib
-from .control import ControlledDenoiser, ControlModule
-from .data import aux_names
-from .estimate import KINDS, Estimator, load as load_estimator
-from .formulation import Formulation
-from .sampler import PAPER
+from .data import cond_names
 
-FORMAT = weights.FORMATS["control"]
+EMBED = 64   # sinusoidal timestep features
+FORMAT = weights.FORMATS["oidn_control"]
+NETWORK = "rt_hdr_alb_nrm"      # the base of models whose model.json predates diffusion.base_network
 # The denoiser shipped with the repository (base + Control Module + model card), used when a config
 # has no trained run of its own (train/shipped/README.md says how it was made).
 SHIPPED_MODEL = Path(__file__).resolve().parent / "shipped"
 
 
-def base_folder(cfg: Config, run: Path | None = None) -> Path:
-    """``diffusion.base``; empty: the paper formulation's shipped stand-in (train/base_model_paper), or for
-    the refine formulation a new base with a zero last layer in the run folder (``base_init``, written
-    by ``new_base``: training starts exactly at the first estimate)."""
-    if cfg.diffusion.base:
-        return Path(cfg.diffusion.base)
-    if Formulation.from_config(cfg.diffusion).paper:
-        return base_lib.PAPER_BASE
-    return Path(run if run is not None else run_dir(cfg, "any")) / "base_init"
+def skip_sources(layout: oidn_net.Layout) -> dict[str, str]:
+    """The decoder skips the Control Module adds to, with the encoder layer whose output feeds each
+    (the input skip ``x`` gets the level-0 features, as ``pool1`` does before pooling)."""
+    last = [stage[-1] for stage in layout.stages]
+    return {"x": last[0], "pool1": last[0], "pool2": last[1], "pool3": last[2], "bottleneck": layout.bottleneck[-1]}
 
 
-def new_base(cfg: Config, run: Path) -> None:
-    """Write the run's new base (``base_folder``) if the config asks for one and it is not there yet."""
-    folder = base_folder(cfg, run)
-    if cfg.diffusion.base or Formulation.from_config(cfg.diffusion).paper or (folder / base_lib.WEIGHTS).exists():
-        return
-    if not cfg.diffusion.train_base:
-        raise StoreError("a new base (diffusion.base empty) starts with a zero last layer and must train with the "
-                         "Control Module: set diffusion.train_base=true, or pretrain one (make pretrain) and set "
-                         "diffusion.base to it")
-    base_lib.write_new(folder, cfg.pretrain.channels, cfg.pretrain.layers_per_block, cfg.seed)
+def timestep_features(t: torch.Tensor, dim: int = EMBED) -> torch.Tensor:
+    """Sinusoidal features (B, dim) of diffusion timesteps 0 … 999 (as diffusers' ``Timesteps``)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
+    args = t.float()[:, None] * freqs[None]
+    return torch.cat([torch.sin(args), torch.cos(args)], 1)
+
+
+class ControlModule(nn.Module):
+    """A copy of ``base``'s encoder reading ``extra`` more input channels, with a timestep bias per level
+    and zero 1×1 convolutions to the decoder's skips and output."""
+
+    def __init__(self, base: oidn_net.UNet, extra: int):
+        super().__init__()
+        self.extra, self.layout = int(extra), base.layout
+        self.encoder = nn.ModuleDict({n: copy.deepcopy(getattr(base, n)) for n in self.layout.encoder})
+        first = self.encoder[self.layout.first]
+        wide = nn.Conv2d(first.in_channels + self.extra, first.out_channels, 3, padding=1)
+        with torch.no_grad():
+            wide.weight.zero_()
+            wide.weight[:, :first.in_channels] = first.weight
+            wide.bias.copy_(first.bias)
+        self.encoder[self.layout.first] = wide
+        self.embed = nn.Sequential(nn.Linear(EMBED, 128), nn.SiLU())
+        self.time_bias = nn.ModuleDict({n: _zero(nn.Linear(128, getattr(base, n).out_channels))
+                                        for n in self.layout.encoder})
+        width = {n: getattr(base, src).out_channels for n, src in skip_sources(self.layout).items()}
+        self.zero = nn.ModuleDict({n: _zero(nn.Conv2d(width[n], base.in_channels if n == "x" else width[n], 1))
+                                   for n in width})
+        self.zero["output"] = _zero(nn.Conv2d(width["x"], base.widths[self.layout.output][0], 1))
+
+    def _conv(self, name: str, h: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        return F.relu(self.encoder[name](h) + self.time_bias[name](emb)[:, :, None, None])
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Residuals for ``UNet.decode`` (``x``, ``pool1`` … ``bottleneck``) and ``output``."""
+        emb = self.embed(timestep_features(t))
+        feats = oidn_net.encode(self.layout, lambda name, h: self._conv(name, h, emb), x)
+        feats["x"] = feats["output"] = feats["full"]
+        return {n: conv(feats[n]) for n, conv in self.zero.items()}
+
+
+def _zero(m: nn.Module) -> nn.Module:
+    for p in m.parameters():
+        nn.init.zeros_(p)
+    return m
+
+
+class ControlledOIDN(nn.Module):
+    """Frozen OIDN base + Control Module: ``forward(x, cond, z, t) -> (x̂₀, x_est)`` in OIDN's output space.
+
+    ``x``: OIDN's input (B, 3/6/9, H, W), ``cond``: the condition (B, C, H, W), ``z``: z_t (B, 3, H, W),
+    ``t``: timesteps (B,); sides a multiple of 16. ``control=None``: the base alone (x̂₀ = x_est)."""
+
+    multiple = oidn_net.ALIGNMENT
+
+    def __init__(self, base: oidn_net.UNet, cond_channels: int, control: bool = True):
+        super().__init__()
+        self.base = base.requires_grad_(False).eval()
+        self.cond_channels = int(cond_channels)
+        self.control = ControlModule(base, self.cond_channels + 3) if control else None
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.base.eval()      # frozen, whatever the caller does
+        return self
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return list(self.control.parameters()) if self.control is not None else []
+
+    def estimate(self, x: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """(the base's encoder features, its output: the first estimate); no gradient."""
+        with torch.no_grad():
+            feats = self.base.encode(x)
+            return feats, self.base.decode(feats)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor, z: torch.Tensor, t: torch.Tensor,
+                base: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``base``: ``estimate(x)`` when the caller has it already (a sampler's later steps)."""
+        feats, est = base if base is not None else self.estimate(x)
+        if self.control is None:
+            return est, est
+        r = self.control(torch.cat([x, cond, z], 1), t.expand(x.shape[0]))
+        out = self.base.decode(feats, {k: v for k, v in r.items() if k != "output"}) + r["output"]
+        return out, est
+
+
+# ---- the base ----------------------------------------------------------------------------------
+
+
+def base_blob(cfg: Config) -> tuple[bytes, str]:
+    """(the base's float16 TZA blob, what it is): ``diffusion.base`` 'oidn' (OIDN's ``diffusion.base_network``,
+    from ``oidn.weights`` or pyoidn), 'oidn_ft' (this config's oidn_ft run of that network, as exported) or a
+    .tza file of it."""
+    base, network = cfg.diffusion.base, cfg.diffusion.base_network
+    if base == "oidn":
+        return oidn_weights.load(network, oidn_weights.source(network, cfg.oidn.weights)), f"OIDN {network}"
+    if base == "oidn_ft":
+        from .oidn_ft import export_blob, load_run
+        folder = runs.run_dir(cfg, "oidn_ft", variant=network)
+        return export_blob(load_run(folder, cfg)[0]), f"oidn_ft run {folder} (blend {cfg.oidn_ft.blend:g})"
+    return oidn_weights.load(network, base), str(base)
+
+
+def clean_aux(meta: dict) -> bool:
+    """Whether a model (its model.json) feeds its base prefiltered albedo and normal."""
+    return oidn_weights.clean_aux(meta.get("base_network", NETWORK))
+
+
+# ---- where models are --------------------------------------------------------------------------
 
 
 def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
-    """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_paper`` (variant ``paper``) under
-    ``cfg.runs``, ``_base_only`` appended without the Control Module (``pipeline.runs.run_dir``)."""
+    """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_<variant>`` under ``cfg.runs``
+    (``pipeline.runs.run_dir``)."""
     return runs.run_dir(cfg, "diffusion", spp, variant)
 
 
@@ -73,7 +188,7 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
     ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError) if none."""
     named = variant if variant is not None else cfg.diffusion.name
-    shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped and cfg.diffusion.control else None
+    shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped else None
     folder = runs.find_run(cfg, "diffusion", spp, "model.json", variant, fallback=shipped)
     if folder is not None:
         return folder
@@ -83,102 +198,29 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
                           (f" with diffusion.name={variant}" if variant else ""))
 
 
-def isik_folder(cfg: Config) -> Path:
-    """The Isik network a first estimate with ``isik`` uses: ``diffusion.isik_run``, else <runs>/isik_sppany."""
-    return Path(cfg.diffusion.isik_run) if cfg.diffusion.isik_run else Path(cfg.runs) / "isik_sppany"
+# ---- saving and loading ------------------------------------------------------------------------
 
 
-def estimator(cfg: Config, device="cpu") -> Estimator:
-    return load_estimator(Formulation.from_config(cfg.diffusion).estimate, isik_folder(cfg), device)
+def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, network: str, form, spps: list[int],
+         record: dict) -> None:
+    """The Control Module, the base's blob and model.json (``form``: the ``Formulation`` it was trained with)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
+        atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
+    weights.save(folder, "oidn_control", model.control.state_dict(), {
+        "base": "base.tza", "base_network": network, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
+        "cond_channels": cond_names(), "spp": spps, "formulation": form.record(), **record}, weights="control.safetensors")
 
 
-def estimator_and_id(cfg: Config) -> tuple[Estimator, str]:
-    """(the configured first estimate, an id of its weights for a pack's header: the Isik network's SHA-256)."""
-    est = estimator(cfg)
-    return est, sha256(isik_folder(cfg) / "model.safetensors") if est.isik is not None else ""
-
-
-def base_sha256(cfg: Config, run: Path) -> str:
-    """The SHA-256 of the weights of the run's base (``base_folder``); a clear error when they are missing."""
-    path = base_folder(cfg, run) / base_lib.WEIGHTS
-    if not path.exists():
-        raise TrainError(f"{path}: base weights missing; run `make pretrain` or set diffusion.base")
-    return sha256(path)
-
-
-def build(cfg: Config, seed: int | None = None, run: Path | None = None) -> ControlledDenoiser:
-    """The base (``base_folder``) plus a fresh Control Module (or none, ``control: false``)."""
-    unet, prompt = base_lib.load(base_folder(cfg, run))
-    torch.manual_seed(cfg.seed if seed is None else seed)
-    aux = len(aux_names(Formulation.from_config(cfg.diffusion).estimate))
-    control = ControlModule(unet, aux) if cfg.diffusion.control else None
-    return ControlledDenoiser(unet, prompt, control, train_base=cfg.diffusion.train_base)
-
-
-def trainable_state(model: ControlledDenoiser) -> dict[str, torch.Tensor]:
-    state = {}
-    if model.control is not None:
-        state.update({f"control.{k}": v for k, v in model.control.state_dict().items()})
-    if model.train_base:
-        state.update({f"base.{k}": v for k, v in model.base.state_dict().items()})
-    return state
-
-
-def save(folder: Path, model: ControlledDenoiser, cfg: Config, spp, record: dict) -> None:
-    base = base_folder(cfg, folder)
-    form = Formulation.from_config(cfg.diffusion)
-    isik = {}
-    if "isik" in KINDS[form.estimate]:
-        isik = {"isik": str(isik_folder(cfg).resolve()), "isik_sha256": sha256(isik_folder(cfg) / "model.safetensors")}
-    weights.save(folder, "control", trainable_state(model), {
-        "spp": spp, "base": str(base.resolve()),
-        "base_sha256": sha256(base / base_lib.WEIGHTS), "aux_channels": aux_names(form.estimate), **isik,
-        "control": model.control is not None, "train_base": model.train_base,
-        "tonemap": cfg.diffusion.tonemap, "skip": cfg.diffusion.skip,
-        "threshold_ratio": cfg.diffusion.threshold_ratio, "variance": cfg.diffusion.variance,
-        "formulation": Formulation.from_config(cfg.diffusion).record(), **record}, weights="control.safetensors")
-
-
-def _checked(folder: Path, meta: dict, key: str, file: str) -> Path:
-    """The folder ``meta[key]`` names (relative to ``folder`` for shipped runs), its weights unchanged."""
-    where = Path(meta[key])
-    where = where if where.is_absolute() else (folder / where).resolve()
-    if not (where / file).exists():
-        raise CheckpointError(f"{folder / 'model.json'}: its {key} {where} is missing; retrain, or restore that folder")
-    weights.check_sha256(where / file, meta[f"{key}_sha256"], f"{where / file}: the {key} of {folder}",
-                         "retrain the Control Module for it")
-    return where
-
-
-def load_run_estimator(folder: str | Path, meta: dict, device="cpu") -> Estimator:
-    """The first estimate a run was trained with (its Isik network checked like its base)."""
-    kind = formulation(meta).estimate
-    isik = _checked(Path(folder), meta, "isik", "model.safetensors") if "isik" in KINDS[kind] else None
-    return load_estimator(kind, isik, device)
-
-
-def formulation(meta: dict) -> Formulation:
-    """The formulation a run was trained with (records older than the refine formulation: the paper's)."""
-    rec = meta.get("formulation")
-    return Formulation.from_record(rec) if rec else PAPER
-
-
-def load(folder: str | Path, device: str | torch.device = "cpu") -> tuple[ControlledDenoiser, dict]:
-    """(model in eval mode, model.json) of a trained run; refuses a changed base or channel layout."""
+def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
+    """(the controlled model in eval mode, model.json) of a run or an exported model folder."""
     folder = Path(folder)
-    meta_path = folder / "model.json"
-    meta = weights.read_record(folder, "control", "run `make train SPP=<n>`")
-    names = aux_names(formulation(meta).estimate)
-    if meta.get("aux_channels") != names:
-        raise CheckpointError(f"{meta_path}: trained on another condition layout ({len(meta.get('aux_channels', []))} "
-                              f"channels, this code makes {len(names)}); retrain")
-    base = _checked(folder, meta, "base", base_lib.WEIGHTS)
-    unet, prompt = base_lib.load(base)
-    control = ControlModule(unet, len(names)) if meta["control"] else None
-    model = ControlledDenoiser(unet, prompt, control, train_base=False)
-    state = weights.load_tensors(folder / "control.safetensors")
-    if control is not None:
-        control.load_state_dict({k[8:]: v for k, v in state.items() if k.startswith("control.")})
-    if meta.get("train_base"):
-        unet.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("base.")})
+    meta = weights.read_record(folder, "oidn_control", "run `make train SPP=any`")
+    blob = (folder / meta["base"]).read_bytes()
+    weights.check_sha256(blob, meta["base_sha256"], f"{folder / meta['base']}: the base", "restore it or retrain")
+    if meta["cond_channels"] != cond_names():
+        raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
+                              f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names())}); retrain")
+    model = ControlledOIDN(oidn_net.UNet.from_tza(tza.read(blob, str(folder / meta["base"]))), len(cond_names()))
+    model.control.load_state_dict({k: v.float() for k, v in weights.load_tensors(folder / "control.safetensors").items()})
     return model.to(device).eval(), meta

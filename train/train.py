@@ -1,291 +1,293 @@
-"""The diffusion denoiser's training run on the IF-II-layout base, and what every diffusion run shares.
+"""The training task: the Control Module on OIDN's frozen network, trained on a config's store.
 
-    python -m pipeline train --model diffusion --spp 4|any      (make train SPP=4)  -> ControlTask(cfg, spp)
-    torchrun --nproc_per_node 2 -m pipeline train --model diffusion --spp 4
+    make train SPP=any      → python -m pipeline train --model diffusion --spp any → train(cfg, "any")
+                            → runs/<config>/diffusion_sppany[_<name>]/
 
-``ControlTask`` is a ``pipeline.fit`` task (the loop: resume, best and last checkpoints, time budget,
-summary) and reads top to bottom: the model (the base of ``diffusion.base``, or a new one, and a new
-Control Module), the data (the store's train split, from the pack or its EXRs), the optimiser and
-the EMA; then the step; then the validation score and the files. Per step:
-
-    x = GT_clean crop, x_est = the first estimate, F = condition, t (``Formulation.draw_t``), ε ~ N(0, I)
-    refine: y = (x − x_est)/s, z_t = add_noise(y, ε, t), loss = w(t) · MSE(ŷ, y) / (the crop's own error)
-    paper:  z_t = q_sample(x, t, ε), loss = ‖ε − ε̂‖² + L_t(Σ_θ)                (``train.diffusion``)
-
-AdamW on the trainable parameters, linear warm-up then cosine decay (a pure function of the step,
-so nothing to restore), gradient clipping, bf16 autocast on CUDA, an EMA of the trained weights
-(what validation scores and the run saves). A step whose loss or gradient norm is not finite is
-skipped and counted over the whole run; ``nan_limit`` in a row stop it. Every random draw comes
-from generators seeded by (seed, epoch, step, rank) and the epoch's crops from
-``default_rng([seed, epoch, item])``: a resumed run continues exactly as the uninterrupted one.
-``train.pretrain.PretrainTask`` is the same run with the base as the trained module and
-restoration pairs as data. ``lr_factor``, ``make_ema``, ``ema_weights`` and the DDP helpers serve
-the OIDN-based run (``train.oidn_refine``) too.
-
-Under ``torchrun`` (DDP; gloo on CPU, NCCL on GPU) each rank takes every world-th item of the
-epoch's permutation; rank 0 validates and writes; at the end the ranks compare a checksum of
-their weights and fail loudly if they diverged.
+``train`` runs ``RefineTask`` under ``pipeline.fit`` (epochs, the time budget, resuming, the best
+checkpoint). The task reads top to bottom: the model (``train.model``: OIDN frozen, a new Control
+Module or a trained one to warm-start from), the data (``train.data``: the store's pack, crops with
+OIDN's augmentation and buffer-group dropout, the val frames), the optimiser (AdamW on the Control
+Module only, warm-up and cosine decay, an EMA of its weights); then the step, inline: the residual
+around the base's output is noised at a t drawn with ``t_focus`` on the sampler's steps
+(``train.formulation``), the network predicts x̂₀, the loss is each crop's error relative to OIDN's
+(``train.loss``), weighted by min-SNR; then validation (``train.sampler``, PSNR against the base's)
+and the files. DDP under torchrun. The run folder: ``control.safetensors`` (the Control Module, EMA),
+``base.tza`` (the frozen base's float16 weights, so the run is self-contained), ``model.json``,
+``last.safetensors``, ``train.json``, ``loss.png``; σ is fitted at the end (``train.infer.calibrate``).
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import os
+import time
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from mcdenoise.pipeline import oidn_net, tza, weights
 from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves
-from mcdenoise.pipeline.config import PAPER_STEPS, Config
+from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.exr import atomic_write_json
+from mcdenoise.pipeline.exr import atomic_write_json, read_json
 from mcdenoise.pipeline.fit import Task, apply_update, fit
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.runs import pick_device
-from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.store import sha256
 from mcdenoise.pipeline.versions import machine
 
-from . import diffusion
-from .data import DenoisePairs, from_model
-from .formulation import Formulation
-from .model import FORMAT, base_sha256, build, estimator_and_id, new_base, run_dir, save
-from .pack import PackPairs, ensure_pack, pack_path
+from .data import Crops, StoreSource, cond_names
+from .formulation import Formulation, snr_weight
+from .infer import calibrate, load_denoiser
+from .loss import relative_loss
+from .model import FORMAT, NETWORK, ControlledOIDN, base_blob, load, run_dir, save
 from .sampler import sample
 
 
-def train(cfg: Config, spp, quiet: bool = False) -> dict:
-    """Train (or resume) the Control Module for ``spp`` (or 'any'); the summary of ``pipeline.fit``."""
+def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
+    """Train (or resume) the Control Module on OIDN; ``pipeline.fit``'s summary."""
     try:
-        return fit(ControlTask(cfg, spp, quiet), quiet=quiet)
+        return fit(RefineTask(cfg, spp, quiet), quiet=quiet)
     finally:
         dist_shutdown()
 
 
-class ControlTask(Task):
-    """The Control Module (and the base, with ``diffusion.train_base``) trained from the store's low-spp
-    stacks to GT_clean. ``data``: a data set given instead of the store's train split (items noisy, aux,
-    target[, image]; ``set_epoch``); then nothing is validated.
+# What a warm-started run copies from its start's model.json besides the weights: how the model is used
+KEPT = ("control_without_groups",)
 
-    What the shared methods below read, set by ``__init__`` (and by ``PretrainTask``'s): ``cfg``,
-    ``model``, ``state`` (the saved module), ``params``, ``data``, ``val`` (validation items or None),
-    ``objective``, ``optimizers``, ``ema``, ``s`` (epochs, batch_size, lr, weight_decay, time_budget_s),
-    ``warmup_steps``, ``grad_clip``, ``epoch_steps``, ``title``, and ``pipeline.fit.Task``'s attributes."""
 
-    minimize = False
-    fmt = FORMAT
+def warm_start_recipe(d, meta: dict) -> tuple[Formulation, list[int], list[str]]:
+    """What a warm start (``diffusion.init``) keeps of the model it starts from: its formulation (the residual
+    scale its Control Module's output is read at, the schedule, the sampler, t_focus, the loss's normalisation)
+    and the sampler step counts it trained for, so that epoch 0 is that model and training goes on with its
+    recipe; the config's keys set the optimiser and the data. Returns (formulation, train_steps, the config's
+    keys that differ from the model's, as notes)."""
+    form = Formulation.from_record(meta["formulation"])
+    steps = list(meta.get("settings", {}).get("train_steps", d.train_steps))
+    mine = Formulation.from_config(d)
+    differ = [f"diffusion.{k}={getattr(mine, k)} (the model's: {getattr(form, k)})" for k in form.record()
+              if k not in ("estimate", "residual") and getattr(mine, k) != getattr(form, k)]
+    if list(d.train_steps) != steps:
+        differ.append(f"diffusion.train_steps={list(d.train_steps)} (the model's: {steps})")
+    return form, steps, differ
 
-    def __init__(self, cfg: Config, spp="any", quiet: bool = False, data=None):
-        f = self.s = cfg.diffusion
-        self.cfg, self.spp, self.quiet = cfg, spp, quiet
-        store, choices = (None, []) if data is not None else _training_store(cfg, spp)
-        if not f.control and not f.train_base:
-            raise TrainError("diffusion.control=false with train_base=false leaves nothing to train; the base-only "
-                             "ablation needs no training (the evaluator runs it from the base)")
+
+# ---- the training run --------------------------------------------------------------------------
+
+
+class RefineTask(Task):
+    """The Control Module on OIDN, trained on the store's train split (see the module docstring)."""
+
+    minimize = False          # validation PSNR
+    validate_initial = True   # epoch 0 is OIDN exactly: the run must beat it to keep anything
+
+    def __init__(self, cfg: Config, spp="any", quiet: bool = False, folder: Path | None = None,
+                 init: Path | None = None):
+        """The config's store (``StoreSource``) trains and validates; ``folder``: the run folder (default
+        ``<runs>/diffusion_spp<N>[_name]``); ``init``: a trained model folder whose base and Control Module the run
+        starts from (default ``diffusion.init``; else OIDN and a new one)."""
+        d = self.d = cfg.diffusion
+        self.cfg, self.quiet = cfg, quiet
+        init = init or (Path(d.init) if d.init else None)
+        # the base's network: a warm start keeps its model's
+        self.network = (weights.read_record(init, "oidn_control", "").get("base_network", NETWORK) if init is not None
+                        else d.base_network)
+        self.source = StoreSource(cfg, self.network)
+        self.spps = self.source.spps(spp)
         self.rank, self.world = dist_info()
-        self.device = pick_device(f.device)
-        self.autocast = autocast_dtype(f.precision, self.device)
-        self.folder = run_dir(cfg, spp)
-        self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, f.epochs, f.time_budget_s, f.nan_limit
-        self.warmup_steps, self.grad_clip, self.epoch_steps = f.warmup_steps, f.grad_clip, f.epoch_steps
-        self.title = f"Control Module, {spp} spp -> GT_clean"
-        form = self.form = Formulation.from_config(f)
+        self.folder = folder or run_dir(cfg, spp)
+        self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, d.epochs, d.time_budget_s, d.nan_limit
+        self.device = pick_device(d.device)
+        self.autocast = autocast_dtype(d.precision, self.device)
 
-        # The model: the base (a new one is written into the run folder first) and a new Control Module.
-        new_base(cfg, self.folder)
-        self.model = build(cfg, run=self.folder).to(self.device)
-        self.state = torch.nn.ModuleDict({k: m for k, m in (("control", self.model.control),
-                                                            ("base", self.model.base if f.train_base else None)) if m})
-        self.params = self.model.trainable_parameters()
-
-        # The data: crops of the train split (from the pack, decoded once), the first val frames whole.
-        crop = f.crop if store is None else fit_crop(f.crop, frame_sides(store), self.model.multiple)
-        if data is not None:
-            self.data, self.val = data, None
-        elif f.pack:
-            est, est_id = estimator_and_id(cfg)
-            path = ensure_pack(store, store.frames_with("train"), pack_path(cfg.runs, "train", form.estimate),
-                               f.tonemap, est, quiet, est_id)
-            self.data = PackPairs(path, crop, f.crops_per_frame, cfg.seed, choices, f.tonemap, form.estimate)
-            choices = sorted(set(self.data.t["spp"].tolist()) & set(choices))
+        # The model: OIDN frozen (its float16 blob kept with the run) and a new Control Module, or both
+        # from a trained model folder (``init`` / diffusion.init: a warm start).
+        form, self.train_steps, self.kept = Formulation.from_config(d), list(d.train_steps), {}
+        if init is not None:
+            start, meta = load(init, self.device)
+            self.blob, self.base_what = (Path(init) / meta["base"]).read_bytes(), f"{init}/{meta['base']}"
+            self.base_blend = meta.get("base_blend")
+            form, self.train_steps, differ = warm_start_recipe(d, meta)
+            self.kept = {k: meta[k] for k in KEPT if k in meta}
+            if differ and not quiet and self.rank == 0:
+                print(f"diffusion.init={init}: the run keeps that model's formulation; not used: {'; '.join(differ)}",
+                      flush=True)
         else:
-            self.data = DenoisePairs(store, store.frames_with("train"), choices, crop, f.crops_per_frame, cfg.seed,
-                                     f.tonemap, estimator=estimator_and_id(cfg)[0])
-        if store is not None:
-            self.val = validation_items(cfg, store, store.frames_with("val"), choices)
+            self.blob, self.base_what = base_blob(cfg)
+            self.base_blend = {"oidn": 0.0, "oidn_ft": cfg.oidn_ft.blend}.get(cfg.diffusion.base)
+        self.form = form
+        torch.manual_seed(cfg.seed)
+        base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
+        self.model = ControlledOIDN(base, len(cond_names())).to(self.device)
+        if init is not None:
+            self.model.control.load_state_dict(start.control.state_dict())
+        self.state = self.model.control
+        self.params = self.model.trainable_parameters()
+        self.optimizers = torch.optim.AdamW(self.params, lr=d.lr, weight_decay=d.weight_decay)
+        self.ema = make_ema(self.state, d.ema)
+        self.fmt = FORMAT
+        self.fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": hashlib.sha256(self.blob).hexdigest(),
+                            # the start by content, not only by path: a replaced folder must not resume this run
+                            **({"init": str(init), "init_sha256": sha256(Path(init) / "control.safetensors")}
+                               if init is not None else {}),
+                            "formulation": self.form.record(), "train_steps": self.train_steps,
+                            **{k: getattr(d, k) for k in ("crop", "batch_size", "crops_per_frame", "epoch_steps", "lr",
+                                                           "weight_decay", "warmup_steps", "grad_clip", "ema", "epochs",
+                                                           "hdr_weight", "dropout")}}
+        self.output = str(self.folder / "control.safetensors")
 
-        # The optimiser, the EMA and the settings a resume must share.
-        self.objective = diffusion.objective(self.device) if form.paper else form.objective(list(f.train_steps))
-        self.validate_initial = not form.paper   # the untrained refine model is its first estimate exactly
-        self.optimizers = torch.optim.AdamW(self.params, lr=f.lr, weight_decay=f.weight_decay)
-        self.ema = make_ema(self.state, f.ema)
-        self.fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": base_sha256(cfg, self.folder),
-                            "crop": crop, "formulation": form.record(), "train_steps": list(f.train_steps), "ema": f.ema,
-                            **{k: getattr(f, k) for k in ("tonemap", "batch_size", "crops_per_frame", "lr",
-                                                           "weight_decay", "warmup_steps", "grad_clip", "train_base",
-                                                           "control", "epochs")},
-                            # only when set, so runs from before the key resume as they were
-                            **({"epoch_steps": f.epoch_steps} if f.epoch_steps else {})}
-
-    # ---- the epoch's batches: rank r takes every world-th item of the permutation, at most epoch_steps batches
+    # ---- data
     def prepare(self) -> None:
+        t = time.perf_counter()
+        pack = self.source.train_pack(self.quiet or self.rank > 0)
+        self.crops = Crops(pack, self.d.crop, self.d.crops_per_frame, self.cfg.seed, self.spps, dropout=self.d.dropout)
+        self.per_rank = len(self.crops) // self.world
+        self.steps_per_epoch = max(1, self.per_rank // self.d.batch_size)
+        if self.d.epoch_steps:
+            self.steps_per_epoch = min(self.steps_per_epoch, self.d.epoch_steps)
+            self.per_rank = min(self.per_rank, self.steps_per_epoch * self.d.batch_size)
+        self.total_steps = self.steps_per_epoch * self.d.epochs
+        self.focus = self.form.train_timesteps(self.train_steps)
+        self.noise_sched = self.form.scheduler("ddpm")
+        self.val = self.source.val_items(self.spps, self.d.val_frames) if self.rank == 0 else []
         self.net = self.model
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel as DDP
             self.net = DDP(self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
-        self.per_rank = len(self.data) // self.world
-        self.steps_per_epoch = max(1, self.per_rank // self.s.batch_size)
-        if self.epoch_steps > 0:   # a subset per epoch: validation, checkpoint and budget come more often
-            self.steps_per_epoch = min(self.steps_per_epoch, self.epoch_steps)
-            self.per_rank = min(self.per_rank, self.steps_per_epoch * self.s.batch_size)
-        self.total_steps = self.s.epochs * self.steps_per_epoch
-        self._guard = NanGuard(self.name, self.nan_limit, TrainError)   # one for the whole run
+        self._guard = NanGuard(self.name, self.nan_limit, TrainError)
+        if not self.quiet and self.rank == 0:
+            print(f"{self.name}: OIDN base ({self.base_what}), {len(self.crops.frames)} train frames at {self.spps} "
+                  f"spp, {len(self.val)} validation images, {self.steps_per_epoch} steps per epoch; ready in "
+                  f"{time.perf_counter() - t:.1f} s", flush=True)
 
     def guard(self) -> NanGuard:
         return self._guard
 
     def batches(self, epoch: int):
-        self.data.set_epoch(epoch)
-        order = np.random.default_rng([self.cfg.seed, epoch]).permutation(len(self.data))
-        mine = order[self.rank::self.world][:self.per_rank].tolist()
+        self.crops.set_epoch(epoch)
+        order = np.random.default_rng([self.cfg.seed, epoch]).permutation(len(self.crops))
+        mine = order[self.rank::self.world][: self.per_rank].tolist()
         self.model.train()
-        return DataLoader(self.data, batch_size=self.s.batch_size, sampler=mine, drop_last=True, num_workers=0)
+        # Items come from default_rng([seed, epoch, index]): the batches are the same with any number of workers.
+        return DataLoader(self.crops, batch_size=self.d.batch_size, sampler=mine, drop_last=True,
+                          num_workers=self.d.loader_workers, pin_memory=self.device.type == "cuda")
 
     # ---- the step
     def step(self, batch: dict, epoch: int, index: int) -> tuple[dict, bool]:
-        """The learning rate of this step, the objective's loss, clipped gradients, AdamW and the EMA; a
-        non-finite loss or gradient norm changes nothing."""
-        gen = torch.Generator().manual_seed(
-            int(np.random.default_rng([self.cfg.seed, epoch, index, self.rank]).integers(2**62)))
+        gen = torch.Generator().manual_seed(int(np.random.default_rng([self.cfg.seed, epoch, index, self.rank])
+                                                .integers(2 ** 62)))
         for g in self.optimizers.param_groups:
-            g["lr"] = self.s.lr * lr_factor(epoch * self.steps_per_epoch + index, self.total_steps, self.warmup_steps)
-        loss, terms = self.objective(self.net, batch, gen, self.device, self.autocast)
-        if not apply_update(loss, self.optimizers, self.params, self.grad_clip):
-            return {}, False
-        if self.ema is not None:
+            g["lr"] = self.d.lr * lr_factor(epoch * self.steps_per_epoch + index, self.total_steps, self.d.warmup_steps)
+        x, cond, target, scale = batch["x"], batch["cond"], batch["target"], batch["scale"]
+        feats, est = self.model.estimate(x)
+        y = (target - est) / self.form.residual_scale
+        t = self.form.draw_t(x.shape[0], self.focus, gen).to(self.device)
+        z = self.noise_sched.add_noise(y, torch.randn(y.shape, generator=gen).to(self.device), t)
+        with torch.autocast(self.device.type, dtype=self.autocast, enabled=self.autocast is not None):
+            out, _ = self.net(x, cond, z, t, base=(feats, est))
+        per_crop, terms = relative_loss(out.float(), est, target, scale, self.d.hdr_weight)
+        w = snr_weight(self.noise_sched, t, self.form.snr_gamma, self.form.snr_floor).to(self.device)
+        loss = (w * per_crop).mean()
+        ok = apply_update(loss, self.optimizers, self.params, self.d.grad_clip)
+        if ok and self.ema is not None:
             self.ema.step(self.state.parameters())
-        return {"loss": float(loss.detach()), "mse": float(terms["mse"]), "vb": float(terms["vb"])}, True
+        return {"loss": float(loss.detach()), **{k: float(v) for k, v in terms.items()}}, ok
 
     def entry(self, epoch: int, kept: list[dict], skipped: int) -> dict:
-        """Mean loss and its terms over the epoch's finite steps (nan / None without any)."""
-        mean = {k: float(np.mean([t[k] for t in kept])) if kept else None for k in ("loss", "mse", "vb")}
-        return {"epoch": epoch + 1, "train_loss": float("nan") if mean["loss"] is None else mean["loss"],
-                "mse": mean["mse"], "vb": mean["vb"], "skipped_steps": skipped,
+        mean = {k: float(np.mean([t[k] for t in kept])) for k in (kept[0] if kept else {})}
+        return {"epoch": epoch + 1, "train_loss": mean.pop("loss", None), "terms": mean, "steps": len(kept) + skipped,
+                "skipped_steps": skipped,
                 "lr": self.optimizers.param_groups[0]["lr"]}
 
     def initial_entry(self) -> dict:
-        return {"epoch": 0, "train_loss": None, "mse": None, "vb": None, "skipped_steps": 0, "lr": 0.0}
+        return {"epoch": 0, "train_loss": None, "terms": {}, "skipped_steps": 0, "lr": 0.0}
 
-    # ---- validation: PSNR (x/(1+x)) of the configured sampler, beside the noisy input's and the estimate's
+    # ---- validation and files
     def validate(self) -> dict | None:
         if not self.val:
             return None
-        f, form = self.cfg.diffusion, self.form
-        skip = f.val_skip if form.paper else f.skip
         self.model.eval()
-        outs = []
-        for it in self.val["items"]:
-            noisy, aux, image = (it[k][None].to(self.device) for k in ("noisy", "aux", "image"))
-            out = sample(self.model, noisy, aux, image=image, formulation=form, skip=skip, seed=self.cfg.seed,
-                         threshold_ratio=f.threshold_ratio, autocast_dtype=self.autocast, variance=f.variance)
-            outs.append(out[0].float().cpu())
+        rows = []
+        for it in self.val:
+            x, cond = it["x"].to(self.device), it["cond"].to(self.device)
+            mean, _, est = sample(self.model, x, cond, self.form, seed=self.cfg.seed)
+            H, W = it["ref"].shape[:2]
+            out = oidn_net.network_output(mean, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            stock = oidn_net.network_output(est, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            rows.append((it["spp"], min(psnr(out, it["ref"]), PSNR_CEILING), min(psnr(stock, it["ref"]), PSNR_CEILING)))
         self.model.train()
-        return {"psnr": self.val["score"](outs), **self.val["base"], "skip": skip,
-                "steps": PAPER_STEPS if form.paper else f.steps}
+        out = {"psnr": float(np.mean([r[1] for r in rows])), "estimate_psnr": float(np.mean([r[2] for r in rows])),
+               "images": len(rows), "steps": self.form.steps}
+        for spp in sorted({r[0] for r in rows}):
+            out[f"gain_spp{spp}"] = float(np.mean([r[1] - r[2] for r in rows if r[0] == spp]))
+        return out
 
     def evaluation(self):
-        return ema_weights(self.ema, self.state)   # validated and saved: the EMA of the weights, if any
+        return ema_weights(self.ema, self.state)
 
-    def score(self, entry: dict) -> float:
-        """Higher is better: validation PSNR, else minus the training loss."""
-        return entry["val"]["psnr"] if entry["val"] else -entry["train_loss"]
+    def score(self, entry: dict) -> float | None:
+        return entry["val"]["psnr"] if entry["val"] else None
 
-    # ---- files
     def save_best(self, entry: dict) -> None:
-        save(self.folder, self.model, self.cfg, str(self.spp),
-             {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"]})
+        save(self.folder, self.model, self.blob, self.base_what, self.network, self.form, self.spps,
+             {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
+              "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
+              # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
+              **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
 
     def write_history(self, history: list, best: dict | None) -> None:
-        plot_history(self.folder / "loss.png", history, self.title or self.name)
         atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,
                                                        "machine": run_machine(self.device, self.world)})
-
-    def checkpoint(self) -> tuple[dict, dict | None]:
-        if self.ema is None:
-            return {}, None
-        return ({"ema_step": self.ema.optimization_step},
-                {f"ema.{i}": p for i, p in enumerate(self.ema.shadow_params)})
+        curves = {"train loss": [(h["epoch"], h["train_loss"]) for h in history if h["train_loss"] is not None]}
+        gain = {"val PSNR - OIDN (dB)": [(h["epoch"], h["val"]["psnr"] - h["val"]["estimate_psnr"])
+                                        for h in history if h.get("val")]}
+        plot_curves(self.folder / "loss.png", curves, f"Control Module on OIDN ({self.cfg.store})", right=gain,
+                    right_label="dB")
 
     def resume(self, record: dict, extra: dict) -> None:
         if self.ema is not None:
             self.ema.shadow_params = [extra[f"ema.{i}"].to(self.device) for i in range(len(self.ema.shadow_params))]
             self.ema.optimization_step = int(record["ema_step"])
 
-    def finish(self) -> None:
-        if self.world > 1:
-            _check_in_sync(self.state, self.world)
+    def checkpoint(self) -> tuple[dict, dict | None]:
+        if self.ema is None:
+            return {}, None
+        return {"ema_step": self.ema.optimization_step}, {f"ema.{i}": p for i, p in enumerate(self.ema.shadow_params)}
 
-    # ---- report
+    def when_done(self, history: list, best: dict | None) -> None:
+        if history:
+            self.write_history(history, best)
+
+    def finish(self) -> None:
+        """σ calibrated on the validation frames with the best weights (``calibrate``), into model.json."""
+        if self.rank == 0 and self.val and (self.folder / "model.json").exists():
+            record = read_json(self.folder / "model.json", "model record")
+            record["sigma"] = calibrate(load_denoiser(self.folder, str(self.device)), self.val, self.cfg.seed)
+            atomic_write_json(self.folder / "model.json", record)
+            if not self.quiet:
+                sg = record["sigma"]
+                print(f"{self.name}: σ scale {sg['scale']:.3g} fitted on {sg['pixels']} validation pixels "
+                      f"({sg['steps']} steps, {sg['samples']} samples)", flush=True)
+
     def epoch_line(self, entry: dict) -> str:
-        v = entry["val"]
-        return (f"{self.name} epoch {entry['epoch']}: loss {entry['train_loss']:.4f} (mse {entry['mse']:.4f}, "
-                f"vb {entry['vb']:.4f})" + (f", val PSNR {v['psnr']:.2f} dB (noisy {v['noisy_psnr']:.2f})" if v else ""))
+        v, loss = entry["val"], entry["train_loss"]
+        line = f"{self.name} epoch {entry['epoch']}: loss " + ("n/a" if loss is None else f"{loss:.4f}")
+        line += "".join(f", {k} {x:.4f}" for k, x in entry.get("terms", {}).items())
+        if v:
+            gains = " ".join(f"{k[8:]} {v[k]:+.3f}" for k in v if k.startswith("gain_spp"))
+            line += f"; val PSNR {v['psnr']:.3f} dB (OIDN {v['estimate_psnr']:.3f}; gain by spp: {gains})"
+        return line
 
     def best_text(self, best: dict) -> str:
-        if best.get("val"):
-            v = best["val"]
-            return f"best epoch {best['epoch']}: val PSNR {v['psnr']:.2f} dB vs noisy {v['noisy_psnr']:.2f} dB"
-        return super().best_text(best)
-
-    def summary_fields(self) -> dict:
-        return {"name": self.name, **({"skipped_steps": self._guard.skipped} if hasattr(self, "_guard") else {})}
+        v = best["val"]
+        return (f"best epoch {best['epoch']}" + (f": val PSNR {v['psnr']:.3f} dB, {v['psnr'] - v['estimate_psnr']:+.3f} "
+                                                 "dB over OIDN" if v else ""))
 
 
-# ---- the data's pieces ---------------------------------------------------------------------------
-
-
-def _training_store(cfg: Config, spp) -> tuple[Store, list[int]]:
-    """The config's store and the sample counts a run for ``spp`` trains on; a clear error without frames."""
-    store = Store(cfg.store)
-    store.training_frames()
-    return store, store.spp_choices(spp)
-
-
-def frame_sides(store: Store) -> list[int]:
-    """The shorter side of each train scene's frames."""
-    return [min(store.scene_manifest(s)["resolution"]) for s in {k.scene for k in store.frames_with("train")}]
-
-
-def fit_crop(crop: int, sides: list[int], multiple: int) -> int:
-    """``crop``, at most the smallest side, rounded down to a multiple of the model's ``multiple``."""
-    crop = min([crop] + sides)
-    crop -= crop % multiple
-    if crop < multiple:
-        raise TrainError(f"frames of {min(sides)} pixels are smaller than the base's minimum side {multiple}")
-    return crop
-
-
-def validation_items(cfg: Config, store: Store, keys: list, spps: list[int]) -> dict | None:
-    """The first ``diffusion.val_frames`` val frames (frame i at ``spps[i % len]``) as model inputs, a scorer
-    (mean PSNR on x/(1+x) against GT_clean) and the noisy input's and first estimate's scores; None without any."""
-    f = cfg.diffusion
-    keys = keys[:f.val_frames]
-    if not keys:
-        return None
-    ds = DenoisePairs(store, keys, spps, crop=None, seed=cfg.seed, tonemap=f.tonemap, estimator=estimator_and_id(cfg)[0])
-    items = [ds[i] for i in range(len(ds))]
-    refs = [from_model(it["target"], f.tonemap).numpy() for it in items]
-
-    def score(images) -> float:
-        return float(np.mean([min(psnr(from_model(im, f.tonemap).numpy(), ref), PSNR_CEILING)
-                              for im, ref in zip(images, refs)]))
-
-    base = {"noisy_psnr": score([it["noisy"] for it in items]), "estimate_psnr": score([it["image"] for it in items]),
-            "frames": len(items), "spp": [spps[i % len(spps)] for i in range(len(items))]}
-    return {"items": items, "score": score, "base": base}
-
-
-# ---- shared by the diffusion runs (this one, the stand-in base's, the OIDN-based one) --------------
+# ---- learning rate, EMA, DDP, precision ------------------------------------------------------------
 
 
 def lr_factor(step: int, total: int, warmup: int) -> float:
@@ -323,10 +325,6 @@ def dist_shutdown() -> None:
         dist.destroy_process_group()   # no barrier: after an error on one rank it could hang
 
 
-def checksum(module: torch.nn.Module) -> float:
-    return float(sum(p.detach().double().sum() for p in module.parameters()))
-
-
 def run_machine(device: torch.device, world: int = 1) -> dict:
     """What a run trained on, for its model card: the machine, torch, the device and the ranks."""
     return {**machine(), "torch": torch.__version__, "device": str(device), "ranks": world}
@@ -353,26 +351,3 @@ def ema_weights(ema, module: torch.nn.Module):
         yield
     finally:
         ema.restore(module.parameters())
-
-
-def _check_in_sync(module: torch.nn.Module, world: int) -> None:
-    import torch.distributed as dist
-    mine = torch.tensor([checksum(module)], dtype=torch.float64)
-    every = [torch.zeros_like(mine) for _ in range(world)]
-    dist.all_gather(every, mine)
-    values = [float(v) for v in every]
-    if max(values) - min(values) > 1e-9 * max(1.0, abs(values[0])):
-        raise TrainError(f"DDP ranks diverged: weight checksums {values}")
-    if dist.get_rank() == 0:
-        print(f"DDP: {world} ranks in sync (weight checksum {values[0]:.6f})", flush=True)
-
-
-def plot_history(path, history: list[dict], title: str) -> None:
-    """The training loss and, where validated, the val PSNR beside the noisy input's."""
-    curves = {"train loss": [(h["epoch"], h["train_loss"]) for h in history
-                             if h["train_loss"] is not None and np.isfinite(h["train_loss"])]}
-    right = {}
-    if any(h.get("val") for h in history):
-        right = {"val PSNR (dB)": [(h["epoch"], h["val"]["psnr"]) for h in history if h.get("val")],
-                 "noisy input PSNR": [(h["epoch"], h["val"]["noisy_psnr"]) for h in history if h.get("val")]}
-    plot_curves(path, curves, title, right=right, right_label="PSNR (dB)")

@@ -1,4 +1,5 @@
-"""The diffusion denoiser on OIDN (train/oidn_control.py, train/oidn_pack.py, train/oidn_refine.py)."""
+"""The diffusion denoiser on OIDN: the network, data, sampler, training and inference (train/model.py,
+data.py, sampler.py, train.py, infer.py)."""
 import json
 import shutil
 import types
@@ -13,12 +14,12 @@ from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.store import Store, sha256
-from mcdenoise.train import oidn_pack, oidn_refine
+from mcdenoise.train import data, infer, model as tmodel, sampler
 from mcdenoise.train.formulation import Formulation
-from mcdenoise.train.oidn_control import ControlledOIDN
+from mcdenoise.train.model import ControlledOIDN
 from tests.helpers import TINY, cli
 
-REFINE_TINY = ["diffusion.base=oidn", "diffusion.epochs=2", "diffusion.crop=16", "diffusion.batch_size=2",
+REFINE_TINY = ["diffusion.base_network=rt_hdr_alb_nrm", "diffusion.epochs=2", "diffusion.crop=16", "diffusion.batch_size=2",
                "diffusion.warmup_steps=1", "diffusion.lr=1e-3", "diffusion.device=cpu", "diffusion.val_frames=1"]
 FORM = Formulation(estimate="oidn", residual_scale=0.02, steps=1)
 
@@ -39,13 +40,13 @@ def any_base(request):
 def _random_inputs(n=2, side=32, seed=0):
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(n, 9, side, side, generator=g) * 0.3
-    cond = torch.rand(n, len(oidn_pack.cond_names()), side, side, generator=g)
+    cond = torch.rand(n, len(data.cond_names()), side, side, generator=g)
     return x, cond
 
 
 def test_the_untrained_controlled_model_is_oidn_exactly(any_base):
     base = any_base
-    model = ControlledOIDN(base, len(oidn_pack.cond_names()))
+    model = ControlledOIDN(base, len(data.cond_names()))
     x, cond = _random_inputs()
     z = torch.randn(2, 3, 32, 32)
     out, est = model(x, cond, z, torch.tensor([999, 10]))
@@ -53,12 +54,12 @@ def test_the_untrained_controlled_model_is_oidn_exactly(any_base):
     assert torch.equal(est, base(x))
     # ... and so is every sampler: any steps, samples, start
     for steps, samples, start in ((1, 1, "estimate"), (3, 2, "estimate"), (2, 1, "noise"), (3, 1, "render")):
-        mean, std, e = oidn_refine.sample(model, x, cond, FORM, steps=steps, start=start, samples=samples, seed=4)
+        mean, std, e = sampler.sample(model, x, cond, FORM, steps=steps, start=start, samples=samples, seed=4)
         assert torch.allclose(mean, e, atol=1e-6) and float(std.max()) < 1e-6
 
 
 def test_the_control_module_gets_a_gradient_and_the_base_none(any_base):
-    model = ControlledOIDN(any_base, len(oidn_pack.cond_names()))
+    model = ControlledOIDN(any_base, len(data.cond_names()))
     x, cond = _random_inputs()
     out, est = model(x, cond, torch.randn(2, 3, 32, 32), torch.tensor([999, 999]))
     (out - est - 0.01).abs().mean().backward()
@@ -80,19 +81,19 @@ def test_inputs_pad_like_oidn_and_mark_missing_groups():
     rng = np.random.default_rng(0)
     buffers = {"color": rng.random((21, 35, 3), dtype=np.float32), "albedo": rng.random((21, 35, 3), dtype=np.float32),
                "normal": rng.random((21, 35, 3), dtype=np.float32)}
-    x, cond, scale = oidn_pack.inputs(buffers, 4)
-    assert x.shape == (9, 32, 48) and cond.shape == (len(oidn_pack.cond_names()), 32, 48)
+    x, cond, scale = data.inputs(buffers, 4)
+    assert x.shape == (9, 32, 48) and cond.shape == (len(data.cond_names()), 32, 48)
     ref = oidn_net.network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
     np.testing.assert_array_equal(x, ref)
-    names = oidn_pack.cond_names()
-    for g in oidn_pack.GROUPS:
+    names = data.cond_names()
+    for g in data.GROUPS:
         assert float(cond[names.index(f"has.{g}")].max()) == 0.0
     assert float(cond[names.index("spp"), 0, 0]) == pytest.approx(2 / 6)
     buffers["color.variance"] = np.ones((21, 35, 3), np.float32)   # a partial group counts as missing
-    _, cond2, _ = oidn_pack.inputs(buffers, 4)
+    _, cond2, _ = data.inputs(buffers, 4)
     np.testing.assert_array_equal(cond, cond2)
     with pytest.raises(Exception, match="needs normal"):
-        oidn_pack.inputs({"color": buffers["color"], "albedo": buffers["albedo"]}, 4)
+        data.inputs({"color": buffers["color"], "albedo": buffers["albedo"]}, 4)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +113,7 @@ def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path
     assert [h["epoch"] for h in hist] == [0, 1, 2]
     assert hist[0]["val"]["psnr"] == hist[0]["val"]["estimate_psnr"]
     assert all(np.isfinite(h["train_loss"]) for h in hist[1:])
-    model, meta = oidn_refine.load(folder)
+    model, meta = tmodel.load(folder)
     assert meta["base_network"] == "rt_hdr_alb_nrm" and (folder / "base.tza").stat().st_size == 1841160
     # the evaluator's method and the denoise command run it
     from mcdenoise.evaluate.methods import Loader
@@ -130,8 +131,8 @@ def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path
     out = tmp_path / "shipped"
     cli("export", "--config", TINY, f"store={store}", f"runs={runs}", *REFINE_TINY, "--spp", "any", "--out", out)
     assert {p.name for p in out.iterdir()} == {"README.md", "base.tza", "control.safetensors", "model.json"}
-    exported = oidn_refine.load_refiner(out, "cpu")
-    run = oidn_refine.load_refiner(folder, "cpu")
+    exported = infer.load_denoiser(out, "cpu")
+    run = infer.load_denoiser(folder, "cpu")
     a, b = exported.denoise(buf, spp=4), run.denoise(buf, spp=4)
     assert np.abs(a - b).max() < 1e-2 * max(1.0, float(b.max()))
     # an input without albedo and normal gets OIDN on its colour, said so, not a crash
@@ -144,7 +145,7 @@ def test_training_starts_at_oidn_and_the_run_is_self_contained(trained, tmp_path
     (folder / "base.tza").write_bytes(bytes(blob))
     try:
         with pytest.raises(CheckpointError, match="base changed"):
-            oidn_refine.load(folder)
+            tmodel.load(folder)
     finally:
         (folder / "base.tza").write_bytes(intact)
 
@@ -154,9 +155,9 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     """diffusion.init: the new run's epoch 0 is the given model (its base and Control Module), not OIDN."""
     store, runs, _ = trained
     folder = runs / "diffusion_sppany"
-    _, meta = oidn_refine.load(folder)
+    _, meta = tmodel.load(folder)
     cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={tmp_path}",
-        *REFINE_TINY, "diffusion.epochs=1", "diffusion.base=", f"diffusion.init={folder}")
+        *REFINE_TINY, "diffusion.epochs=1", f"diffusion.init={folder}")
     hist = json.loads((tmp_path / "diffusion_sppany" / "train.json").read_text())["history"]
     assert hist[0]["val"]["psnr"] == pytest.approx(meta["metrics"]["psnr"], abs=1e-9)
     assert hist[0]["val"]["estimate_psnr"] == pytest.approx(meta["metrics"]["estimate_psnr"], abs=1e-9)
@@ -177,7 +178,7 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     for name, keys in {"same": [], "other": ["diffusion.residual_scale=0.5", "diffusion.steps=3",
                                              "diffusion.t_focus=0.1", "diffusion.train_steps=[9]"]}.items():
         proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
-                   f"runs={tmp_path / name}", *REFINE_TINY, "diffusion.epochs=1", "diffusion.base=",
+                   f"runs={tmp_path / name}", *REFINE_TINY, "diffusion.epochs=1",
                    f"diffusion.init={start}", *keys)
         epoch0[name] = json.loads((tmp_path / name / "diffusion_sppany" / "train.json").read_text())["history"][0]
         assert ("diffusion.residual_scale=0.5" in proc.stdout) == bool(keys)
@@ -198,10 +199,10 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
     store, _ = cleaned
     s = Store(store)
     keys = s.frames("train")[:1]
-    pack = oidn_pack.load_pack(oidn_pack.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
-    plain = oidn_pack.Crops(pack, 16, 4, 0, augment=False, dropout=0.0)
-    aug = oidn_pack.Crops(pack, 16, 4, 0, augment=True, dropout=0.0)
-    names = ["x.%d" % i for i in range(9)] + oidn_pack.cond_names()
+    pack = data.load_pack(data.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
+    plain = data.Crops(pack, 16, 4, 0, augment=False, dropout=0.0)
+    aug = data.Crops(pack, 16, 4, 0, augment=True, dropout=0.0)
+    names = ["x.%d" % i for i in range(9)] + data.cond_names()
     for i in range(4):
         a, b = plain[i], aug[i]
         full_a, full_b = torch.cat([a["x"], a["cond"]]), torch.cat([b["x"], b["cond"]])
@@ -214,9 +215,9 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
         for key in ("color", "albedo", "diffuse_direct"):
             rgb = [names.index(f"{key}.{c}") for c in "RGB"]
             assert torch.allclose(full_a[rgb].double().sum((1, 2))[perm], full_b[rgb].double().sum((1, 2)), rtol=1e-5)
-    dropped = oidn_pack.Crops(pack, 16, 4, 0, augment=False, dropout=1.0)[0]
-    names_c = oidn_pack.cond_names()
-    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in oidn_pack.GROUPS)
+    dropped = data.Crops(pack, 16, 4, 0, augment=False, dropout=1.0)[0]
+    names_c = data.cond_names()
+    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in data.GROUPS)
     assert float(dropped["cond"][names_c.index("color.variance")].abs().max()) == 0
     assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0
 
@@ -227,12 +228,12 @@ def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base, streng
     (the evaluator's ours_s3_k4 row) covers the median error exactly; strength scales the samples' spread
     and the mean's change, not the error, so the fit is made at that strength."""
     torch.manual_seed(0)
-    model = ControlledOIDN(base, len(oidn_pack.cond_names()))
+    model = ControlledOIDN(base, len(data.cond_names()))
     with torch.no_grad():
         for p in model.control.parameters():
             p.add_(0.02 * torch.randn_like(p))
     meta = {"formulation": FORM.record(), "strength": strength}
-    refiner = oidn_refine.OIDNRefiner(model, meta, torch.device("cpu"))
+    refiner = infer.Denoiser(model, meta, torch.device("cpu"))
     rng = np.random.default_rng(1)
     items, buffers = [], []
     for i in range(2):
@@ -240,16 +241,16 @@ def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base, streng
         buf = {"color": rng.gamma(1.0, 0.4, (32, 32, 3)).astype(np.float32),
                "albedo": rng.random((32, 32, 3)).astype(np.float32),
                "normal": (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)}
-        x, cond, scale = oidn_pack.inputs(buf, 4)
+        x, cond, scale = data.inputs(buf, 4)
         items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                       "ref": buf["color"] * 0.5 + 0.1})
         buffers.append(buf)
-    fit = oidn_refine.calibrate(refiner, items)
+    fit = infer.calibrate(refiner, items)
     assert fit["pixels"] > 1000 and fit["scale"] > 0 and fit["strength"] == strength
     refiner.sigma_scale = fit["scale"]
     ratios = []
     for buf, it in zip(buffers, items):
-        hdr, s = refiner.denoise(buf, spp=4, steps=oidn_refine.SIGMA_STEPS, samples=oidn_refine.SIGMA_SAMPLES,
+        hdr, s = refiner.denoise(buf, spp=4, steps=infer.SIGMA_STEPS, samples=infer.SIGMA_SAMPLES,
                                  with_std=True)
         e, s = np.abs(hdr - it["ref"]).mean(2).ravel(), s.mean(2).ravel()
         ratios.append(e[s > 0] / s[s > 0])
@@ -266,8 +267,8 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
     shutil.copytree(store, other)
     cfg = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY,
                              f"diffusion.extra_stores=[{other}]"])
-    one = oidn_refine.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'one'}"])).train_pack(True)
-    both = oidn_refine.StoreSource(cfg).train_pack(True)
+    one = data.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'one'}"])).train_pack(True)
+    both = data.StoreSource(cfg).train_pack(True)
     n, frames = len(one["spp"]), len(one["target"])
     assert len(both["spp"]) == 2 * n and len(both["target"]) == 2 * frames
     extra = tmp_path / "runs" / "pack" / "train_extra0_oidn_base.safetensors"
@@ -277,7 +278,7 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
         assert torch.equal(both["target"][both["frame"][n + i]], one["target"][one["frame"][i]])
         assert torch.equal(both["x"][n + i], one["x"][i])
     stamp = extra.stat().st_mtime_ns
-    oidn_refine.StoreSource(cfg).train_pack(True)
+    data.StoreSource(cfg).train_pack(True)
     assert extra.stat().st_mtime_ns == stamp          # the same store's pack is reused, not rebuilt
     with pytest.raises(ConfigError, match="extra_stores.*nope.*no dataset"):
         load_config(TINY, [f"store={store}", *REFINE_TINY, f"diffusion.extra_stores=[{tmp_path / 'nope'}]"])
@@ -305,7 +306,7 @@ def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_m
     assert not (runs / "pack" / "train_oidn_base.safetensors").exists()
     key = Store(store).frames("val")[0]
     buf = Store(store).read(key.scene, key.frame, 4)
-    base_only = oidn_refine.load_refiner(folder, "cpu", base_only=True)
+    base_only = infer.load_denoiser(folder, "cpu", base_only=True)
     assert base_only.clean_aux
     # OIDN in its final-frame mode running this network (at quality high its own choice is the large one)
     blob = (folder / "base.tza").read_bytes()
@@ -341,11 +342,11 @@ def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, t
         save_file(state, str(moved / "control.safetensors"), f.metadata())
     key = Store(store).frames("val")[0]
     buf = Store(store).read(key.scene, key.frame, 4)
-    den = oidn_refine.load_refiner(moved, "cpu")
+    den = infer.load_denoiser(moved, "cpu")
     full = den.denoise(buf, spp=4, strength=1.0)
     assert den.last_clamped == 0      # (a clamped pixel is the same at every strength that reaches the clamp)
     half, none = (den.denoise(buf, spp=4, strength=k) for k in (0.5, 0.0))
-    base = oidn_refine.load_refiner(moved, "cpu", base_only=True).denoise(buf, spp=4)
+    base = infer.load_denoiser(moved, "cpu", base_only=True).denoise(buf, spp=4)
     assert np.abs(full - base).max() > 0.05 * float(base.max())
     np.testing.assert_allclose(none, base, rtol=1e-5, atol=1e-6)
     lo, hi = np.minimum(base, full), np.maximum(base, full)
@@ -381,8 +382,8 @@ def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, t
                *REFINE_TINY, "diffusion.val_frames=0", check=False)
     assert proc.returncode != 0 and "val_frames" in proc.stderr and not (tmp_path / "none").exists()
     assert "strength" not in json.loads((exported / "model.json").read_text())
-    np.testing.assert_array_equal(oidn_refine.load_refiner(out, "cpu").denoise(buf, spp=4),
-                                  oidn_refine.load_refiner(exported, "cpu").denoise(buf, spp=4, strength=0.5))
+    np.testing.assert_array_equal(infer.load_denoiser(out, "cpu").denoise(buf, spp=4),
+                                  infer.load_denoiser(exported, "cpu").denoise(buf, spp=4, strength=0.5))
     # ... and denoise --strength on the command line
     cli("denoise", "--config", TINY, f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY, "--spp", "4",
         "--frame", f"{key.scene}/{key.frame:03d}", "--out", tmp_path / "half.exr", "--strength", "0.5", "--seed", "0")

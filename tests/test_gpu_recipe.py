@@ -1,0 +1,80 @@
+"""The GPU recipe (train/gpu_recipe.py): what it carries, and the whole recipe on the CPU in seconds."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.train import gpu_recipe
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_the_carried_packages_are_what_the_gpu_image_lacks():
+    """Every carried package is pinned as requirements.lock pins it and none is in the image's list (a
+    second copy of an image package broke the image's own once: huggingface_hub beside peft)."""
+    pins = gpu_recipe.check_carried()
+    locked = gpu_recipe.locked_versions()
+    assert [p.split("==")[0] for p in pins] == list(gpu_recipe.CARRIED)
+    assert all(locked[gpu_recipe.normalise(p.split("==")[0])] == p.split("==")[1] for p in pins)
+    image = gpu_recipe.image_packages()
+    assert {"torch", "numpy", "safetensors", "huggingface-hub", "peft", "pyyaml", "tqdm", "scipy"} <= image
+    assert not image & {gpu_recipe.normalise(n) for n in gpu_recipe.CARRIED}
+    with pytest.raises(TrainError, match="already has huggingface_hub"):
+        gpu_recipe.check_carried(("diffusers", "huggingface_hub"))
+
+
+def test_mitsuba_is_cut_to_the_variants_and_plugins_the_renderer_uses():
+    keep = gpu_recipe.keep_member
+    assert keep("mitsuba/cuda_ad_rgb.cpython-312-x86_64-linux-gnu.so")
+    assert keep("mitsuba/scalar_rgb.cpython-312-x86_64-linux-gnu.so")
+    assert not keep("mitsuba/llvm_ad_rgb.cpython-312-x86_64-linux-gnu.so")
+    assert not keep("mitsuba/cuda_ad_spectral.cpython-312-x86_64-linux-gnu.so")
+    assert not keep("mitsuba/scalar_spectral.cpython-312-x86_64-linux-gnu.so")
+    assert not keep("mitsuba/data/srgb.coeff") and not keep("mitsuba/data/sunsky/sunsky_datasets.bin")
+    assert not keep("mitsuba/plugins/volpath.so") and not keep("mitsuba/include/mitsuba/core/fwd.h")
+    for plugin in ("path", "principled", "roughdielectric", "area", "envmap", "hdrfilm", "box", "moment", "aov"):
+        assert keep(f"mitsuba/plugins/{plugin}.so")
+    assert keep("mitsuba/libmitsuba.so") and keep("mitsuba/python/util.py")
+    assert keep("diffusers/schedulers/scheduling_ddim.py") and not keep("diffusers/__pycache__/x.pyc")
+    assert not keep("drjit/__init__.pyi")
+
+
+def test_the_aux_networks_travel_as_tza_files(tmp_path):
+    """gpu-prepare --no-wheels writes OIDN's aux networks (pyoidn does not travel) and carried.json."""
+    record = gpu_recipe.prepare(tmp_path / "gpu", wheels=False)
+    assert set(record["files"]) == {"oidn/rt_alb_large.tza", "oidn/rt_nrm_large.tza"}
+    assert json.loads((tmp_path / "gpu" / "carried.json").read_text())["packages"] == gpu_recipe.check_carried()
+    assert all((tmp_path / "gpu" / f).stat().st_size == n for f, n in record["files"].items())
+
+
+@pytest.mark.slow
+def test_the_whole_recipe_runs_on_the_cpu(tmp_path):
+    """``DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash train/gpu_recipe.sh``: every phase runs, the files
+    that come back are there (a model folder denoise loads, at most 8 files), the curve starts at the model it
+    trained on."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    env = {**os.environ, "DEVICE": "cpu", "CONFIG": "configs/tiny.yaml", "MINUTES": "0.2", "OUT": str(out),
+           "WORK": str(work), "PYTHON": sys.executable}
+    proc = subprocess.run(["bash", "train/gpu_recipe.sh", "--batch", "2", "--loader-workers", "1", "--workers", "1"],
+                          cwd=ROOT, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["control_fp16.safetensors", "logs.txt", "model.json", "report.md", "result.json"] or \
+        files == ["control_fp16.safetensors", "logs.txt", "loss.png", "model.json", "report.md", "result.json"]
+    r = json.loads((out / "result.json").read_text())
+    assert list(r["phases"]) == ["render_val", "render", "clean", "train", "bench"]
+    render = r["phases"]["render"]
+    assert render["splits"]["val"] >= 1 and render["splits"]["train"] >= 1 and render["splits"]["test"] == 0
+    curve = r["phases"]["train"]["curve"]
+    assert curve[0]["epoch"] == 0 and curve[0]["mpix"] == 0 and len(curve) >= 2 and curve[-1]["mpix"] > 0
+    assert {b["what"] for b in r["bench"]} >= {"denoise end to end (fp32)", "ours network, 1 step (fp32)",
+                                              "base network alone (fp32)"}
+    assert all(b["seconds"] > 0 for b in r["bench"])
+    # what comes back is a model folder: the shipped base beside the trained Control Module
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["format"] == "mcdenoise-oidn-control" and meta["base_network"] == "rt_hdr_calb_cnrm_large"
+    assert "# GPU recipe on CPU only" in (out / "report.md").read_text()
