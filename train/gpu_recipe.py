@@ -25,9 +25,9 @@ after every phase, so a run cut short still says how far it got:
    val frames after every epoch, the best kept; for the time left;
 4. **bench**: ``denoise`` end to end and the networks alone at 256², 1080p and 4K, fp32 and fp16.
 
-Back in ``--out`` (at most 8 files under 16 MiB): ``control_fp16.safetensors`` and ``model.json`` (with
-``base.tza`` from the shipped model, a model folder ``pipeline denoise --model`` loads), ``report.md``,
-``result.json`` (every timing, the validation curve against megapixels trained), ``loss.png``, ``logs.txt``.
+Back in ``--out`` (at most 8 files under 16 MiB): a model folder (``control.safetensors`` in float16,
+``model.json``, ``base.tza``: copy it to ``train/candidates/<name>`` and score it), ``report.md``, ``result.json``
+(every timing, the validation curve against megapixels trained), ``loss.png`` and ``logs.txt``.
 """
 from __future__ import annotations
 
@@ -203,7 +203,8 @@ class Recipe:
         return min(self.s.crop, min(w, h) // 16 * 16)
 
     def pack_model(self, run: Path) -> None:
-        """The run's best Control Module in float16 (half the bytes back) and its model.json."""
+        """``--out`` as a model folder: the run's best Control Module in float16 (half the bytes back; ``load``
+        reads it as float32), its model.json and the frozen base it was trained on."""
         import torch
         from safetensors.torch import load_file
 
@@ -211,9 +212,10 @@ class Recipe:
 
         from .model import FORMAT
         control = load_file(str(run / "control.safetensors"))
-        save_safetensors(self.out / "control_fp16.safetensors",
+        save_safetensors(self.out / "control.safetensors",
                          {k: v.to(torch.float16).contiguous() for k, v in control.items()}, {"format": FORMAT})
         shutil.copy(run / "model.json", self.out / "model.json")
+        shutil.copy(run / json.loads((run / "model.json").read_text())["base"], self.out / "base.tza")
         if (run / "loss.png").exists():
             shutil.copy(run / "loss.png", self.out / "loss.png")
 
