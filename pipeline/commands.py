@@ -22,6 +22,13 @@ def with_config(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def with_defines(p):
+    """``-D NAME=VALUE`` (repeatable): the Mitsuba scene parameters ``$NAME`` of the XML scenes given."""
+    p.add_argument("-D", dest="defines", action="append", default=None, metavar="NAME=VALUE",
+                   help="a value for the scene parameter $NAME of the XML (as Mitsuba's -D); repeat for several")
+    return p
+
+
 def with_quiet(p: argparse.ArgumentParser, text: str | None = None) -> argparse.ArgumentParser:
     """Add --quiet, the flag of every subcommand that reports progress (``text``: its help, if any)."""
     p.add_argument("--quiet", action="store_true", help=text)
