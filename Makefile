@@ -21,9 +21,10 @@ MODEL      ?= diffusion
 SHARD      ?=
 STAMP      := $(VENV)/.installed
 
-MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES
-# Words without '=' are the rest of a multi-word variable (SCENES="a.xml b.xml"), not overrides.
-OVERRIDES  := $(strip $(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a)))))
+MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES DEFINES
+# Words without '=' are the rest of a multi-word variable (SCENES="a.xml b.xml"), not overrides; nor are
+# the scene parameters of DEFINES="spp=64 res=256" (its words after the first).
+OVERRIDES  := $(strip $(filter-out $(DEFINES),$(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))))
 RUN        := $(PY) -m pipeline
 
 .PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect verify plan bench test test-fast clean distclean
@@ -93,9 +94,10 @@ train: setup
 # Every method on the test split per spp (eval.spp: 4, 16, 64) with 95 % intervals and paired
 # bootstrap differences, the stress presets and external scenes as their own groups: tables, error
 # vs time, crops in reports/<run>/. SPP=4 limits it to one sample count; SCENES="a.xml b.xml"
-# renders Mitsuba 3 scenes into the store (split 'external') first and reports them separately.
+# renders Mitsuba 3 scenes into the store (split 'external') first and reports them separately;
+# DEFINES="spp=64 res=256" gives their scene parameters ($spp, $res; Mitsuba's -D).
 eval: setup
-	$(RUN) eval --config $(CONFIG) $(OVERRIDES) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(foreach s,$(SCENES),--scene $(s))
+	$(RUN) eval --config $(CONFIG) $(OVERRIDES) $(if $(filter command line,$(origin SPP)),--spp $(SPP)) $(foreach s,$(SCENES),--scene $(s)) $(foreach d,$(DEFINES),-D $(d))
 
 # Every method on synthetic edge cases (fireflies, NaN/Inf, black, 1e5, sizes up to 1920x1080).
 stability: setup

@@ -4,7 +4,7 @@
 """
 from __future__ import annotations
 
-from mcdenoise.pipeline.commands import config, with_config, with_quiet
+from mcdenoise.pipeline.commands import config, with_config, with_defines, with_quiet
 from mcdenoise.pipeline.config import ConfigError
 
 
@@ -16,6 +16,7 @@ def add_commands(sub) -> None:
     p.add_argument("--scene", action="append", default=None, metavar="XML", dest="scenes",
                    help="a Mitsuba 3 scene to render into the store (split 'external') and report separately; "
                         "repeat for several")
+    with_defines(p)
     p.add_argument("--out", default=None, help="report folder (default: eval.out or reports/<runs name>)")
     with_quiet(p)
     p.set_defaults(fn=_eval)
@@ -27,6 +28,8 @@ def add_commands(sub) -> None:
 
 
 def _eval(args) -> int:
+    from mcdenoise.render.external import parse_defines
+
     from .run import run_eval
     spps = None
     if args.spp:
@@ -34,7 +37,10 @@ def _eval(args) -> int:
             spps = [int(v) for v in args.spp.split(",") if v.strip()]
         except ValueError:
             raise ConfigError(f"--spp {args.spp!r}: expected sample counts such as 4 or 4,16,64") from None
-    run_eval(config(args), spps=spps, scenes=args.scenes, out=args.out, quiet=args.quiet)
+    if args.defines and not args.scenes:
+        raise ConfigError("-D sets parameters of the XML scenes given with --scene; no --scene was given")
+    run_eval(config(args), spps=spps, scenes=args.scenes, out=args.out, quiet=args.quiet,
+             defines=parse_defines(args.defines))
     return 0
 
 

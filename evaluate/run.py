@@ -350,7 +350,7 @@ def _time_vs_error(spp, keys, rows, equal, costs, mc_mean) -> list[dict]:
 
 
 def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | None = None, out: str | None = None,
-             quiet: bool = False) -> dict:
+             quiet: bool = False, defines: dict[str, str] | None = None) -> dict:
     t0 = time.perf_counter()
     e = cfg.eval
     check_names(e.methods)
@@ -362,7 +362,7 @@ def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | Non
     if scenes:
         from mcdenoise.render.external import render_scene
         for xml in scenes:
-            render_scene(xml, cfg.store, cfg)
+            render_scene(xml, cfg.store, cfg, defines=defines)
         store = open_store(cfg)
     groups = frame_groups(cfg, store)
     if scenes:

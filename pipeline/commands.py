@@ -22,6 +22,13 @@ def with_config(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def with_defines(p):
+    """``-D NAME=VALUE`` (repeatable): the Mitsuba scene parameters ``$NAME`` of the XML scenes given."""
+    p.add_argument("-D", dest="defines", action="append", default=None, metavar="NAME=VALUE",
+                   help="a value for the scene parameter $NAME of the XML (as Mitsuba's -D); repeat for several")
+    return p
+
+
 def with_quiet(p: argparse.ArgumentParser, text: str | None = None) -> argparse.ArgumentParser:
     """Add --quiet, the flag of every subcommand that reports progress (``text``: its help, if any)."""
     p.add_argument("--quiet", action="store_true", help=text)
@@ -63,6 +70,8 @@ def add_commands(sub) -> None:
     with_quiet(p, "only the summary line")
     p.add_argument("--bytes", type=int, default=0, metavar="N",
                    help="instead of checking: bytes per channel group of N frames, as stored and re-encoded compact")
+    p.add_argument("--encodings", type=int, default=0, metavar="N",
+                   help="instead of checking: bytes, write and read seconds per frame of each encoding on N frames")
     p.set_defaults(fn=_verify)
 
 
@@ -83,7 +92,10 @@ def _config(args) -> int:
 
 
 def _verify(args) -> int:
-    from .verify import bytes_table, measure_bytes, run_verify
+    from .verify import bytes_table, encodings_table, measure_bytes, measure_encodings, run_verify
+    if args.encodings:
+        print(encodings_table(measure_encodings(args.store, args.encodings)))
+        return 0
     if args.bytes:
         print(bytes_table(measure_bytes(args.store, args.bytes)))
         return 0

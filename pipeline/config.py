@@ -202,16 +202,17 @@ class RenderConfig(Section):
     rr_depth: int = doc("Path depth at which Russian roulette starts.", 5)
     features: str = doc("'auto': compute only the features the scene's materials can produce; 'all': every feature.", "auto")
     omit_constant: bool = doc("Leave out channels that are constant over a frame; the EXR header records the constant.", True)
-    encoding: str = doc("How new store images are written (docs/store.md, 'Bytes per channel group'): 'compact' "
-                        "(the beauty summed from its components, variances and depth float32 with 5 and 10 "
-                        "mantissa bits, ZSTD; needs OpenEXR >= 3.5 to read) or 'exact' (every value as "
-                        "rendered, ZIP, readable by any OpenEXR tool). Either reads the same way.", "compact")
+    encoding: str = doc("How new store images are written (docs/store.md, 'Encodings'): 'compact' (the beauty "
+                        "summed from its components, variances and depth float32 with 5 and 10 mantissa bits, "
+                        "ZIP: any OpenEXR reader opens it), 'compact-zstd' (the same values with ZSTD: smaller, "
+                        "needs OpenEXR >= 3.5 to read) or 'exact' (every value as rendered, ZIP). All read "
+                        "the same way.", "compact")
     threads: int = doc("drjit worker threads per render process (0: all cores).", 0)
 
 
     def check(self, bad: Bad) -> None:
         self.one_of(bad, "features", ("auto", "all"))
-        self.one_of(bad, "encoding", ("compact", "exact"))
+        self.one_of(bad, "encoding", ("compact", "compact-zstd", "exact"))
         self.at_least(bad, 1, "max_depth")
 
 

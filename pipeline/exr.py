@@ -4,18 +4,23 @@ An image holds a set of schema buffers (``pipeline.schema``), each with its vari
 that are constant over the frame are left out when ``omit_constant`` is set; the header attribute
 ``mcdenoise`` (JSON) records their values, and ``read_image`` restores them, so a reader never
 sees a difference. Radiance and variance are float32; features are stored in the schema's dtype
-(half for albedo/normal/roughness/...). Compression is lossless (ZIP or ZSTD): never DWA/B44.
+(half for albedo/normal/roughness/...). Compression is lossless (ZIP, or ZSTD on request): never DWA/B44.
 
-Two encodings (``ENCODINGS``; docs/store.md, "Bytes per channel group", has the measurements):
+Two encodings of the values (``ENCODINGS``; docs/store.md, "Bytes per channel group", has the
+measurements), each written with a lossless compression (``STORE_ENCODINGS``: ``render.encoding``):
 
 - ``exact``: every value as rendered, ZIP; a format version 2 record, what every store held
-  before the compact encoding existed (and what any OpenEXR reader opens);
+  before the compact encoding existed;
 - ``compact`` (the store's default, format version 3, the record's ``encoding`` says how): the
   beauty is left out when it equals the sum of the radiance components within
   ``BEAUTY_TOLERANCE`` (the reader sums them, ``schema.beauty_from_components``); variances and
   depth stay float32 with their mantissa rounded to ``MANTISSA_BITS`` (relative error at most
-  2^-(bits+1)), so ZSTD compresses them; the radiance components and the half features are
-  stored exactly. ZSTD needs OpenEXR >= 3.5 to read.
+  2^-(bits+1)), so they compress well; the radiance components and the half features are stored
+  exactly. ZIP by default, which every OpenEXR reader opens (2.x and 3.x); ``compact-zstd``
+  writes the same values with ZSTD, smaller but readable only with OpenEXR >= 3.5.
+
+Images for people (``write_output``: a denoiser's result) store every channel, constant or not, with
+ZIP, so any EXR tool sees R, G, B; only the store leaves constant channels out.
 
 Every problem with a file raises ``StoreError`` naming the path and, where it applies, the
 channel and what was expected.
@@ -76,7 +81,13 @@ VOLATILE_KEYS = ("render_seconds",)
 MAGIC = b"\x76\x2f\x31\x01"
 # EXR compression code -> (name, scanlines per chunk); only lossless ones are accepted.
 LOSSLESS = {0: ("NO", 1), 1: ("RLE", 1), 2: ("ZIPS", 1), 3: ("ZIP", 16), 4: ("PIZ", 32), 13: ("ZSTD", 1)}
-COMPRESSION = {"compact": "ZSTD", "exact": "ZIP"}
+# render.encoding -> (the values' encoding, the file's compression). ZIP is the default since every
+# OpenEXR reader in use decodes it (2.x, 3.0-3.4: Blender, Nuke, OpenImageIO builds); ZSTD came
+# with OpenEXR 3.5 (docs/compatibility.md).
+STORE_ENCODINGS = {"compact": ("compact", "ZIP"), "compact-zstd": ("compact", "ZSTD"), "exact": ("exact", "ZIP")}
+# The compressions an image of each encoding may have (ZSTD: compact images of stores written before
+# ZIP became the default, or with compact-zstd).
+COMPRESSIONS = {"compact": ("ZIP", "ZSTD"), "exact": ("ZIP",)}
 PIXEL_TYPES = {1: np.dtype(np.float16), 2: np.dtype(np.float32)}   # 0 (uint) is never written
 
 
@@ -261,18 +272,23 @@ def _add_layers(path: Path, channels: dict[str, np.ndarray], layers: dict[str, n
 
 def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
                 meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None,
-                encoding: str = "exact") -> dict:
+                encoding: str = "exact", compression: str | None = None) -> dict:
     """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
 
     ``constants`` maps keys that were not computed at all (pruned features) to their value.
     ``layers``: extra HxWx3 float32 layers of ``schema.OUTPUT_LAYERS`` (a denoiser's ``std``), written
     as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
-    ``encoding``: one of ``ENCODINGS`` (module docstring); 'exact' writes what this function always
-    wrote (a version 2 record, ZIP).
+    ``encoding``: one of ``STORE_ENCODINGS`` (module docstring); 'exact' writes what this function always
+    wrote (a version 2 record, ZIP). ``compression``: another lossless one than the encoding's
+    (``LOSSLESS`` names; measurements).
     Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
     """
-    if encoding not in ENCODINGS:
-        raise StoreError(f"{path}: encoding {encoding!r} is not one of {', '.join(ENCODINGS)}")
+    if encoding not in STORE_ENCODINGS:
+        raise StoreError(f"{path}: encoding {encoding!r} is not one of {', '.join(STORE_ENCODINGS)}")
+    encoding, default_compression = STORE_ENCODINGS[encoding]
+    compression = compression or default_compression
+    if compression not in {name for name, _ in LOSSLESS.values()}:
+        raise StoreError(f"{path}: compression {compression!r} is not a lossless EXR compression")
     constants = dict(constants or {})
     buffers = _schema_order({k.removesuffix(".variance") for k in list(arrays) + list(constants)})
     shape, channels, omitted = _buffer_channels(path, buffers, arrays, constants, omit_constant, encoding)
@@ -281,7 +297,8 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     if encoding == "compact":
         derived = _derive_beauty(path, buffers, channels, omitted, shape)
         record.update(version=FORMAT_VERSION, encoding={"name": encoding, "beauty": "sum" if derived else "stored",
-                                                        "mantissa_bits": dict(MANTISSA_BITS)})
+                                                        "mantissa_bits": dict(MANTISSA_BITS),
+                                                        "compression": compression})
     if not channels:
         # OpenEXR needs at least one channel: keep one constant channel (the beauty's red if it has one).
         first = schema.BY_NAME[buffers[0]].exr_channels[0]
@@ -291,7 +308,7 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
                    **({"layers": sorted(layers)} if layers else {}), **(meta or {})})
     record["checksum"] = checksum(record, channels)
     header = {
-        "compression": getattr(OpenEXR, f"{COMPRESSION[encoding]}_COMPRESSION"),
+        "compression": getattr(OpenEXR, f"{compression}_COMPRESSION"),
         "type": OpenEXR.scanlineimage,
         META_KEY: json.dumps(record, sort_keys=True, allow_nan=False),
     }
@@ -302,6 +319,15 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
 
     atomic_write_bytes(Path(path), write)
     return record
+
+
+def write_output(path: Path, hdr: np.ndarray, meta: dict, layers: dict[str, np.ndarray] | None = None) -> dict:
+    """Write an image for people (a denoiser's HDR result, with its zero variance and ``layers``): every
+    channel stored whatever its values, ZIP, the exact encoding, so that any EXR tool (OpenEXR 2.x and
+    later, OpenImageIO, Blender, Nuke) shows R, G, B, even of a black frame; this project reads it as any
+    of its images."""
+    return write_image(path, {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, omit_constant=False,
+                       layers=layers, encoding="exact")
 
 
 def _derive_beauty(path: Path, buffers: list[str], channels: dict[str, np.ndarray], omitted: dict[str, float],
@@ -426,7 +452,7 @@ def _header_info(attrs: dict, fail) -> dict:
         fail(f"EXR data window {w}x{h} is not a valid size (1..{MAX_SIDE} a side, at most {MAX_PIXELS} pixels)")
     comp = attrs["compression"][1][0]
     if comp not in LOSSLESS:
-        fail(f"EXR compression {comp} is lossy or unknown (the store uses lossless ZIP or ZSTD)")
+        fail(f"EXR compression {comp} is lossy or unknown (the store uses lossless ZIP, or ZSTD)")
     if attrs["lineOrder"][1][0] > 2:
         fail(f"EXR line order {attrs['lineOrder'][1][0]} is not valid")
     from . import schema
@@ -602,6 +628,15 @@ def encoding_of(record: dict) -> dict:
     if record.get("version") == FORMAT_VERSION and isinstance(record.get("encoding"), dict):
         return record["encoding"]
     return {"name": "exact", "beauty": "stored"}
+
+
+def store_encoding(record: dict) -> str:
+    """The ``render.encoding`` (``STORE_ENCODINGS``) that wrote an image, from its record: compact
+    records name their compression; those that do not were written before ZIP was the default, with ZSTD."""
+    enc = encoding_of(record)
+    if enc["name"] != "compact":
+        return enc["name"]
+    return "compact-zstd" if enc.get("compression", "ZSTD") == "ZSTD" else "compact"
 
 
 def _beauty_derived(record: dict) -> bool:

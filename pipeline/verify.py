@@ -15,8 +15,8 @@ What is checked (each problem is reported as ``PATH: what is wrong``):
   ``--headers-only``) the pixels decoded: storage types per schema (float32 radiance and
   variance), the header checksum, every value finite, the header's repaired non-finite counts
   equal to ``frame.json``'s.
-- the image's encoding (``pipeline.exr``): a version 3 (compact) image is ZSTD-compressed, names a
-  known encoding, leaves out the beauty only when it lists all its components (the reader
+- the image's encoding (``pipeline.exr``): a version 3 (compact) image is ZIP- or ZSTD-compressed,
+  names a known encoding, leaves out the beauty only when it lists all its components (the reader
   checks that), and (with pixels) holds variances and depth with no more mantissa bits than its
   record states; version 1 and 2 (exact) images are ZIP-compressed.
 - ``gt_clean.exr``: made by the cleaner that ``cleaner.json`` names (header ``cleaner_sha256``),
@@ -258,12 +258,12 @@ def _check_channels(path: Path, header: dict, report: Report) -> None:
 
 def _check_encoding(path: Path, header: dict, arrays: dict | None, report: Report) -> None:
     """Compression as the record's encoding says; stored variances/depth within its mantissa bits."""
-    from .exr import COMPRESSION, encoding_of, scan_exr
+    from .exr import COMPRESSIONS, encoding_of, scan_exr
     # read_image/read_header checked a version 3 record's encoding; older images are all exact.
     encoding = encoding_of(header)["name"]
     compression = scan_exr(path)["compression"]
-    if compression != COMPRESSION[encoding]:
-        report.add(path, f"{encoding} image compressed with {compression}, expected {COMPRESSION[encoding]}")
+    if compression not in COMPRESSIONS[encoding]:
+        report.add(path, f"{encoding} image compressed with {compression}, expected {' or '.join(COMPRESSIONS[encoding])}")
     bits = header["encoding"].get("mantissa_bits") if encoding == "compact" else None
     if arrays is None or encoding != "compact":
         return
@@ -395,6 +395,69 @@ def measure_bytes(root: str | Path, frames: int = 8) -> dict:
                 result[kind]["files"].append(n)
     result["frames"] = len(picked)
     return result
+
+
+# What ``measure_encodings`` compares: the render.encoding choices, and the compact values under the
+# other lossless compressions every OpenEXR reads (the alternatives to ZIP).
+ENCODING_CHOICES = (("compact", None), ("compact", "ZIPS"), ("compact", "PIZ"), ("compact-zstd", None), ("exact", None))
+
+
+def measure_encodings(root: str | Path, frames: int = 8, repeat: int = 3) -> dict:
+    """Bytes, write and read seconds per frame of each of ``ENCODING_CHOICES``, on ``frames`` complete
+    frames spread over the store: every image read, written with each (``write_image``: rounding,
+    checksum, compression, fsync'd temporary file and rename) and read back (``read_image``: decoding,
+    checksum, derived beauty). Seconds are the median of ``repeat`` runs per image (the machine may
+    be shared), summed per frame. ``{"frames": n, label: {"bytes", "write_s", "read_s": [per frame]}}``."""
+    import tempfile
+
+    from .exr import STORE_ENCODINGS, write_image
+    store = Store(root)
+    keys = [k for k in store.frames() if store.frame_record(k.scene, k.frame) is not None]
+    picked = [keys[i] for i in sorted({int(i) for i in np.linspace(0, len(keys) - 1, min(frames, len(keys)))})]
+    labels = {f"{name} ({compression or STORE_ENCODINGS[name][1]})": (name, compression)
+              for name, compression in ENCODING_CHOICES}
+    result: dict = {label: {"bytes": [], "write_s": [], "read_s": []} for label in labels}
+    with tempfile.TemporaryDirectory() as tmp:
+        for key in picked:
+            totals = {label: dict.fromkeys(("bytes", "write_s", "read_s"), 0.0) for label in labels}
+            for name in store.frame_record(key.scene, key.frame)["images"]:
+                arrays, header = read_image(store.image_path(key.scene, key.frame, name))
+                meta = {k: v for k, v in header.items() if k not in _IMAGE_KEYS}
+                for label, (encoding, compression) in labels.items():
+                    out = Path(tmp) / "e.exr"
+                    writes, reads = [], []
+                    for _ in range(repeat):
+                        t0 = time.perf_counter()
+                        write_image(out, arrays, meta=meta, encoding=encoding, compression=compression)
+                        t1 = time.perf_counter()
+                        read_image(out)
+                        writes.append(t1 - t0)
+                        reads.append(time.perf_counter() - t1)
+                    totals[label]["bytes"] += out.stat().st_size
+                    totals[label]["write_s"] += float(np.median(writes))
+                    totals[label]["read_s"] += float(np.median(reads))
+            for label, t in totals.items():
+                for k, v in t.items():
+                    result[label][k].append(v)
+    result["frames"] = len(picked)
+    return result
+
+
+def encodings_table(result: dict) -> str:
+    """``measure_encodings``'s result as a markdown table, per frame."""
+    from .exr import STORE_ENCODINGS
+    n = max(result["frames"], 1)
+    lines = [f"{result['frames']} frames; per frame (all its images): MiB, seconds to write and to read back", "",
+             "| encoding (compression) | MiB | write s | read s | OpenEXR 2.x, 3.0-3.4 read it |",
+             "| --- | ---: | ---: | ---: | --- |"]
+    for label, r in result.items():
+        if label == "frames":
+            continue
+        old = "no (OpenEXR >= 3.5)" if "ZSTD" in label else "yes"
+        default = " (default)" if label == f"compact ({STORE_ENCODINGS['compact'][1]})" else ""
+        lines.append(f"| {label}{default} | {sum(r['bytes']) / n / 2**20:.2f} | {sum(r['write_s']) / n:.3f} | "
+                     f"{sum(r['read_s']) / n:.3f} | {old} |")
+    return "\n".join(lines)
 
 
 # Record keys that write_image sets itself (the rest is the caller's meta).

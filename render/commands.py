@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 
-from mcdenoise.pipeline.commands import config, with_config, with_quiet
+from mcdenoise.pipeline.commands import config, with_config, with_defines, with_quiet
 from mcdenoise.pipeline.config import ConfigError
 
 
@@ -26,6 +26,7 @@ def add_commands(sub) -> None:
     p.add_argument("--store", default=None, help="store path (default: the config's store)")
     p.add_argument("--resolution", default=None, help="WxH (default: the scene film's size)")
     p.add_argument("--name", default=None, help="scene id in the store (default: ext_<file stem>)")
+    with_defines(p)
     p.set_defaults(fn=_render_scene)
 
     p = with_config(sub.add_parser("bench", help="integrator vs path, dataset time shares, savings of omitted channels"))
@@ -49,9 +50,10 @@ def _dataset(args) -> int:
 
 
 def _render_scene(args) -> int:
-    from .external import render_scene
+    from .external import parse_defines, render_scene
     cfg = config(args)
-    stats = render_scene(args.scene, args.store or cfg.store, cfg, resolution=args.resolution, name=args.name)
+    stats = render_scene(args.scene, args.store or cfg.store, cfg, resolution=args.resolution, name=args.name,
+                         defines=parse_defines(args.defines))
     return 1 if stats["failed"] else 0
 
 

@@ -6,7 +6,8 @@ production scene lands in the store exactly like a test frame of the random data
 worker loads the XML and builds that camera (``render.frame.load_external_scene``,
 ``external_sensor``; a scene it cannot use raises ``render.frame.ExternalSceneError``).
 
-``render_scene`` (``python -m pipeline render-scene SCENE.xml --store STORE``) puts a user's scene
+``render_scene`` (``python -m pipeline render-scene SCENE.xml [-D name=value ...] --store STORE``; the
+``-D`` values fill the XML's ``$name`` parameters, as on Mitsuba's command line) puts a user's scene
 into the split ``external`` of the store (created if needed) as one frame with the same images as
 a dataset frame (GT1, GT2, stacks), rendered by the same worker code.
 """
@@ -26,6 +27,25 @@ from mcdenoise.pipeline.versions import package_versions
 EXTERNAL_SPLIT = "external"
 # External scenes take seeds from a range no random scene reaches (scene index >= 2^20).
 _EXTERNAL_INDEX_BASE = 1 << 20
+
+
+# load_file's own keywords: a scene parameter of that name could not be passed to it.
+_RESERVED = ("path", "parallel", "optimize", "update_scene")
+
+
+def parse_defines(items: list[str] | None) -> dict[str, str]:
+    """``-D NAME=VALUE`` arguments (Mitsuba's command line: values of the XML's ``$NAME`` parameters) as
+    ``{NAME: VALUE}``; a later one of the same name wins, as there."""
+    out: dict[str, str] = {}
+    for item in items or []:
+        m = re.fullmatch(r"([A-Za-z_][A-Za-z0-9_]*)=(.*)", item, flags=re.S)
+        if not m:
+            raise ConfigError(f"-D {item!r}: expected NAME=VALUE (a scene parameter $NAME of the XML), e.g. -D spp=64")
+        if m.group(1) in _RESERVED:
+            raise ConfigError(f"-D {item!r}: {m.group(1)!r} cannot be passed to Mitsuba's loader (one of its own "
+                              f"arguments: {', '.join(_RESERVED)}); rename the parameter in the XML")
+        out[m.group(1)] = m.group(2)
+    return out
 
 
 def scene_id(xml: str, name: str | None) -> str:
@@ -52,7 +72,8 @@ def _register(store: Store, cfg: Config, sid: str) -> int:
 
 
 def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
-                 name: str | None = None) -> dict:
+                 name: str | None = None, defines: dict[str, str] | None = None) -> dict:
+    """Render ``xml`` (its ``$name`` parameters from ``defines``) into the store's external split."""
     if not Path(xml).is_file():
         raise StoreError(f"{xml}: scene file not found")
     size = None
@@ -69,7 +90,7 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
     manifest = store.manifest_path.read_bytes() if store.manifest_path.exists() else None
     folder_existed = store.scene_dir(sid).exists()
     try:
-        return _render(store, store_path, cfg, xml, sid, size)
+        return _render(store, store_path, cfg, xml, sid, size, defines or {})
     except BaseException:
         if not root_existed:
             shutil.rmtree(store.root, ignore_errors=True)
@@ -83,7 +104,7 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
         raise
 
 
-def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size) -> dict:
+def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, defines: dict) -> dict:
     from .dataset import render_frame_entry, scene_record, task_spp
     from .frame import FrameTask
 
@@ -91,7 +112,7 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
     d = cfg.dataset
     names = image_names(d.stacks)
     seeds = {n: image_seed(cfg.seed, index, 0, k, 1, len(names)) for k, n in enumerate(names)}
-    desc = {"xml": str(Path(xml).resolve())}
+    desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {})}
     record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
     store.write_scene_manifest(sid, {**record, "packages": package_versions()})
     task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,

@@ -16,6 +16,7 @@ frame identical to an uninterrupted one.
 from __future__ import annotations
 
 import gc
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,16 +55,23 @@ class RenderFailed(RuntimeError):
     """Mitsuba failed inside a render of a random scene; the message carries Mitsuba's own reason."""
 
 
-def load_external_scene(mi, xml: str):
+def load_external_scene(mi, xml: str, defines: dict[str, str] | None = None):
+    """The scene of ``xml`` with its ``$name`` parameters set from ``defines`` (``-D name=value``, as
+    Mitsuba's own command line; parameters the XML declares with ``<default>`` may be left out)."""
     path = Path(xml)
     if not path.is_file():
         raise ExternalSceneError(f"{xml}: scene file not found")
     try:
         # Mitsuba resolves relative asset paths against the XML's folder.
-        return mi.load_file(str(path.resolve()), parallel=False, optimize=False)  # fixed order: see render.scene
+        return mi.load_file(str(path.resolve()), parallel=False, optimize=False,  # fixed order: see render.scene
+                            **(defines or {}))
     except Exception as exc:  # Mitsuba raises RuntimeError with the parser's message
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}") from None
+        first = re.sub(r"^\[[^]]*\] ", "", first)   # Mitsuba's source location ([parser.cpp:451])
+        missing = re.search(r"undefined parameter: \$(\w+)", first)
+        how = (f"; give it a value with -D {missing.group(1)}=VALUE (make eval: DEFINES=\"{missing.group(1)}=VALUE\")"
+               if missing else "")
+        raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}{how}") from None
 
 
 def external_sensor(mi, scene, width: int | None, height: int | None):
@@ -114,7 +122,7 @@ def _scene(mi, task: FrameTask):
     gc.collect()
     t0 = time.perf_counter()
     if "xml" in task.desc:
-        scene = load_external_scene(mi, task.desc["xml"])
+        scene = load_external_scene(mi, task.desc["xml"], task.desc.get("defines"))
     else:
         from mcdenoise.render.scene import build_scene
         scene = build_scene(mi, task.desc)

@@ -86,8 +86,10 @@ MEASURED: dict = {
  },
  "gt_spp_for_ratio": 1024,
  "encoding": "exact",
- "compact_factor": 0.517,
- "compact_factor_source": "verify data/default --bytes 100: 11.92 / 23.05 MiB per frame (86 frames), 2026-12-01",
+ "encoding_factor": {"exact": 1.0, "compact": 0.611, "compact-zstd": 0.517},
+ "encoding_factor_source": "compact-zstd: verify data/default --bytes 100: 11.92 / 23.05 MiB per frame (86 frames), "
+                           "2026-12-01; compact: verify data/encodings --encodings 4: 15.22 / 24.90 MiB per frame (4 frames "
+                           "of configs/default.yaml), 2026-12-04",
  "gt_psnr": {
   "source": "data/default (configs/default.yaml, 86 frames, 172 GTs at 1024 spp, 128x128, max_depth 8), 2026-12-01",
   "spp": 1024,
@@ -106,13 +108,10 @@ def disk_ratio(c: dict, kind: str, encoding: str) -> float:
     """Stored bytes over raw bytes of a ``kind`` image ('gt' or 'stack') written with ``encoding``.
 
     ``zip_ratio`` was measured with the constants' own ``encoding`` (the exact one when not
-    recorded); for the other encoding it is scaled by ``compact_factor``, the ratio of the compact
-    to the exact bytes of the same images (``verify --bytes``, docs/store.md)."""
-    ratio = c["zip_ratio"][kind]
-    measured = c.get("encoding", "exact")
-    if encoding != measured:
-        ratio = ratio * c["compact_factor"] if encoding == "compact" else ratio / c["compact_factor"]
-    return ratio
+    recorded); for another encoding it is scaled by ``encoding_factor``, each encoding's bytes over
+    the exact encoding's for the same images (docs/store.md, "Encodings")."""
+    factor = c["encoding_factor"]
+    return c["zip_ratio"][kind] * factor[encoding] / factor[c.get("encoding", "exact")]
 
 
 def raw_bytes_per_pixel(omit: tuple[str, ...] = ()) -> int:
@@ -334,7 +333,7 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
         "zip_ratio": {k: round(float(np.mean(v)), 3) for k, v in ratios.items()},
         "gt_spp_for_ratio": gt_spp,
         "encoding": cfg.render.encoding,
-        "compact_factor": MEASURED["compact_factor"],
+        "encoding_factor": MEASURED["encoding_factor"],
     }
 
 
@@ -350,7 +349,7 @@ def _cpu_name() -> str:
 
 def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
     """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
-    from mcdenoise.pipeline.exr import encoding_of
+    from mcdenoise.pipeline.exr import store_encoding
     from mcdenoise.pipeline.store import Store
 
     c = json.loads(json.dumps(constants or MEASURED))
@@ -378,7 +377,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
             points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
             (gt_ratio if name.startswith("gt") else stack_ratio).append(
                 int(img["bytes"]) / (raw_bytes_per_pixel() * px))
-            encodings.add(encoding_of(img)["name"])
+            encodings.add(store_encoding(img))
         frames += 1
         if frames >= max_frames:
             break

@@ -194,6 +194,46 @@ def test_render_scene_writes_a_test_frame(tmp_path):
 
 
 
+def test_scene_parameters_are_given_with_D_as_on_mitsubas_command_line(tmp_path):
+    """``-D name=value`` fills the XML's ``$name`` (Mitsuba's -D); a parameter without a value is named in the
+    error with the way to give it, and the store is left as it was."""
+    xml = tmp_path / "params.xml"
+    xml.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="$res"/><integer name="height" value="$res"/></film></sensor>
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+  <shape type="sphere"><bsdf type="diffuse"/></shape>
+</scene>""")
+    proc = cli("render-scene", xml, "-D", "spp=64", "--store", tmp_path / "ext", "--config", TINY, check=False)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "params.xml" in proc.stderr and "undefined parameter: $res" in proc.stderr
+    assert "-D res=VALUE" in proc.stderr and 'DEFINES="res=VALUE"' in proc.stderr
+    assert not (tmp_path / "ext").exists()
+    proc = cli("render-scene", xml, "-D", "spp=64", "-D", "res=14", "--store", tmp_path / "ext", "--config", TINY,
+               "dataset.stacks=1", check=False)
+    assert proc.returncode == 0, proc.stderr
+    store = Store(tmp_path / "ext")
+    assert store.read_image("ext_params", 0, "s00")[0]["color"].shape == (14, 14, 3)
+    assert store.scene_manifest("ext_params")["description"]["defines"] == {"res": "14", "spp": "64"}
+    proc = cli("render-scene", xml, "-D", "res", "--store", tmp_path / "x", "--config", TINY, check=False)
+    assert proc.returncode == 2 and "-D 'res': expected NAME=VALUE" in proc.stderr
+    proc = cli("eval", "-D", "spp=4", "--config", TINY, f"store={tmp_path / 'x'}", check=False)
+    assert proc.returncode == 2 and "no --scene was given" in proc.stderr
+
+
+def test_make_eval_passes_DEFINES_as_scene_parameters_not_config_overrides():
+    """``make eval SCENES=... DEFINES="spp=64 res=256"``: each word a -D, none a config override."""
+    proc = subprocess.run(["make", "-n", "eval", "VENV=.venv-none", "SCENES=a.xml b.xml", "DEFINES=spp=64 res=256",
+                           "dataset.scenes=4"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    command = proc.stdout.strip().splitlines()[-1]
+    assert command.split(" -m pipeline ", 1)[1].split() == [
+        "eval", "--config", "configs/default.yaml", "dataset.scenes=4", "--scene", "a.xml", "--scene", "b.xml",
+        "-D", "spp=64", "-D", "res=256"]
+
+
 _CAMERA = """<sensor type="{camera}"><float name="fov" value="45"/>{lens}
     <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
     <film type="hdrfilm"><integer name="width" value="12"/><integer name="height" value="10"/></film></sensor>

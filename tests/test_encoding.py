@@ -17,6 +17,7 @@ from mcdenoise.pipeline.exr import (
     read_image,
     round_mantissa,
     scan_exr,
+    store_encoding,
     write_image,
 )
 from mcdenoise.pipeline.store import Store
@@ -75,7 +76,7 @@ def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
     exact, _ = read_image(tmp_path / "exact.exr")
     back, header = read_image(tmp_path / "compact.exr")
     assert header == rec and rec["version"] == 3
-    assert rec["encoding"] == {"name": "compact", "beauty": "sum", "mantissa_bits": MANTISSA_BITS}
+    assert rec["encoding"] == {"name": "compact", "beauty": "sum", "mantissa_bits": MANTISSA_BITS, "compression": "ZIP"}
     assert back.keys() == exact.keys()
     for b in schema.BUFFERS:
         var = schema.variance_name(b.name)
@@ -90,7 +91,7 @@ def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
     magnitude = sum(np.abs(img[n].astype(np.float64)) for n in schema.RADIANCE_COMPONENTS)
     assert np.all(np.abs(back["color"].astype(np.float64) - img["color"]) <= BEAUTY_TOLERANCE * magnitude)
     info = scan_exr(tmp_path / "compact.exr")
-    assert info["compression"] == "ZSTD" and not {"R", "G", "B"} & set(info["channels"])
+    assert info["compression"] == "ZIP" and not {"R", "G", "B"} & set(info["channels"])
     assert info["channels"]["variance.R"] == np.float32 and info["channels"]["depth.Z"] == np.float32
     assert scan_exr(tmp_path / "exact.exr")["compression"] == "ZIP"
     assert (tmp_path / "compact.exr").stat().st_size < (tmp_path / "exact.exr").stat().st_size
@@ -98,6 +99,24 @@ def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
     alone, _ = read_image(tmp_path / "compact.exr", ["color"])
     assert list(alone) == ["color", "color.variance"]
     np.testing.assert_array_equal(alone["color"], back["color"])
+
+
+def test_compact_zstd_holds_the_same_values_with_zstd(tmp_path):
+    """render.encoding=compact-zstd: the compact values, ZSTD-compressed (OpenEXR >= 3.5 reads it); an image
+    of a compact store written before ZIP was the default (no 'compression' in its record) is ZSTD too."""
+    img = rendered_like()
+    rec = write_image(tmp_path / "zip.exr", img, encoding="compact")
+    zrec = write_image(tmp_path / "zstd.exr", img, encoding="compact-zstd")
+    assert zrec["encoding"] == {**rec["encoding"], "compression": "ZSTD"}
+    assert scan_exr(tmp_path / "zstd.exr")["compression"] == "ZSTD"
+    a, b = read_image(tmp_path / "zip.exr")[0], read_image(tmp_path / "zstd.exr")[0]
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert [store_encoding(r) for r in (rec, zrec)] == ["compact", "compact-zstd"]
+    old = {**zrec, "encoding": {k: v for k, v in zrec["encoding"].items() if k != "compression"}}
+    assert store_encoding(old) == "compact-zstd" and store_encoding({"version": 2}) == "exact"
+    with pytest.raises(StoreError, match=r"a\.exr: compression 'DWAA' is not a lossless EXR compression"):
+        write_image(tmp_path / "a.exr", img, encoding="compact", compression="DWAA")
+    assert not (tmp_path / "a.exr").exists()
 
 
 def test_beauty_that_is_not_the_sum_of_its_components_is_stored_exactly(tmp_path):
@@ -178,7 +197,8 @@ def test_rendered_store_is_compact_and_derives_every_beauty(tiny_store):
 def test_encoding_config_key():
     assert load_config(None).render.encoding == "compact"
     assert load_config(None, ["render.encoding=exact"]).render.encoding == "exact"
-    with pytest.raises(ConfigError, match=r"render\.encoding: expected 'compact' or 'exact', got 'zip'"):
+    assert load_config(None, ["render.encoding=compact-zstd"]).render.encoding == "compact-zstd"
+    with pytest.raises(ConfigError, match=r"render\.encoding: expected 'compact', 'compact-zstd' or 'exact', got 'zip'"):
         load_config(None, ["render.encoding=zip"])
 
 
@@ -202,3 +222,24 @@ def test_bytes_per_channel_group(tmp_path):
         assert stored[group] > 0 and compact[group] > 0, group
     table = cli("verify", root, "--bytes", "2").stdout
     assert "| **files (mean)** |" in table and table.count("\n| ") == 2 + len(GROUPS) + 2   # head, rule, groups, totals
+
+
+def test_encodings_are_measured_on_the_stores_frames(tmp_path):
+    """``verify STORE --encodings N``: each encoding's bytes are those of the file ``write_image`` writes for
+    it, and the table says which of them older OpenEXR reads."""
+    from mcdenoise.pipeline.verify import ENCODING_CHOICES, encodings_table, measure_encodings
+    root = make_clean_store(tmp_path / "s", encoding="exact")
+    result = measure_encodings(root, frames=1, repeat=1)
+    store = Store(root)
+    key = store.frames()[0]
+    expected = 0
+    for name in store.frame_record(key.scene, key.frame)["images"]:
+        arrays, header = read_image(store.image_path(key.scene, key.frame, name))
+        meta = {k: v for k, v in header.items() if k in ("image", "scene", "frame", "spp", "seed")}
+        expected += write_image(tmp_path / "x.exr", arrays, meta=meta, encoding="compact") and (tmp_path / "x.exr").stat().st_size
+    assert result["frames"] == 1 and len(result) == 1 + len(ENCODING_CHOICES)
+    assert result["compact (ZIP)"]["bytes"] == [expected]
+    assert all(r["write_s"][0] > 0 and r["read_s"][0] > 0 for k, r in result.items() if k != "frames")
+    table = encodings_table(result)
+    assert "| compact (ZIP) (default) |" in table and "| compact-zstd (ZSTD) |" in table
+    assert all(line.endswith("| no (OpenEXR >= 3.5) |") == ("ZSTD" in line) for line in table.splitlines()[4:])

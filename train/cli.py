@@ -16,7 +16,8 @@ import numpy as np
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.ensemble import ensemble as ensemble_mean
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.exr import StoreError, write_image
+from mcdenoise.pipeline.exr import StoreError, write_output
+from mcdenoise.pipeline.numerics import repair_nonfinite
 from mcdenoise.pipeline.store import FrameKey, Store
 
 from .model import find_run
@@ -86,7 +87,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "base_only": getattr(den, "last_base_only", False), "shortened_normals": getattr(den, "last_shortened", 0),
             "ensemble": ensemble, "strength": getattr(den, "strength", 1.0) if strength is None else strength,
             "seconds": round(seconds, 3)}
-    write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, layers={"std": std})
+    write_output(Path(out), hdr, meta, layers={"std": std})
     if not quiet:
         fallback = getattr(den, "fallback", "")
         alone = (f"; no albedo/normal layers: {fallback} on the colour{' and albedo' if 'albedo' in buffers else ''}"
@@ -136,6 +137,9 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
     buffers, source = _read_input(cfg, frame, exr, spp)
+    # OIDN spreads a NaN/Inf over its receptive field: lost samples count as 0, as in every denoiser here
+    buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
+    repaired = sum(repair_nonfinite(buffers).values())
     layers = [a for a in ("albedo", "normal") if a in buffers]
     layers = layers if layers and layers[0] == "albedo" else []
     network = ow.network_for("albedo" in layers, "normal" in layers)
@@ -164,11 +168,13 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
                         {"color": buffers["color"], **{a: buffers[a] for a in layers}}, ensemble)
     seconds = time.perf_counter() - t
     meta = {"image": "denoised", "source": source, "method": method, "weights": origin,
-            "inputs": ["color", *layers], "ensemble": ensemble, "seconds": round(seconds, 3)}
-    write_image(Path(out), {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta)
+            "inputs": ["color", *layers], "ensemble": ensemble, "repaired_nonfinite": repaired,
+            "seconds": round(seconds, 3)}
+    write_output(Path(out), hdr, meta)
     if not quiet:
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}; {', '.join(['colour', *layers])}) with OIDN "
-              f"({origin}) in {seconds:.2f} s -> {out}", flush=True)
+              f"({origin}) in {seconds:.2f} s -> {out}"
+              + (f"; {repaired} non-finite input values replaced by 0" if repaired else ""), flush=True)
     return 0
 
 
