@@ -415,3 +415,23 @@ def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, t
     stand_in._models[("diffusion", str(moved), False)] = types.SimpleNamespace(formulation=den.formulation)
     with pytest.raises(MethodUnavailable, match="strengthN"):
         stand_in.load("ours_strength50", 4)
+
+
+def test_precision_changes_the_networks_arithmetic_only():
+    """fp32 (the CPU's default) is the model as trained, bit for bit; bf16 autocast (8 mantissa bits, about 48 dB
+    per rounding, accumulated over the networks' layers) stays within 30 dB of it but is not it; an unknown
+    precision is one clean error."""
+    from mcdenoise.pipeline.errors import TrainError
+    from mcdenoise.train.bench import synthetic_frame
+
+    buf = synthetic_frame(32, 48)
+    default = infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu")
+    assert default.precision == "fp32"
+    fp32 = default.denoise(buf, spp=4)
+    assert np.array_equal(fp32, infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu", precision="fp32").denoise(buf, spp=4))
+    bf16 = infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu", precision="bf16").denoise(buf, spp=4)
+    tm = lambda x: x / (1 + x)  # noqa: E731
+    mse = float(np.mean((tm(bf16).astype(np.float64) - tm(fp32)) ** 2))
+    assert bf16.dtype == np.float32 and 0 < mse and 10 * np.log10(1 / mse) > 30
+    with pytest.raises(TrainError, match="precision 'fp8'"):
+        infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu", precision="fp8")

@@ -133,14 +133,18 @@ def test_eval_runs_the_trained_model_and_says_so(setup, tmp_path):
     assert u["frames"] == 1 and u["calibration"] and all(b["std"] >= 0 and b["rmse"] >= 0 for b in u["calibration"])
 
 
-def test_bench_denoise_reports_every_step_count(setup, tmp_path):
+def test_bench_denoise_times_ours_its_base_and_oidn(setup, tmp_path):
     tmp, keys = setup
-    run("bench-denoise", *keys, "--side", 32, "--out", tmp_path)
+    run("bench-denoise", *keys, "--sizes", "32x32,48x32", "--repeats", "1", "--out", tmp_path)
     result = json.loads((tmp_path / "denoise.json").read_text())
-    rows = result["rows"]
-    assert not result["estimate_only"]          # the timed frames reach the network, not just the estimate
-    assert [r["steps"] for r in rows] == [1, 3, 9, 27]
-    assert all(r["side"] == 32 and r["seconds_frame"] > 0 and r["seconds_per_megapixel"] > 0 for r in rows)
+    assert [r["size"] for r in result["rows"]] == ["32x32", "48x32"] and result["precision"] == "fp32"
+    for r in result["rows"]:
+        assert all(r[k] > 0 for k in ("ours_1step_s", "ours_3step_s", "base_s", "ours_network_s", "base_network_s",
+                                      "oidn_prefilter_s", "oidn_s"))
+        assert r["ours_over_oidn_prefilter"] == round(r["ours_1step_s"] / r["oidn_prefilter_s"], 2)
+    assert "| 48x32 |" in (tmp_path / "denoise.md").read_text()
+    bad = run("bench-denoise", *keys, "--sizes", "32by32", "--out", tmp_path, check=False)
+    assert bad.returncode == 2 and "WxH" in bad.stderr
 
 
 def test_export_serves_as_the_shipped_model(setup, tmp_path, monkeypatch):

@@ -1,10 +1,19 @@
-"""Inference time of the diffusion denoiser at 1, 3, 9 and 27 steps: a 128² frame and per megapixel.
+"""Seconds per frame of the denoiser, its base and OIDN's own engine, at the sizes users render.
 
-    python -m pipeline bench-denoise [--config FILE] [key=value ...]     (also run by make bench)
+    python -m pipeline bench-denoise [--config FILE] [--device D] [--precision P] [--sizes WxH,...] [key=value ...]
+    (also run by make bench, and by the GPU recipe on a lent GPU)
 
-Times ``train.infer.Denoiser.denoise`` (input encoding, OIDN's base, the sampler) on a synthetic frame,
-with the trained run of ``--spp`` (or the spp-conditioned one, else the shipped model). Each setting is
-timed after one warm-up call, best of ``repeats``; the per-megapixel time is measured on a 512² frame.
+On a synthetic frame with every renderer buffer (so the Control Module runs; an RGB-only frame would time
+the base alone), after one warm-up call, best of ``repeats``:
+
+- ``ours``: ``train.infer.Denoiser.denoise`` end to end at the model's sampler steps (encoding the buffers,
+  OIDN's aux prefilter, the base, the Control Module, back to HDR) and at 3 steps (the σ layer's);
+- ``base``: the same path with the Control Module off: OIDN's final-frame mode run in PyTorch;
+- ``ours network`` / ``base network``: the networks alone on inputs already on the device;
+- ``oidn_prefilter`` / ``oidn``: OIDN's own engine (pyoidn, on the device OIDN picks) in its final-frame mode
+  (the same large network with prefiltered aux) and as usually called, when pyoidn is installed.
+
+``ours / oidn_prefilter`` is the price of the Control Module against what a user has.
 """
 from __future__ import annotations
 
@@ -14,119 +23,112 @@ import numpy as np
 
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.exr import StoreError, atomic_write_json
+from mcdenoise.pipeline.exr import atomic_write_json
 from mcdenoise.pipeline.timing import best_time
 from mcdenoise.pipeline.versions import machine
 
-from .infer import Denoiser, load_denoiser
+from .infer import load_denoiser
 from .model import find_run
+from .sampler import sample
 
-STEPS = (1, 3, 9, 27)
-BIG = 512   # side of the per-megapixel frame
+CPU_SIZES = "256x256,1920x1080"
+GPU_SIZES = "256x256,1920x1080,3840x2160"
 
 
-def _frame(side: int, seed: int = 0) -> dict:
-    """A synthetic frame with every renderer buffer and its variance, so the network itself runs (an
-    RGB-only frame would time the first estimate alone: ``Denoiser`` returns it for such inputs)."""
+def synthetic_frame(h: int, w: int, seed: int = 0) -> dict:
+    """Every renderer buffer of one frame and its variance with plausible ranges."""
     rng = np.random.default_rng(seed)
     out = {}
     for b in schema.BUFFERS:
-        shape = (side, side, len(b.channels))
+        shape = (h, w, len(b.channels))
         out[b.name] = (rng.gamma(1.0, 0.3, shape) if b.radiance else rng.random(shape)).astype(np.float32)
         out[schema.variance_name(b.name)] = rng.gamma(1.0, 0.05, shape).astype(np.float32)
-    out["normal"] = np.repeat(np.array([[[0, 0, 1]]], np.float32), side, 0).repeat(side, 1)
+    out["normal"] = np.broadcast_to(np.array([0, 0, 1], np.float32), (h, w, 3)).copy()
     return out
 
 
-def _time(den: Denoiser, buffers: dict, steps: int, repeats: int) -> float:
-    return best_time(lambda: den.denoise(buffers, spp=4, steps=steps, skip=0), repeats)
+def parse_sizes(text: str) -> list[tuple[int, int]]:
+    """'256x256,1920x1080' → [(256, 256), (1080, 1920)] as (height, width)."""
+    try:
+        return [(int(t.split("x")[1]), int(t.split("x")[0])) for t in text.split(",")]
+    except (IndexError, ValueError):
+        raise ValueError(f"--sizes {text!r}: expected WxH[,WxH...], e.g. 256x256,1920x1080") from None
 
 
-def run(cfg: Config, spp: int = 4, side: int = 128, repeats: int = 2, out: str = "reports/bench") -> dict:
-    folder = find_run(cfg, spp)
-    den = load_denoiser(folder, cfg.diffusion.device)
-    device, name = den.device, str(folder)
-    small, big = _frame(side), _frame(BIG, 1)
-    _time(den, _frame(32, 2), 1, 1)   # warm-up
+def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", precision: str = "auto",
+            repeats: int = 2) -> dict:
+    """The timings of the module docstring for the model folder ``model``; a dict with ``rows``."""
+    import torch
+
+    from mcdenoise.pipeline import oidn
+
+    den = load_denoiser(model, device, precision=precision)
+    dev = den.device
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    def timed(fn, n=repeats):
+        def call():
+            fn()
+            sync()
+        call()                          # warm-up: kernels, allocations, autotuning
+        return round(best_time(call, n), 4)
+
+    m = den.model
+    steps = den.formulation.steps
     rows = []
-    for steps in STEPS:
-        t = _time(den, small, steps, repeats)
-        tb = _time(den, big, steps, 1)
-        px = big["color"].shape[0] ** 2
-        rows.append({"steps": steps, "side": side, "seconds_frame": round(t, 3),
-                     "seconds_per_megapixel": round(tb / (px / 1e6), 3),
-                     "tiled_frame": f"{big['color'].shape[1]}x{big['color'].shape[0]}"})
+    for h, w in sizes:
+        buf = synthetic_frame(h, w)
+        row = {"size": f"{w}x{h}", "megapixels": round(h * w / 1e6, 3)}
+        row[f"ours_{steps}step_s"] = timed(lambda: den.denoise(buf, spp=4))
+        if steps != 3:
+            row["ours_3step_s"] = timed(lambda: den.denoise(buf, spp=4, steps=3), 1)
+        control, m.control = m.control, None
+        try:
+            row["base_s"] = timed(lambda: den.denoise(buf, spp=4))
+        finally:
+            m.control = control
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(1, m.base.in_channels, h + (-h % 16), w + (-w % 16), generator=g).to(dev)
+        cond = torch.rand(1, m.cond_channels, *x.shape[-2:], generator=g).to(dev)
+        with torch.no_grad(), den.autocast():
+            row["ours_network_s"] = timed(lambda: sample(m, x, cond, den.formulation, steps))
+            row["base_network_s"] = timed(lambda: m.base(x))
+        if oidn.available() is None:
+            row["oidn_prefilter_s"] = timed(lambda: oidn.denoise(buf, clean_aux=True))
+            row["oidn_s"] = timed(lambda: oidn.denoise(buf))
+            row["ours_over_oidn_prefilter"] = round(row[f"ours_{steps}step_s"] / row["oidn_prefilter_s"], 2)
+        rows.append(row)
     mach = machine()
-    result = {"device": str(device), "machine": mach, "model": name, "formulation": den.formulation.record(),
-              "parameters_millions": round(sum(p.numel() for p in den.model.parameters()) / 1e6, 2),
-              "precision": "fp32", "rows": rows,
-              "estimate_only": den.last_estimate_only}   # True would mean the network never ran
-    lines = [f"Diffusion inference ({result['model']}, {result['parameters_millions']} M parameters, "
-             f"{result['device']}{' ' + mach['cuda'] if mach.get('cuda') else ''}, {result['precision']}, "
-             f"{mach.get('torch_threads')} threads)", "",
-             f"| steps | {side}² frame (s) | per megapixel (s) |", "| --- | --- | --- |"]
-    lines += [f"| {r['steps']} | {r['seconds_frame']:.3f} | {r['seconds_per_megapixel']:.2f} |" for r in rows]
-    md = "\n".join(lines) + "\n"
+    return {"model": str(model), "device": str(dev), "precision": den.precision, "machine": mach,
+            "torch_threads": torch.get_num_threads(), "repeats": repeats, "rows": rows,
+            "parameters_millions": round(sum(p.numel() for p in m.parameters()) / 1e6, 2)}
+
+
+def markdown(result: dict) -> str:
+    mach = result["machine"]
+    where = mach.get("cuda") or f"{mach.get('processor', '?')}, {result['torch_threads']} torch threads"
+    cols = [k for k in result["rows"][0] if k not in ("size", "megapixels")]
+    lines = [f"Seconds per frame ({result['model']}, {result['parameters_millions']} M parameters; {result['device']} "
+             f"{where}, {result['precision']}; best of {result['repeats']} after a warm-up)", "",
+             "| frame | " + " | ".join(cols) + " |", "| --- |" + " ---: |" * len(cols)]
+    lines += ["| " + r["size"] + " | " + " | ".join(str(r.get(c, "")) for c in cols) + " |" for r in result["rows"]]
+    return "\n".join(lines) + "\n"
+
+
+def run(cfg: Config, spp: int = 4, sizes: str | None = None, device: str | None = None, precision: str = "auto",
+        repeats: int = 2, out: str = "reports/bench") -> dict:
+    """``measure`` with the config's model for ``spp`` (its run, else the shipped model); writes
+    ``denoise.json`` and ``denoise.md`` into ``out``."""
+    from mcdenoise.pipeline.runs import pick_device
+    dev = pick_device(device or cfg.diffusion.device)
+    result = measure(find_run(cfg, spp), parse_sizes(sizes or (GPU_SIZES if dev.type == "cuda" else CPU_SIZES)),
+                     str(dev), precision, repeats)
+    md = markdown(result)
     Path(out).mkdir(parents=True, exist_ok=True)
     atomic_write_json(Path(out) / "denoise.json", result)
     (Path(out) / "denoise.md").write_text(md)
-    print(md, end="")
-    return result
-
-
-def run_oidn(cfg: Config, out: str = "reports/bench", repeats: int = 2, sizes=((128, 128), (1080, 1920))) -> dict:
-    """OIDN three ways, per 128² and per 1080p frame: pyoidn with its built-in weights, pyoidn with
-    weights we wrote (the oidn_ft run when there is one, else OIDN's own re-exported), and the PyTorch
-    twin (``pipeline.oidn_net``) that trains; and the diffusion denoiser on OIDN (``diffusion.base=oidn``)
-    at 1 and 3 steps when the config has such a run."""
-    import torch
-
-    from mcdenoise.pipeline import oidn, oidn_net
-    from mcdenoise.pipeline.runs import run_dir as model_dir
-
-    from .oidn_ft import export_blob, load_run
-
-    folder = model_dir(cfg, "oidn_ft", variant="rt_hdr_alb_nrm")
-    if (folder / "model.safetensors").exists():
-        net, what = load_run(folder, cfg)[0], str(folder)
-    else:
-        net, what = oidn_net.load_unet("rt_hdr_alb_nrm"), "OIDN's own weights, re-exported"
-    blob = export_blob(net)
-    refiner = None
-    try:
-        run = find_run(cfg, "any")
-        refiner = load_denoiser(run, "cpu")
-    except StoreError:
-        pass
-    rows = []
-    warm = _frame(32, 4)
-    oidn.denoise(warm), oidn.denoise(warm, weights=blob), oidn_net.denoise(net, warm["color"], warm["albedo"],
-                                                                           warm["normal"])
-    if refiner is not None:
-        refiner.denoise(warm, spp=4)
-    for h, w in sizes:
-        buf = _frame(max(h, w), 3)
-        buf = {k: np.ascontiguousarray(v[:h, :w]) for k, v in buf.items()}
-        row = {"size": f"{w}x{h}",
-               "pyoidn_builtin_s": best_time(lambda: oidn.denoise(buf), repeats),
-               "pyoidn_exported_s": best_time(lambda: oidn.denoise(buf, weights=blob), repeats),
-               "torch_twin_s": best_time(lambda: oidn_net.denoise(net, buf["color"], buf["albedo"], buf["normal"]),
-                                         repeats)}
-        if refiner is not None:
-            for steps in (1, 3):
-                row[f"ours_{steps}step_s"] = best_time(lambda: refiner.denoise(buf, spp=4, steps=steps), 1)
-        rows.append({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()})
-    mach = machine()
-    result = {"weights": what, "refine_run": str(run) if refiner is not None else None, "machine": mach,
-              "torch_threads": torch.get_num_threads(), "rows": rows}
-    cols = [k for k in rows[0] if k != "size"]
-    lines = [f"OIDN and the denoisers on it, seconds per frame (weights: {what}; {mach.get('processor', '?')}, "
-             f"{mach.get('cpus', '?')} CPUs, {torch.get_num_threads()} torch threads; best of {repeats})", "",
-             "| frame | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
-    lines += ["| " + r["size"] + " | " + " | ".join(f"{r[c]:.3f}" for c in cols) + " |" for r in rows]
-    md = "\n".join(lines) + "\n"
-    Path(out).mkdir(parents=True, exist_ok=True)
-    atomic_write_json(Path(out) / "oidn.json", result)
-    (Path(out) / "oidn.md").write_text(md)
     print(md, end="")
     return result

@@ -52,7 +52,8 @@ def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
 
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
-                samples: int | None = None, ensemble: int = 1, strength: float | None = None) -> int:
+                samples: int | None = None, ensemble: int = 1, strength: float | None = None,
+                device: str | None = None, precision: str = "auto") -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
     mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
     both over that many flipped and transposed copies (``pipeline.ensemble``); ``strength``: the fraction of
@@ -68,7 +69,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         if not quiet:
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     f = cfg.diffusion
-    den = load_denoiser(find_run(cfg, spp), f.device, base_only)
+    den = load_denoiser(find_run(cfg, spp), device or f.device, base_only, precision)
     buffers, source = _read_input(cfg, frame, exr, spp)
     samples = f.samples if samples is None else int(samples)
     if samples < 1:

@@ -121,6 +121,10 @@ def _inference_commands(sub) -> None:
                         "rt_hdr_calb_cnrm_large), run as oidn_prefilter")
     p.add_argument("--oidn-weights", default=None, metavar="FILE.tza",
                    help="run OIDN with these weights (export --format oidn writes them) on the input's layers")
+    p.add_argument("--device", default=None, help="torch device of ours: auto (CUDA if there is one), cuda, cpu "
+                                                  "(default: diffusion.device)")
+    p.add_argument("--precision", default="auto", choices=("auto", "fp32", "fp16", "bf16"),
+                   help="ours' networks: auto is fp16 on CUDA (about 70 dB from fp32), fp32 on the CPU")
     p.add_argument("--ensemble", type=int, default=1, choices=(1, 2, 4, 8),
                    help="average the denoiser's outputs on N flipped/transposed copies of the input (N times its "
                         "time; see docs/evaluation.md for what it gains)")
@@ -137,10 +141,14 @@ def _report_commands(sub) -> None:
                    help="another AFGSA run folder to compare (e.g. the adv_weight=0 ablation); repeatable")
     p.set_defaults(fn=_afgsa_report)
 
-    p = with_config(sub.add_parser("bench-denoise", help="diffusion inference time at 1/3/9/27 steps, 128² and per MP; OIDN "
-                                                         "(built-in, exported weights, PyTorch twin) per 128² and 1080p"))
+    p = with_config(sub.add_parser("bench-denoise", help="seconds per frame of ours, its base and OIDN's own engine at "
+                                                         "256², 1080p (and 4K on CUDA)"))
     p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
-    p.add_argument("--side", type=int, default=128, help="frame side of the per-frame timing")
+    p.add_argument("--sizes", default=None, help="frame sizes WxH, comma-separated (default: 256x256,1920x1080; "
+                                                "with CUDA also 3840x2160)")
+    p.add_argument("--device", default=None, help="auto, cuda or cpu (default: diffusion.device)")
+    p.add_argument("--precision", default="auto", choices=("auto", "fp32", "fp16", "bf16"))
+    p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--out", default="reports/bench")
     p.set_defaults(fn=_bench_denoise)
 
@@ -222,7 +230,7 @@ def _denoise(args) -> int:
                                 spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
     return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                        base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples,
-                       ensemble=args.ensemble, strength=args.strength)
+                       ensemble=args.ensemble, strength=args.strength, device=args.device, precision=args.precision)
 
 
 def _afgsa_report(args) -> int:
@@ -239,8 +247,12 @@ def _afgsa_report(args) -> int:
 
 
 def _bench_denoise(args) -> int:
-    from .bench import run, run_oidn
-    cfg = config(args)
-    run(cfg, spp=args.spp, side=args.side, out=args.out)
-    run_oidn(cfg, out=args.out)
+    from .bench import parse_sizes, run
+    if args.sizes:
+        try:
+            parse_sizes(args.sizes)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    run(config(args), spp=args.spp, sizes=args.sizes, device=args.device, precision=args.precision,
+        repeats=args.repeats, out=args.out)
     return 0

@@ -87,11 +87,12 @@ def present(buffers: dict) -> dict[str, bool]:
 
 
 def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal"),
-           clean_aux: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+           clean_aux: bool = False, aux_device: str | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
     at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole.
     ``clean_aux``: OIDN's input has albedo and normal prefiltered by OIDN's aux networks (the base is a
-    ``_calb_cnrm`` network); the condition keeps them as rendered."""
+    ``_calb_cnrm`` network), on the torch device ``aux_device`` if given (else pyoidn's); the condition keeps
+    them as rendered."""
     have = present(buffers)
     keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
     scale = oidn_net.autoexposure(keep["color"])
@@ -102,7 +103,7 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
     net_aux = [keep[a] for a in aux]
     if clean_aux:
         from mcdenoise.pipeline import oidn
-        net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"]))
+        net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"], device=aux_device))
     x = oidn_net.network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
     cond = features.encode(keep, _encoding(scale), spp)
     flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],

@@ -220,15 +220,14 @@ class Recipe:
             shutil.copy(run / "loss.png", self.out / "loss.png")
 
     def bench(self) -> None:
-        import torch
+        """``bench-denoise``'s timings (train.bench) of the model it started from, on this machine."""
+        from .bench import GPU_SIZES, measure, parse_sizes
         t = time.perf_counter()
-        sizes = {"256x256": (256, 256), "1920x1080": (1080, 1920), "3840x2160": (2160, 3840)} if self.cuda else \
-            {"64x64": (64, 64)}
+        sizes = parse_sizes(GPU_SIZES) if self.cuda else [(64, 64)]
         try:
-            rows = bench_denoise(self.model, sizes, torch.device("cuda" if self.cuda else "cpu"))
+            self.result["bench"] = measure(self.model, sizes, "cuda" if self.cuda else "cpu", repeats=3 if self.cuda else 1)
         except Exception as exc:    # noqa: BLE001 - the trained model is already in --out: say why, keep it
-            rows = [{"size": "-", "what": f"bench failed: {type(exc).__name__}: {exc}"[:300], "seconds": None}]
-        self.result["bench"] = rows
+            self.result["bench"] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
         self.result["phases"]["bench"] = {"seconds": round(time.perf_counter() - t, 1)}
         self.write()
 
@@ -277,91 +276,6 @@ def frame_shares(records: list[dict]) -> tuple[float | None, float | None]:
     return round(total - render, 3), round(render, 3)
 
 
-def bench_denoise(model: Path, sizes: dict, device) -> list[dict]:
-    """Seconds per frame of ``denoise`` end to end (encoding, the aux prefilter, the base, one sampler step,
-    back to HDR) and of the networks alone (ours at 1 step, its base) in fp32 and fp16 autocast."""
-    import torch
-
-    from mcdenoise.pipeline import oidn_net
-    from mcdenoise.pipeline.timing import best_time
-
-    from .infer import load_denoiser
-    from .sampler import sample
-
-    def sync():
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    refiner = load_denoiser(model, str(device))
-    m = refiner.model.eval()
-    rows = []
-    for name, (h, w) in sizes.items():
-        if h * w <= 1920 * 1080:     # the encoding runs on the CPU: 4K end to end would take most of the bench
-            buffers = synthetic_frame(h, w)
-
-            def go(buffers=buffers):
-                refiner.denoise(buffers, spp=4)
-                sync()
-            go()
-            rows.append({"size": name, "what": "denoise end to end (fp32)", "seconds": round(best_time(go, 2), 4)})
-        g = torch.Generator().manual_seed(0)
-        x = torch.rand(1, m.base.in_channels, h + (-h % 16), w + (-w % 16), generator=g).to(device)
-        cond = torch.rand(1, m.cond_channels, *x.shape[-2:], generator=g).to(device)
-        for prec in ("fp32", "fp16") if device.type == "cuda" else ("fp32",):
-            ctx = (lambda: torch.autocast(device.type, dtype=torch.float16)) if prec == "fp16" else None
-
-            def ours():
-                with torch.no_grad(), (ctx() if ctx else torch.autocast(device.type, enabled=False)):
-                    sample(m, x, cond, refiner.formulation, steps=1)
-                sync()
-
-            def base():
-                with torch.no_grad(), (ctx() if ctx else torch.autocast(device.type, enabled=False)):
-                    m.base(x)
-                sync()
-            for what, fn in (("ours network, 1 step", ours), ("base network alone", base)):
-                fn()
-                rows.append({"size": name, "what": f"{what} ({prec})", "seconds": round(best_time(fn, 3), 4)})
-        img = torch.rand(1, 3, h, w, generator=g).to(device)
-        net = oidn_net.load_unet(oidn_net.AUX_NETWORKS["albedo"], None if _pyoidn() else _aux_file("albedo"))
-        net = net.to(device).eval()
-
-        def aux():
-            oidn_net.prefilter(net, img, "albedo")
-            sync()
-        aux()
-        rows.append({"size": name, "what": "aux prefilter, one image (fp32)", "seconds": round(best_time(aux, 3), 4)})
-    return rows
-
-
-def _pyoidn() -> bool:
-    from mcdenoise.pipeline import oidn
-    return oidn.available() is None
-
-
-def _aux_file(kind: str) -> str | None:
-    from mcdenoise.pipeline import oidn_net, oidn_weights
-    name = oidn_net.AUX_NETWORKS[kind]
-    found = oidn_weights.source(name, oidn_weights.default_folder())
-    return str(found) if found else None
-
-
-def synthetic_frame(h: int, w: int) -> dict:
-    """Every renderer buffer of one frame and its variance with plausible ranges, so every input group of the
-    model runs (an RGB-only frame would time the base alone)."""
-    import numpy as np
-
-    from mcdenoise.pipeline import schema
-    rng = np.random.default_rng(0)
-    out = {}
-    for b in schema.BUFFERS:
-        shape = (h, w, len(b.channels))
-        out[b.name] = (rng.gamma(1.0, 0.3, shape) if b.radiance else rng.random(shape)).astype(np.float32)
-        out[schema.variance_name(b.name)] = rng.gamma(1.0, 0.05, shape).astype(np.float32)
-    out["normal"] = np.broadcast_to(np.array([0, 0, 1], np.float32), (h, w, 3)).copy()
-    return out
-
-
 def report(r: dict) -> str:
     p = r["phases"]
     lines = [f"# GPU recipe on {r['machine']}", "",
@@ -388,9 +302,11 @@ def report(r: dict) -> str:
             lines.append(f"| {c['epoch']} | {c['seconds']} | {c['mpix']} | {c['val_psnr']:.3f} | "
                          f"{c['gain_over_base']:+.3f} | " + " | ".join(f"{v:+.3f}" for k, v in c.items()
                                                                       if k.startswith("gain_spp")) + " |")
-    if r.get("bench"):
-        lines += ["", "| frame | what | seconds |", "| --- | --- | ---: |"]
-        lines += [f"| {b['size']} | {b['what']} | {b['seconds']} |" for b in r["bench"]]
+    if r.get("bench", {}).get("rows"):
+        from .bench import markdown
+        lines += ["", markdown(r["bench"])]
+    elif r.get("bench"):
+        lines += ["", f"bench: {r['bench']['error']}"]
     return "\n".join(lines) + "\n"
 
 
