@@ -70,6 +70,51 @@ def integrator_vs_path(cfg: Config, resolution: int = 256, spp: int = 64, repeat
     return rows
 
 
+def compile_vs_render(cfg: Config, scenes: int = 3, frames: int = 2, images: tuple = ("gt1", "s00")) -> dict:
+    """Per frame of the configured dataset (its resolution, spp and scenes, ``frames`` camera views each): seconds
+    drjit spends compiling kernels (its kernel history: code generation and the backend's compilation, LLVM on
+    the CPU, OptiX/CUDA on a GPU) against seconds rendering, for a scene's first frame and its later ones.
+    A new random scene compiles its one megakernel again (its shapes, textures and instances change the
+    kernel's layout); later frames of the scene reuse it."""
+    import drjit as dr
+
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+
+    from .dataset import make_plan
+    from .frame import _render_one, _scene, _sensor
+
+    sub = dataclasses.replace(cfg, seed=cfg.seed + 7919,   # scenes whose kernels no earlier run cached on disk
+                              dataset=dataclasses.replace(cfg.dataset, scenes=scenes, frames=frames, stress=[]))
+    mi = import_mitsuba(sub.render.variant, sub.render.threads)
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    rows = []
+    try:
+        for task in make_plan(sub).frame_tasks(sub):
+            scene, features, _ = _scene(mi, task)
+            sensor = _sensor(mi, task, scene)
+            dr.kernel_history()                              # empties it
+            t0 = time.perf_counter()
+            for name in images:
+                _render_one(mi, scene, sensor, task, name, features)
+            wall = time.perf_counter() - t0
+            kernels = [k for k in dr.kernel_history() if "hash" in k]
+            compile_s = sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in kernels) / 1000
+            rows.append({"scene": task.scene, "frame": task.frame, "wall_s": wall, "compile_s": compile_s,
+                         "render_s": wall - compile_s, "kernels": len(kernels),
+                         "compiled": sum(not k.get("cache_hit") for k in kernels)})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    first = [r for r in rows if r["frame"] == 0]
+    later = [r for r in rows if r["frame"] > 0]
+
+    def mean(rs, key):
+        return sum(r[key] for r in rs) / len(rs) if rs else float("nan")
+    return {"images": list(images), "rows": rows,
+            **{f"{k}_{name}": mean(rs, k) for name, rs in (("first", first), ("later", later))
+               for k in ("compile_s", "render_s")}}
+
+
 def dataset_shares(cfg: Config, scenes: int) -> dict:
     """Run the dataset stage on ``scenes`` scenes into a temporary store and split its wall time."""
     from .dataset import run
@@ -166,7 +211,8 @@ def run_bench(cfg: Config, out: str = "reports/bench", scenes: int = 4, resoluti
     result = {"machine": machine(),
               "packages": package_versions(),
               "integrator": integrator_vs_path(cfg, resolution, spp, repeats),
-              "dataset": dataset_shares(cfg, scenes)}
+              "dataset": dataset_shares(cfg, scenes),
+              "compile": compile_vs_render(cfg, scenes=min(scenes, 3))}
     # Savings are measured on the configured store (the default dataset after `make dataset`);
     # without one, on a store of `scenes` scenes rendered for the purpose.
     if Store(cfg.store).manifest_path.exists():
@@ -210,12 +256,25 @@ def format_markdown(r: dict, cfg: Config) -> str:
               f"{d['wall_s']:.1f} | {d['msamples_per_s']:.2f} |", "",
               f"Ground truths ({_gt_rule(cfg)}): {g['spp_mean']:.0f} spp on average, {g['render_s']:.1f} s of GT "
               f"rendering, GT1 vs GT2 PSNR median {g['psnr_gt1_gt2_median']:.2f} dB (min {g['psnr_gt1_gt2_min']:.2f}).", "",
+              *_compile_lines(r["compile"], cfg),
               f"## Leaving out what a scene does not need (store {o['store']}, {o['images']} images)", "",
               f"- disk: {o['bytes_omitted'] / 2**20:.2f} MiB with omission vs {o['bytes_full'] / 2**20:.2f} MiB with every "
               f"channel written: {o['disk_saving']:.1%} saved",
               f"- render time at {o['timing_spp']} spp, frame 0 of every scene: {o['render_s_needed']:.2f} s with the needed features vs "
               f"{o['render_s_all']:.2f} s with all: {o['time_saving']:.1%} saved", ""]
     return "\n".join(lines)
+
+
+def _compile_lines(c: dict, cfg: Config) -> list[str]:
+    d = cfg.dataset
+    return [f"## Kernel compilation against rendering, per frame ({', '.join(c['images'])} of "
+            f"{d.resolution[0]}x{d.resolution[1]} frames, variant {cfg.render.variant})", "",
+            "| frame of its scene | compiling s | rendering s |", "| --- | ---: | ---: |",
+            f"| first | {c['compile_s_first']:.2f} | {c['render_s_first']:.2f} |",
+            f"| later | {c['compile_s_later']:.2f} | {c['render_s_later']:.2f} |", "",
+            "A new random scene compiles its megakernel again (its shapes, textures and instances change the "
+            "kernel's layout); the other frames of a scene reuse it: `dataset.frames` above 1 spreads one "
+            "compilation over several camera views.", ""]
 
 
 def _gt_rule(cfg: Config) -> str:

@@ -25,3 +25,8 @@ def test_bench_writes_its_report(tmp_path):
     assert "Split-buffer integrator" in md and "Ground truths (fixed 64 spp): 64 spp on average" in md
     assert f"{o['disk_saving']:.1%} saved" in md and f"{o['time_saving']:.1%} saved" in md
     assert result["omission"] == o
+    c = report["compile"]
+    assert [(r["scene"], r["frame"]) for r in c["rows"]] == [("s00000", 0), ("s00000", 1)]
+    # the scene's second camera view reuses the kernels its first compiled (or found in drjit's disk cache)
+    assert c["rows"][1]["compiled"] == 0 and all(r["kernels"] > 0 and r["render_s"] > 0 for r in c["rows"])
+    assert "Kernel compilation against rendering" in md and f"| first | {c['compile_s_first']:.2f} |" in md

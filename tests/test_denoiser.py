@@ -267,7 +267,8 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
     shutil.copytree(store, other)
     cfg = load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY,
                              f"diffusion.extra_stores=[{other}]"])
-    one = data.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'one'}"])).train_pack(True)
+    one = data.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'one'}", *REFINE_TINY])
+                           ).train_pack(True)
     both = data.StoreSource(cfg).train_pack(True)
     n, frames = len(one["spp"]), len(one["target"])
     assert len(both["spp"]) == 2 * n and len(both["target"]) == 2 * frames
