@@ -120,7 +120,7 @@ TRAINER_KEYS = {
     "diffusion": SHARED | {"base", "base_network", "extra_stores", "init", "crops_per_frame", "epoch_steps",
                            "weight_decay", "warmup_steps", "precision", "shipped", "name", "schedule",
                            "residual_scale", "snr_gamma", "snr_floor", "hdr_weight", "dropout", "t_focus",
-                           "train_steps", "steps", "start", "samples", "skip", "ema", "val_frames"},
+                           "train_steps", "steps", "start", "samples", "skip", "ema", "val_frames", "loader_workers"},
     "oidn_ft": SHARED | {"network", "crops_per_frame", "epoch_steps", "lr_end", "warmup_steps", "weight_decay",
                          "loss", "l2sp", "distill", "diversify", "trainable", "augment", "blend", "val_frames",
                          "target", "fine_levels"},
