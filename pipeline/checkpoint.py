@@ -45,7 +45,27 @@ def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dic
     tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     metadata = {k: v for k, v in metadata.items() if k != CHECKSUM}
     metadata[CHECKSUM] = _crc32(tensors, metadata)
-    atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
+
+    def write(tmp: str) -> None:
+        save_file(tensors, tmp, metadata=metadata)
+        _sort_metadata(tmp)
+    atomic_write_bytes(path, write)
+
+
+def _sort_metadata(path: str) -> None:
+    """Rewrite the file's header with its metadata keys sorted, in place (same length). safetensors writes
+    them in the order of a Rust HashMap, which changes from one call to the next: two saves of the same
+    tensors and metadata would differ in bytes."""
+    with open(path, "r+b") as f:
+        n = int.from_bytes(f.read(8), "little")
+        text = f.read(n)
+        header = json.loads(text)
+        if "__metadata__" in header:
+            header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+        new = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(new) <= n:         # always (the same keys and values); else the file stays as written
+            f.seek(8)
+            f.write(new + b" " * (n - len(new)))
 
 
 def read_safetensors(path: Path, what: str, fix: str = "") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
