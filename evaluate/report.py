@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import csv
 import datetime
+import io
 import json
 import math
+import os
 import subprocess
 from pathlib import Path
 
@@ -25,6 +27,7 @@ import numpy as np
 
 from mcdenoise.pipeline import figures
 from mcdenoise.pipeline.config import Config, to_dict
+from mcdenoise.pipeline.exr import atomic_write_bytes
 from mcdenoise.pipeline.versions import machine, package_versions
 
 from .compare import REFERENCES, frame_values, scored_rows
@@ -43,8 +46,11 @@ def git_commit() -> dict:
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
                              timeout=10).stdout.strip()
+        # A read: git status would otherwise refresh the index under .git/index.lock, which a kill or a
+        # full disk (the git process dies of SIGXFSZ) leaves behind, and the checkout's git stops working.
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+                               capture_output=True, text=True, timeout=10,
+                               env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"}).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return {"commit": "unknown", "dirty": None}
     return {"commit": sha or "unknown", "dirty": bool(dirty) if sha else None}
@@ -75,8 +81,13 @@ def jsonable(x):
     return x
 
 
+def write_text(path: Path, text: str) -> None:
+    """``text`` into ``path`` through a temporary file: a killed or failed eval leaves whole files only."""
+    atomic_write_bytes(path, lambda tmp: Path(tmp).write_text(text))
+
+
 def write_json(path: Path, data) -> None:
-    path.write_text(json.dumps(jsonable(data), indent=1, allow_nan=False) + "\n")
+    write_text(path, json.dumps(jsonable(data), indent=1, allow_nan=False) + "\n")
 
 
 def load_stability(out_dir: Path) -> dict | None:
@@ -333,39 +344,41 @@ def interval_cells(row: dict, names: list[str]) -> list:
 
 
 def write_csv(path: Path, entry: dict, names: list[str]) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["method", "label", "available", "reason", *names, "seconds_median", "seconds_mean",
-                    "failed_frames", "input_repaired", "device", *interval_columns(names)])
-        for n, r in entry["methods"].items():
-            if not r["available"]:
-                w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", "",
-                            *[""] * len(interval_columns(names))])
-                continue
-            w.writerow([n, r["label"], True, "", *[fmt(m, r["metrics"][m]) for m in names], r["seconds"]["median"],
-                        r["seconds"]["mean"], r["failed_frames"], r["input_repaired"], r["device"],
-                        *interval_cells(r, names)])
-        for n, et in entry["equal_time"].items():
-            w.writerow([f"mc_equal_{n}", et["label"], True, f"{et['mode']}, {et['spp']:.0f} spp",
-                        *[fmt(m, et["metrics"][m]) for m in names], "", "", et["failed_frames"], 0, "renderer",
-                        *interval_cells(et, names)])
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(["method", "label", "available", "reason", *names, "seconds_median", "seconds_mean",
+                "failed_frames", "input_repaired", "device", *interval_columns(names)])
+    for n, r in entry["methods"].items():
+        if not r["available"]:
+            w.writerow([n, r["label"], False, r["reason"], *[""] * len(names), "", "", "", "", "",
+                        *[""] * len(interval_columns(names))])
+            continue
+        w.writerow([n, r["label"], True, "", *[fmt(m, r["metrics"][m]) for m in names], r["seconds"]["median"],
+                    r["seconds"]["mean"], r["failed_frames"], r["input_repaired"], r["device"],
+                    *interval_cells(r, names)])
+    for n, et in entry["equal_time"].items():
+        w.writerow([f"mc_equal_{n}", et["label"], True, f"{et['mode']}, {et['spp']:.0f} spp",
+                    *[fmt(m, et["metrics"][m]) for m in names], "", "", et["failed_frames"], 0, "renderer",
+                    *interval_cells(et, names)])
+    write_text(path, f.getvalue())
 
 
 def write_frames_csv(path: Path, result: dict) -> None:
     """Every scored row × frame × metric: group, spp, method, frame, status, seconds, one column per metric."""
     names = result["metrics"]
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["group", "spp", "method", "frame", "status", "denoise_seconds", "mc_spp", *names])
-        for group, g in result["groups"].items():
-            for spp, entry in g["spp"].items():
-                if "skipped" in entry:
-                    continue
-                for n, r in scored_rows(entry).items():
-                    for p in r["per_frame"]:
-                        m = p.get("metrics", {})
-                        w.writerow([group, spp, n, p["frame"], p.get("status", p.get("error", "ok")),
-                                    p.get("seconds", ""), p.get("spp", ""), *[m.get(k, "") for k in names]])
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(["group", "spp", "method", "frame", "status", "denoise_seconds", "mc_spp", *names])
+    for group, g in result["groups"].items():
+        for spp, entry in g["spp"].items():
+            if "skipped" in entry:
+                continue
+            for n, r in scored_rows(entry).items():
+                for p in r["per_frame"]:
+                    m = p.get("metrics", {})
+                    w.writerow([group, spp, n, p["frame"], p.get("status", p.get("error", "ok")),
+                                p.get("seconds", ""), p.get("spp", ""), *[m.get(k, "") for k in names]])
+    write_text(path, f.getvalue())
 
 
 def write_eval(result: dict, out_dir: Path) -> str:
@@ -378,7 +391,7 @@ def write_eval(result: dict, out_dir: Path) -> str:
     write_frames_csv(out_dir / "eval_frames.csv", result)
     write_json(out_dir / "eval.json", result)
     text = format_markdown(result)
-    (out_dir / "eval.md").write_text(text)
+    write_text(out_dir / "eval.md", text)
     return text
 
 
@@ -417,8 +430,7 @@ def plot_error_vs_time(g: dict, path: Path, group: str) -> None:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=6)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    figures.save_figure(fig, path, dpi=110)
 
 
 # Diffusion rows of one kind (evaluate.methods.curve_kind: ours, ours_paper, ...) are drawn as one curve over
@@ -473,6 +485,5 @@ def per_scene_figure(entry: dict, metric_names: list[str], path: Path, title: st
     axes[0, 0].set_title(f"{title}: one dot per frame", fontsize=9)
     axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    figures.save_figure(fig, path, dpi=100, bbox_inches="tight")
     return path.name

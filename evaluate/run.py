@@ -372,6 +372,9 @@ def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | Non
     metric_names, missing = usable_metrics(e.metrics)
     out_dir = report_dir(cfg, out)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # Temporary files of a report write a kill interrupted (one eval per report folder: all stale).
+    for tmp in out_dir.glob(".*.tmp"):
+        tmp.unlink(missing_ok=True)
     loader = Loader(cfg)
     result = {"meta": report.run_meta(cfg, spps), "metrics": metric_names,
               "metrics_missing": {**missing, **NOT_COMPUTED}, "groups": {}}

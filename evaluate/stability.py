@@ -28,7 +28,7 @@ from mcdenoise.pipeline.progress import progress
 
 from .harness import run_method
 from .methods import Loader, MethodUnavailable, check_names
-from .report import fmt_seconds, markdown_table, write_json
+from .report import fmt_seconds, markdown_table, write_json, write_text
 
 BASE = (64, 64)          # (H, W) of the cases that are not about size
 _SPLIT = {"diffuse_direct": 0.4, "specular_direct": 0.1, "diffuse_indirect": 0.4, "specular_indirect": 0.1}
@@ -195,7 +195,7 @@ def run_stability(cfg: Config, large: bool | None = None, out: str | Path | None
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "stability.json", data)
     text = format_markdown(data, list(e.methods))
-    (out_dir / "stability.md").write_text(text)
+    write_text(out_dir / "stability.md", text)
     if not quiet:
         print(text)
     ran = [c for r in results.values() for c in r.values() if c["status"] != "not available"]

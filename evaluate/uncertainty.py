@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mcdenoise.pipeline.figures import save_figure
+
 
 def pixel_pairs(std: np.ndarray, output: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(predicted σ, absolute error) per pixel, channel means, flattened."""
@@ -86,6 +88,5 @@ def plot(rows: dict[str, dict], path: Path, title: str) -> str | None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return Path(path).name

@@ -8,6 +8,8 @@ with status 2; nothing half-written is left behind.
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
 
 from mcdenoise.pipeline.errors import PipelineError
@@ -29,6 +31,12 @@ def build_parser(prog: str = "python -m pipeline") -> argparse.ArgumentParser:
     return parser
 
 
+# What a full or read-only disk raises (errno -> what it means for the user).
+FILE_SYSTEM = {errno.ENOSPC: ": the disk is full", errno.EDQUOT: ": the disk is full",
+               errno.EFBIG: ": the disk is full or the file size is limited", errno.EROFS: ": not writable",
+               errno.EACCES: ": not writable", errno.EPERM: ": not writable"}
+
+
 def main(argv: list[str] | None = None, prog: str = "python -m pipeline") -> int:
     """Run one stage; ``prog`` is the name --help shows (the installed command is ``mcdenoise``)."""
     parser = build_parser(prog)
@@ -44,6 +52,13 @@ def main(argv: list[str] | None = None, prog: str = "python -m pipeline") -> int
         return args.fn(args)
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if exc.errno not in FILE_SYSTEM:
+            raise
+        # a stage that writes outside the store's writers (a copy, a folder): the same one line
+        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f)
+        print(f"error: {where or 'writing'}: {os.strerror(exc.errno)}{FILE_SYSTEM[exc.errno]}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted: finished frames are kept; rerun the same command to continue", file=sys.stderr)

@@ -3,7 +3,9 @@
 Everything is safetensors or JSON; nothing is pickled, so a checkpoint from elsewhere cannot run
 code when it is loaded.
 
-- ``save_safetensors``: tensors + string metadata, written atomically.
+- ``save_safetensors``: tensors + string metadata, written atomically, with a CRC-32 of both in the
+  metadata (``crc32``); ``read_safetensors``: tensors and metadata, the CRC checked where the file
+  has one (safetensors itself has no checksum: a flipped bit in a weight would load silently).
 - ``save_last`` / ``load_last``: the resumable state after a finished epoch in one file: a
   module's weights (``model.*``), the optimizer's moments (``optim.*``; several optimizers, a
   dict, under ``optim.<name>.*``), the torch RNG state and,
@@ -16,6 +18,7 @@ code when it is loaded.
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 
 import torch
@@ -23,11 +26,63 @@ import torch
 from .errors import CheckpointError, StoreError
 from .exr import atomic_write_bytes
 
+CHECKSUM = "crc32"
+
+
+def _crc32(tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> str:
+    """CRC-32 of the metadata (but the checksum) and of every tensor's name, dtype, shape and bytes."""
+    crc = zlib.crc32(json.dumps({k: v for k, v in metadata.items() if k != CHECKSUM}, sort_keys=True).encode())
+    for name in sorted(tensors):
+        t = tensors[name].detach().contiguous().cpu()
+        crc = zlib.crc32(f"{name}|{t.dtype}|{list(t.shape)}".encode(), crc)
+        crc = zlib.crc32(t.reshape(-1).view(torch.uint8).numpy().tobytes(), crc)
+    return f"{crc:08x}"
+
 
 def save_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+    """``metadata``'s own ``crc32`` (of a file this was read from) is replaced by the one of what is written."""
     from safetensors.torch import save_file
     tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
-    atomic_write_bytes(path, lambda tmp: save_file(tensors, tmp, metadata=metadata))
+    metadata = {k: v for k, v in metadata.items() if k != CHECKSUM}
+    metadata[CHECKSUM] = _crc32(tensors, metadata)
+
+    def write(tmp: str) -> None:
+        save_file(tensors, tmp, metadata=metadata)
+        _sort_metadata(tmp)
+    atomic_write_bytes(path, write)
+
+
+def _sort_metadata(path: str) -> None:
+    """Rewrite the file's header with its metadata keys sorted, in place (same length). safetensors writes
+    them in the order of a Rust HashMap, which changes from one call to the next: two saves of the same
+    tensors and metadata would differ in bytes."""
+    with open(path, "r+b") as f:
+        n = int.from_bytes(f.read(8), "little")
+        text = f.read(n)
+        header = json.loads(text)
+        if "__metadata__" in header:
+            header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+        new = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(new) <= n:         # always (the same keys and values); else the file stays as written
+            f.seek(8)
+            f.write(new + b" " * (n - len(new)))
+
+
+def read_safetensors(path: Path, what: str, fix: str = "") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """(tensors on the CPU, metadata) of a safetensors file; CheckpointError naming ``path``, saying it is
+    not ``what`` and ``fix``, where it cannot be read or its CRC-32 (files this module wrote) does not match."""
+    from safetensors import SafetensorError, safe_open
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            metadata = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{path}: not {what} ({first})" + (f"; {fix}" if fix else "")) from None
+    if CHECKSUM in metadata and metadata[CHECKSUM] != _crc32(tensors, metadata):
+        raise CheckpointError(f"{path}: damaged (CRC-32 of its tensors and metadata differs from the one it was "
+                              f"saved with); {fix or 'restore it or train it again'}")
+    return tensors, metadata
 
 
 def _optimizers(opt) -> dict[str, torch.optim.Optimizer]:
@@ -61,14 +116,14 @@ def load_last(path: Path, model: torch.nn.Module, opt, device,
     ``fingerprint``: the settings the checkpoint must have been made with. Checked before any
     weight is loaded, so a run with another model shape gets the list of changed settings, not
     a tensor size mismatch."""
-    from safetensors import SafetensorError, safe_open
+    tensors, metadata = read_safetensors(path, "a checkpoint this trainer wrote", "delete it to start over")
     try:
-        with safe_open(str(path), framework="pt") as f:
-            record = json.loads((f.metadata() or {})["state"])
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except (SafetensorError, OSError, KeyError, ValueError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CheckpointError(f"{path}: not a checkpoint this trainer wrote ({first}); delete it to start over") from None
+        record = json.loads(metadata["state"])
+        if not isinstance(record, dict):
+            raise ValueError(f"a JSON {type(record).__name__}")
+    except (KeyError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a checkpoint this trainer wrote (no state record: {exc}); "
+                              "delete it to start over") from None
     start_over = f"delete {Path(path).parent} or set another 'runs' folder to start over"
     if fingerprint is not None and record.get("fingerprint") != fingerprint:
         old = record.get("fingerprint") or {}

@@ -187,7 +187,8 @@ class SceneConfig(Section):
     def check(self, bad: Bad) -> None:
         for key in ("objects", "area_lights", "fov"):
             rng = getattr(self, key)
-            if not (isinstance(rng, list) and len(rng) == 2 and rng[0] <= rng[1]):
+            numbers = isinstance(rng, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rng)
+            if not (numbers and len(rng) == 2 and rng[0] <= rng[1]):
                 bad(key, f"expected a range [min, max], got {rng!r}")
         for f in dataclasses.fields(self):
             if f.name.endswith("_probability") and not 0 <= getattr(self, f.name) <= 1:
@@ -624,6 +625,13 @@ def _from_dict(cls: type, data: dict, where: str) -> Any:
     return cls(**kwargs)
 
 
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """PyYAML's error in one line: where (line, column) and what, without its multi-line excerpt of the text."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    what = " ".join(str(getattr(exc, "problem", None) or exc).split())
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}" if mark is not None else what
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``dataset.scenes=4`` → (["dataset", "scenes"], 4); the value is parsed as YAML."""
     if "=" not in text:
@@ -634,7 +642,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = yaml.safe_load(raw) if raw != "" else ""
     except yaml.YAMLError as exc:
-        raise ConfigError(f"override {text!r}: value is not valid YAML ({exc})") from exc
+        raise ConfigError(f"override {text!r}: value is not valid YAML ({yaml_problem(exc)})") from None
     return key.split("."), value
 
 
@@ -663,7 +671,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         try:
             data = yaml.safe_load(text) or {}
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+            raise ConfigError(f"{path}: not valid YAML ({yaml_problem(exc)})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: expected a mapping at the top level")
     apply_overrides(data, list(overrides or []))
@@ -681,7 +689,10 @@ def validate(cfg: Config, source: str) -> None:
     for f in dataclasses.fields(cfg):
         section = getattr(cfg, f.name)
         if isinstance(section, Section):
-            section.check(_bad_in(source, f.name))
+            try:
+                section.check(_bad_in(source, f.name))
+            except TypeError as exc:     # a value of a type its rule cannot compare (a list item a mapping, ...)
+                raise ConfigError(f"{source}: {f.name}: a value of the wrong type ({exc})") from None
 
 
 def _bad_in(source: str, section: str) -> Bad:

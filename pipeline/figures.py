@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .color import gamma_compress
+from .exr import atomic_write_bytes
 
 
 def detail_crop(img: np.ndarray, size: int) -> tuple[int, int]:
@@ -62,6 +63,16 @@ def crop_grid(rows: list[tuple[str, list[np.ndarray | None]]], titles: list[str]
             if c == 0:
                 ax.set_ylabel(label, fontsize=8)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
+
+
+def save_figure(fig, path: str | Path, **kwargs) -> None:
+    """``fig.savefig`` to a temporary name, then renamed onto ``path`` (a killed or failed write leaves no
+    half of a figure; a full disk is a one-line ``StoreWriteError``); closes ``fig``."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    try:
+        atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", **kwargs))
+    finally:
+        plt.close(fig)

@@ -11,9 +11,17 @@ Layout (version 2.0, little-endian), as OIDN's ``training/tza.py`` writes it and
 
 ``write(read(blob)) == blob`` for every blob OIDN ships (tested): tensors keep their table order
 and the writer pads as OIDN's does. OIDN itself only runs float16 weights.
+
+The format has no checksum, so the reader holds a blob to that layout instead: each tensor starts
+at the first 64-byte boundary after the previous one (the first after the header), the table at
+the first after the last tensor, and the table ends the blob. A changed offset, shape, dtype, count
+or table position then fails with a ``TZAError`` rather than reading other bytes as weights
+(fuzzed in ``tests/test_fuzz.py``: whatever the reader accepts, it writes back byte for byte but
+for the padding).
 """
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -50,6 +58,8 @@ def read(blob: bytes, source: str = "TZA blob") -> dict[str, Tensor]:
         raise TZAError(f"{source}: not a TZA archive (magic {magic:#06x}, expected {MAGIC:#06x})")
     if major != VERSION[0]:
         raise TZAError(f"{source}: TZA version {major}.{minor}, this reader knows {VERSION[0]}.x")
+    if not 12 <= table <= len(view) - 4:
+        raise TZAError(f"{source}: table at byte {table}, outside the blob's {len(view)} bytes")
     try:
         return _read_table(view, table)
     except (struct.error, UnicodeDecodeError, KeyError, ValueError) as exc:
@@ -58,9 +68,14 @@ def read(blob: bytes, source: str = "TZA blob") -> dict[str, Tensor]:
         raise TZAError(f"{source}: damaged TZA table ({type(exc).__name__}: {exc})") from None
 
 
-def _read_table(view: memoryview, pos: int) -> dict[str, Tensor]:
-    (count,), pos = struct.unpack_from("<I", view, pos), pos + 4
+def _aligned(pos: int) -> int:
+    return pos + (-pos % ALIGNMENT)
+
+
+def _read_table(view: memoryview, table: int) -> dict[str, Tensor]:
+    (count,), pos = struct.unpack_from("<I", view, table), table + 4
     out: dict[str, Tensor] = {}
+    data_end = 12            # where the previous tensor's data (at first the header) ends
     for _ in range(count):
         (n,), pos = struct.unpack_from("<H", view, pos), pos + 2
         name, pos = bytes(view[pos:pos + n]).decode(), pos + n
@@ -69,11 +84,22 @@ def _read_table(view: memoryview, pos: int) -> dict[str, Tensor]:
         layout, pos = bytes(view[pos:pos + ndims]).decode("ascii"), pos + ndims
         code, pos = bytes(view[pos:pos + 1]).decode("ascii"), pos + 1
         (offset,), pos = struct.unpack_from("<Q", view, pos), pos + 8
+        if len(layout) != ndims or code not in _DTYPES:
+            raise TZAError(f"tensor {name!r}: layout {layout!r} / dtype {code!r} is not a TZA tensor's")
+        if name in out:
+            raise TZAError(f"tensor {name!r} is in the table twice")
+        if offset != _aligned(data_end):
+            raise TZAError(f"tensor {name!r} starts at byte {offset}, expected {_aligned(data_end)} "
+                           "(data laid out as OIDN writes it)")
         dtype = np.dtype(_DTYPES[code])
-        end = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-        if end > len(view):
-            raise TZAError(f"tensor {name!r} ends at byte {end}, past the blob's {len(view)}")
-        out[name] = Tensor(np.frombuffer(view[offset:end], dtype=dtype).reshape(shape).copy(), layout)
+        data_end = offset + math.prod(shape) * dtype.itemsize
+        if data_end > table:
+            raise TZAError(f"tensor {name!r} ends at byte {data_end}, past the table at {table}")
+        out[name] = Tensor(np.frombuffer(view[offset:data_end], dtype=dtype).reshape(shape).copy(), layout)
+    if table != _aligned(data_end):
+        raise TZAError(f"table at byte {table}, expected {_aligned(data_end)} (after the last tensor)")
+    if pos != len(view):
+        raise TZAError(f"table ends at byte {pos}, the blob at {len(view)}")
     return out
 
 

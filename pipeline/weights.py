@@ -8,7 +8,7 @@ built on, its validation scores). One tag per kind of model (``FORMATS``).
 - ``save``: both files, each atomically (a kill leaves the previous model or none, never half of one);
 - ``read_record``: ``model.json``, refused with one line that names the folder unless it is a model of
   that kind; ``kind``: which kind of model a folder holds;
-- ``load_tensors``: the weights, from safetensors only (nothing is ever unpickled);
+- ``load_tensors``: the weights, from safetensors only (nothing is ever unpickled), their CRC-32 checked;
 - ``check_sha256``: the weights a model was built on (a frozen base, OIDN's prior, the Isik network
   of its first estimate) are still the ones it was trained with.
 
@@ -21,7 +21,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from .checkpoint import save_safetensors
+from .checkpoint import read_safetensors, save_safetensors
 from .errors import CheckpointError
 from .exr import atomic_write_json, read_json
 
@@ -65,15 +65,10 @@ def kind(folder: Path) -> str | None:
 
 
 def load_tensors(path: Path, device: str = "cpu") -> dict:
-    """The tensors of a safetensors file; CheckpointError (one line) where it is not one."""
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    try:
-        return load_file(str(path), device=str(device))
-    except (SafetensorError, OSError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CheckpointError(f"{path}: not a usable safetensors checkpoint of this model ({first})") from None
+    """The tensors of a safetensors file (its CRC-32 checked where it has one); CheckpointError (one line)
+    where it is not one."""
+    tensors, _ = read_safetensors(path, "a usable safetensors checkpoint of this model")
+    return {k: v.to(device) for k, v in tensors.items()}
 
 
 def check_sha256(data: bytes | Path, expected: str, what: str, fix: str) -> None:

@@ -23,6 +23,12 @@ CLEAN_TINY = ["clean.epochs=5", "clean.batch_size=4", "clean.crop=16", "clean.cr
               "clean.kernel_size=3", "clean.dilations=[1, 2]", "clean.device=cpu"]
 
 
+# What the reliability tests found, printed at the end of the run (``tests/conftest.py``):
+# reader -> outcome -> count for the fuzz tests; stage -> one line per kill point that ended identical.
+FUZZ_TOTALS: dict[str, dict[str, int]] = {}
+KILL_POINTS: dict[str, list[str]] = {}
+
+
 def all_keys() -> list[str]:
     """Every array key of a complete image: each buffer of the schema and its variance."""
     return [k for b in schema.BUFFERS for k in (b.name, schema.variance_name(b.name))]

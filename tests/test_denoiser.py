@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 from safetensors import safe_open
-from safetensors.torch import save_file
 
 from mcdenoise.pipeline import oidn_net
+from mcdenoise.pipeline.checkpoint import save_safetensors
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.store import Store, sha256
@@ -171,7 +171,7 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     torch.manual_seed(0)
     with safe_open(str(start / "control.safetensors"), "pt") as f:
         moved = {k: f.get_tensor(k) + 0.05 * torch.randn_like(f.get_tensor(k)) for k in f.keys()}
-        save_file(moved, str(start / "control.safetensors"), f.metadata())
+        save_safetensors(start / "control.safetensors", moved, f.metadata())
     (start / "model.json").write_text(json.dumps({**meta, "control_without_groups": False}))
     epoch0 = {}
     for name, keys in {"same": [], "other": ["diffusion.residual_scale=0.5", "diffusion.steps=3",
@@ -337,7 +337,7 @@ def test_strength_moves_the_output_from_the_base_to_the_trained_model(trained, t
     torch.manual_seed(1)
     with safe_open(str(moved / "control.safetensors"), "pt") as f:
         state = {k: f.get_tensor(k) + 0.02 * torch.randn_like(f.get_tensor(k)) for k in f.keys()}
-        save_file(state, str(moved / "control.safetensors"), f.metadata())
+        save_safetensors(moved / "control.safetensors", state, f.metadata())
     key = Store(store).frames("val")[0]
     buf = Store(store).read(key.scene, key.frame, 4)
     den = infer.load_denoiser(moved, "cpu")

@@ -29,9 +29,10 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.exr import ENCODINGS, VOLATILE_KEYS, StoreError, read_image, write_image
 from mcdenoise.pipeline.store import Store
-from tests.helpers import all_keys
+from tests.helpers import FUZZ_TOTALS, all_keys
 
 ROOT = Path(__file__).resolve().parents[1]
+TINY_CONFIG = ROOT / "configs" / "tiny.yaml"
 CASE_TIMEOUT_S = 30
 FUZZ = settings(derandomize=True, deadline=None, database=None,
                 suppress_health_check=list(HealthCheck), max_examples=700)
@@ -154,12 +155,26 @@ class Tally:
             self.counts[result["error"]] += 1
             self.failures.append(f"{case}: {result['error']}: {result['message']}")
 
-    def report(self, capsys) -> None:
+    def report(self, capsys, reader: str = "EXR images (headers, records, channels, pixels)") -> None:
         with capsys.disabled():
             total = sum(self.counts.values())
             print(f"\nfuzz {self.name}: {total} cases: " + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
+        record_totals(reader, self.counts)
         assert not self.failures, "\n".join(self.failures[:10])
         assert self.counts["StoreError"] > 0
+
+
+OUTCOMES = {"StoreError": "clean error", "clean error": "clean error", "correct read": "correct read",
+            "valid answer": "valid answer", "WRONG DATA": "wrong read", "wrong read": "wrong read"}
+
+
+def record_totals(reader: str, counts: Counter) -> None:
+    """Add a test's outcomes to the run's totals (printed by tests/conftest.py): a clean one-line error, a
+    correct read, a valid answer; anything else (another exception, a native crash, a hang) is a crash."""
+    totals = FUZZ_TOTALS.setdefault(reader, {})
+    for outcome, n in counts.items():
+        key = OUTCOMES.get(outcome, "crash")
+        totals[key] = totals.get(key, 0) + n
 
 
 def _case(tmp_path: Path, data: bytes) -> Path:
@@ -347,13 +362,15 @@ def _good_store(root: Path) -> Store:
     return store
 
 
-def _exercise(store: Store) -> None:
-    """What the stages ask of a store."""
+def _exercise(store: Store) -> set[str]:
+    """What the stages ask of a store; the digests of the pixels it served."""
+    served = set()
     for key in store.frames():
         store.is_frame_complete(key.scene, key.frame, ["s00"])
         rec = store.frame_record(key.scene, key.frame)
         if rec is not None:
-            store.read(key.scene, key.frame, 4)
+            served.add(digest(store.read(key.scene, key.frame, 4)))
+    return served
 
 
 def test_fuzz_manifests(tmp_path_factory, capsys):
@@ -364,6 +381,8 @@ def test_fuzz_manifests(tmp_path_factory, capsys):
     files = {"dataset.json": root / "dataset.json", "scene.json": root / "scenes/s0/scene.json",
              "frame.json": root / "scenes/s0/000/frame.json"}
     originals = {k: p.read_bytes() for k, p in files.items()}
+    pixels = _exercise(Store(root))
+    assert len(pixels) == 1
 
     @FUZZ
     @given(st.sampled_from(sorted(files)),
@@ -388,8 +407,12 @@ def test_fuzz_manifests(tmp_path_factory, capsys):
         else:
             path.write_text(json.dumps(value))
         try:
-            _exercise(Store(root))
-            tally["valid answer"] += 1
+            served = _exercise(Store(root))
+            if served <= pixels:          # a manifest may hide a frame, never serve other pixels
+                tally["valid answer"] += 1
+            else:
+                tally["wrong read"] += 1
+                failures.append(f"{which} {mutation!r}: served pixels that are not the frame's")
         except StoreError:
             tally["StoreError"] += 1
         except Exception as exc:  # noqa: BLE001
@@ -399,6 +422,7 @@ def test_fuzz_manifests(tmp_path_factory, capsys):
     case()
     with capsys.disabled():
         print(f"\nfuzz manifests: {sum(tally.values())} cases: " + ", ".join(f"{k} {v}" for k, v in sorted(tally.items())))
+    record_totals("store manifests (dataset.json, scene.json, frame.json)", tally)
     assert not failures, "\n".join(failures[:10])
     assert tally["StoreError"] > 0
 
@@ -427,3 +451,214 @@ def test_pathological_json_is_a_store_error(tmp_path, text):
     (root / "dataset.json").write_bytes(text.encode("utf-8", "surrogateescape"))
     with pytest.raises(StoreError, match=r"dataset\.json"):
         Store(root).manifest()
+
+
+# ---- in-process readers: TZA blobs, model folders, config files ---------------------------------
+# Pure Python (struct, safetensors' Rust parser, PyYAML), so the cases run in this process: a few
+# thousand a second. Each counts as a clean one-line error (a PipelineError subclass), a correct
+# read or a valid answer (defined per reader); anything else fails the test.
+
+INPROC = settings(FUZZ, max_examples=800)
+
+
+def damage(data: bytes):
+    """A strategy of damaged copies of ``data``: truncated, bits flipped, bytes overwritten, bytes appended."""
+    n = len(data)
+
+    def flip(bits):
+        buf = bytearray(data)
+        for b in bits:
+            buf[b // 8] ^= 1 << (b % 8)
+        return bytes(buf)
+
+    def over(pos, junk):
+        buf = bytearray(data)
+        buf[pos:pos + len(junk)] = junk
+        return bytes(buf[:n])
+
+    return st.one_of(st.integers(0, n - 1).map(lambda k: data[:k]),
+                     st.lists(st.integers(0, n * 8 - 1), min_size=1, max_size=4, unique=True).map(flip),
+                     st.tuples(st.integers(0, n - 1), st.binary(min_size=1, max_size=8)).map(lambda a: over(*a)),
+                     st.binary(min_size=1, max_size=16).map(lambda tail: data + tail))
+
+
+class Outcomes:
+    """Counts of one in-process fuzz test; ``failures`` say which input did what."""
+
+    def __init__(self, reader: str):
+        self.reader, self.counts, self.failures = reader, Counter(), []
+
+    def run(self, label: str, read, judge) -> None:
+        """``read()`` the input; ``judge(result)``: 'correct read' / 'valid answer', or a string saying why the
+        result is wrong."""
+        from mcdenoise.pipeline.errors import PipelineError
+        try:
+            result = read()
+        except PipelineError as exc:
+            self.counts["clean error"] += 1
+            if "\n" in str(exc):
+                self.failures.append(f"{label}: a {type(exc).__name__} of several lines: {exc!s:.300}")
+            return
+        except Exception as exc:  # noqa: BLE001 - counted and reported, the test fails on it
+            self.counts["crash"] += 1
+            self.failures.append(f"{label}: {type(exc).__name__}: {exc!s:.300}")
+            return
+        verdict = judge(result)
+        if verdict in ("correct read", "valid answer"):
+            self.counts[verdict] += 1
+        else:
+            self.counts["wrong read"] += 1
+            self.failures.append(f"{label}: {verdict}")
+
+    def report(self, capsys) -> None:
+        with capsys.disabled():
+            print(f"\nfuzz {self.reader}: {sum(self.counts.values())} cases: "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(self.counts.items())))
+        record_totals(self.reader, self.counts)
+        assert not self.failures, "\n".join(self.failures[:10])
+        assert self.counts["clean error"] > 0
+
+
+def _tza_original() -> bytes:
+    from mcdenoise.pipeline import tza
+    rng = np.random.default_rng(3)
+    return tza.write({"enc_conv0.weight": tza.Tensor(rng.standard_normal((4, 3, 3, 3)).astype(np.float16), "oihw"),
+                      "enc_conv0.bias": tza.Tensor(rng.standard_normal(4).astype(np.float16), "x"),
+                      "dec_conv0.weight": tza.Tensor(rng.standard_normal((3, 4, 1, 1)).astype(np.float32), "oihw"),
+                      "scale": tza.Tensor(np.arange(5, dtype=np.int8), "x")})
+
+
+def _tza_padding(tensors) -> list[tuple[int, int]]:
+    """The byte ranges OIDN's layout pads with zeros (before each tensor's data and before the table)."""
+    pos, gaps = 12, []
+    for t in tensors.values():
+        start = pos + (-pos % 64)
+        gaps.append((pos, start))
+        pos = start + t.array.nbytes
+    gaps.append((pos, pos + (-pos % 64)))
+    return gaps
+
+
+def test_fuzz_tza_blobs(capsys):
+    """OIDN weight archives: a TZAError (a WeightsError), or a faithful read: written back, the tensors
+    give the same bytes but for the zero padding and the minor version (no byte misread, none ignored)."""
+    from mcdenoise.pipeline import tza
+    original = _tza_original()
+    assert tza.write(tza.read(original)) == original
+    out = Outcomes("TZA blobs (pipeline/tza.py)")
+    table = int.from_bytes(original[4:12], "little")
+
+    def faithful(blob):
+        def judge(tensors):
+            again = bytearray(tza.write(tensors))
+            given = bytearray(blob)
+            if len(again) != len(given):
+                return f"read {len(blob)} bytes as an archive of {len(again)}"
+            for a, b in _tza_padding(tensors):
+                given[a:b] = bytes(b - a)
+            given[3] = tza.VERSION[1]       # any 2.x minor version reads as 2.0 (the writer's)
+            return "correct read" if again == given else "read as other tensors than the bytes hold"
+        return judge
+
+    # Damage anywhere, and damage aimed at the table (names, shapes, dtypes, offsets: where a lax
+    # reader would read other bytes as weights).
+    @INPROC
+    @given(st.one_of(damage(original),
+                     st.tuples(st.integers(table, len(original) - 1), st.binary(min_size=1, max_size=8))
+                     .map(lambda a: original[:a[0]] + a[1] + original[a[0] + len(a[1]):])))
+    def case(blob):
+        out.run(f"{blob.hex()}", lambda: tza.read(blob, "case.tza"), faithful(blob))
+
+    case()
+    out.report(capsys)
+
+
+def test_fuzz_model_folders(tmp_path, capsys):
+    """A trained model folder (model.json + model.safetensors, here a small Isik network) with either file
+    damaged, or model.json's values replaced: a CheckpointError, or the model with exactly the trained
+    weights (safetensors carries no checksum of its own; the CRC-32 in its metadata finds the damage)."""
+    import torch
+
+    from mcdenoise.clean.model import load_model
+    from tests.helpers import save_untrained_isik
+
+    folder = tmp_path / "isik"
+    save_untrained_isik(folder)
+    files = {"model.safetensors": folder / "model.safetensors", "model.json": folder / "model.json"}
+    originals = {k: p.read_bytes() for k, p in files.items()}
+    trained = {k: v.clone() for k, v in load_model(folder)[0].state_dict().items()}
+    record = json.loads(originals["model.json"])
+    out = Outcomes("model folders (model.json + safetensors)")
+
+    def judge(result):
+        state = result[0].state_dict()
+        same = state.keys() == trained.keys() and all(torch.equal(state[k], trained[k]) for k in state)
+        return "correct read" if same else "loaded other weights than the trained ones"
+
+    @INPROC
+    @given(st.one_of(st.tuples(st.just("model.safetensors"), damage(originals["model.safetensors"])),
+                     st.tuples(st.just("model.json"), damage(originals["model.json"])),
+                     st.tuples(st.just("model.json"), st.tuples(st.sampled_from(sorted(record)), json_values)
+                               .map(lambda kv: json.dumps({**record, kv[0]: kv[1]}).encode()))))
+    def case(change):
+        which, data = change
+        for k, p in files.items():
+            p.write_bytes(data if k == which else originals[k])
+        out.run(f"{which}: {data[:80]!r}", lambda: load_model(folder), judge)
+
+    case()
+    out.report(capsys)
+
+
+def _subset_of(given, resolved) -> bool:
+    """Every key and value of the YAML ``given`` is in the resolved config (numbers as numbers)."""
+    if isinstance(given, dict):
+        return isinstance(resolved, dict) and all(k in resolved and _subset_of(v, resolved[k]) for k, v in given.items())
+    if isinstance(given, list):
+        return isinstance(resolved, list) and len(given) == len(resolved) and all(map(_subset_of, given, resolved))
+    if isinstance(resolved, float) and not isinstance(given, bool):
+        try:
+            g = float(given)
+        except (TypeError, ValueError):
+            return False
+        return g == resolved or (g != g and resolved != resolved)
+    return type(given) is type(resolved) and given == resolved
+
+
+def test_fuzz_config_files(tmp_path, capsys):
+    """configs/tiny.yaml damaged as text, or with a key's value replaced: a ConfigError naming the file,
+    or a config holding every key and value the file gives (none ignored, none read as another)."""
+    import yaml
+
+    from mcdenoise.pipeline.config import load_config, to_dict
+
+    text = TINY_CONFIG.read_text()
+    data = yaml.safe_load(text)
+    paths = [(s, k) for s, v in data.items() if isinstance(v, dict) for k in v] + [(k, None) for k in data]
+    path = tmp_path / "case.yaml"
+    out = Outcomes("config files (YAML)")
+
+    def judge(case_text):
+        def check(cfg):
+            given = yaml.safe_load(case_text) or {}      # an empty file: the defaults
+            return "valid answer" if _subset_of(given, to_dict(cfg)) else "a key or value of the file was not used"
+        return check
+
+    def replaced(change):
+        (section, key), value = change
+        d = json.loads(json.dumps(data))
+        if key is None:
+            d[section] = value
+        else:
+            d[section][key] = value
+        return yaml.safe_dump(d)
+
+    @INPROC
+    @given(st.one_of(damage(text.encode()).map(lambda b: b.decode("utf-8", "replace")),
+                     st.tuples(st.sampled_from(paths), json_values).map(replaced)))
+    def case(case_text):
+        path.write_text(case_text)
+        out.run(f"{case_text[:120]!r}", lambda: load_config(path), judge(case_text))
+
+    case()
+    out.report(capsys)

@@ -214,7 +214,7 @@ def test_tza_reader_rejects_damage():
     blob = bytearray(oidn_weights.load("rt_hdr_small"))
     with pytest.raises(WeightsError, match="version"):
         tza.read(bytes(blob[:2]) + bytes([3]) + bytes(blob[3:]))
-    with pytest.raises(WeightsError, match="past the blob|damaged"):
+    with pytest.raises(WeightsError, match="table at byte .* outside the blob"):
         tza.read(bytes(blob[: len(blob) // 2]) + bytes(blob[-200:]))
     with pytest.raises(WeightsError, match="layout"):
         tza.write({"w": tza.Tensor(np.zeros((2, 2), np.float16), "x")})

@@ -44,20 +44,35 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    if (out / "oidn_ft").is_dir():
-        shutil.copytree(out / "oidn_ft", tmp / "oidn_ft")
-    shutil.copy(folder / "base.tza", tmp / "base.tza")
-    state = weights.load_tensors(folder / "control.safetensors")
-    record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
-    weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
-    (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
+    try:                 # the model folder is built in out.tmp; a failed build (full disk, ...) removes it
+        kept = out if out.is_dir() else _aside(out)      # a kill in _publish may have left it aside
+        if (kept / "oidn_ft").is_dir():
+            shutil.copytree(kept / "oidn_ft", tmp / "oidn_ft")
+        shutil.copy(folder / "base.tza", tmp / "base.tza")
+        state = weights.load_tensors(folder / "control.safetensors")
+        record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
+        weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
+        (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return _publish(tmp, out, folder, quiet)
 
 
+def _aside(out: Path) -> Path:
+    return out.parent / (out.name + ".old")
+
+
 def _publish(tmp: Path, out: Path, folder: Path, quiet: bool) -> Path:
-    """Replace ``out`` by the finished ``tmp`` folder (a rename: no half-written model folder) and say so."""
-    shutil.rmtree(out, ignore_errors=True)
+    """Replace ``out`` by the finished ``tmp`` folder (a rename: no half-written model folder) and say so.
+    The old ``out`` is moved aside before and removed after, so a kill in between leaves what a rerun keeps
+    from it (``oidn_ft/``)."""
+    aside = _aside(out)
+    if out.exists():
+        shutil.rmtree(aside, ignore_errors=True)
+        out.rename(aside)
     tmp.rename(out)
+    shutil.rmtree(aside, ignore_errors=True)
     if not quiet:
         size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
         print(f"exported {folder} -> {out} ({size / 2**20:.1f} MiB)", flush=True)

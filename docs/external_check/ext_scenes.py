@@ -10,7 +10,7 @@ from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train.model import SHIPPED_MODEL
-from mcdenoise.train.oidn_refine import load_refiner
+from mcdenoise.train.infer import load_denoiser as load_refiner
 
 
 def main(store: Store) -> None:

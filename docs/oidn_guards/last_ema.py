@@ -13,7 +13,7 @@ from pathlib import Path
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from mcdenoise.train import oidn_refine
+from mcdenoise.train import model as oidn_refine
 
 
 def main(run: Path, out: Path) -> None:
