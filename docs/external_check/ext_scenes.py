@@ -9,8 +9,8 @@ import sys
 from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
-from mcdenoise.train.model import SHIPPED_MODEL
 from mcdenoise.train.infer import load_denoiser as load_refiner
+from mcdenoise.train.model import SHIPPED_MODEL
 
 
 def main(store: Store) -> None:
