@@ -1,5 +1,6 @@
 """Fault injection: SIGKILL the stages at seeded random moments, rerun, compare with an
-uninterrupted run.
+uninterrupted run. Five kill points per stage; each stage's list is printed as it runs and, for the
+stages whose rerun came out identical, at the end of the run (``tests/conftest.py``).
 
 Kill points come from progress markers (files appearing in the store or the run folder, the
 epoch recorded in ``last.safetensors``) plus a seeded random delay, not from bare sleeps, so
@@ -11,16 +12,23 @@ its whole process group (worker processes too), then the same command is rerun t
   manifests identical but for timings, ``verify`` clean;
 - ``gt-clean``: the cleaner's final weights and optimizer state bitwise equal, the same loss
   history, identical gt_clean images and cleaner.json;
-- ``train --model M`` (isik, afgsa with its critic, diffusion): resumed from the last checkpoint
-  with the same per-epoch losses and bitwise-equal final weights. ``TRAIN_CASES`` lists the models: the diffusion trainer joins by
-  adding one ``TrainCase``;
+- ``train --model M`` (isik, afgsa with its critic, oidn_ft, diffusion on the stand-in base, and
+  the Control Module on OIDN: ``diffusion.base=oidn``): resumed from the last checkpoint with the
+  same per-epoch losses and bitwise-equal final weights. ``TRAIN_CASES`` lists the models: another
+  trainer joins by adding one ``TrainCase``;
+- ``eval`` and ``export``, whose writes all come within milliseconds: killed from inside, just
+  before a file-system event (``tests/killhook.py``: a file opened for writing, a rename, a folder
+  removal), five events drawn from the run's list, its last (the commit point) always; the report's
+  numbers and images, and the exported model folder byte for byte, equal the uninterrupted run's;
 - a worker process killed mid-frame (local pool and Ray): the task is retried, resumes from the
-  images already written, and the dataset completes identical to the reference.
-
-Each test prints its kill points and how they landed.
+  images already written, and the dataset completes identical to the reference;
+- full disk (RLIMIT_FSIZE, or ENOSPC injected mid-write) and read-only folders: one line naming
+  the file, a non-zero exit, no partial or temporary file (dataset, writers of images, manifests
+  and checkpoints, eval, export).
 """
 from __future__ import annotations
 
+import csv
 import json
 import os
 import random
@@ -39,7 +47,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from mcdenoise.pipeline.verify import verify_store
-from tests.helpers import CLEAN_TINY, TIMING_KEYS, TINY, all_keys, assert_same_store, cli, exr_payload
+from tests.helpers import CLEAN_TINY, KILL_POINTS, TIMING_KEYS, TINY, all_keys, assert_same_store, cli, exr_payload
 
 ROOT = Path(__file__).resolve().parents[1]
 KILL_SEED = 20261122
@@ -69,9 +77,10 @@ def session_processes(sid: int) -> dict[int, str]:
     return out
 
 
-def run_and_kill(args: list[str], ready: Callable[[float], bool], delay: float, timeout: float = 300) -> str:
+def run_and_kill(args: list[str], ready: Callable[[float], bool], delay: float, timeout: float = 300,
+                 urgent: Callable[[], bool] | None = None) -> str:
     """Start ``python -m pipeline ARGS``, SIGKILL its process group ``delay`` s after
-    ``ready(seconds since start)`` is true.
+    ``ready(seconds since start)`` is true, or as soon as ``urgent()`` is (the run is about to finish).
 
     Returns how it ended: 'killed' or 'finished first' (the marker never came before exit).
     """
@@ -81,7 +90,9 @@ def run_and_kill(args: list[str], ready: Callable[[float], bool], delay: float, 
     try:
         while proc.poll() is None and time.time() < start + timeout:
             if ready(time.time() - start):
-                time.sleep(delay)
+                end = time.time() + delay
+                while time.time() < end and not (urgent and urgent()):
+                    time.sleep(0.005)
                 break
             time.sleep(0.01)
         if proc.poll() is not None:
@@ -124,15 +135,24 @@ def epochs_done(folder: Path, checkpoint: str = "last.safetensors") -> Callable[
 
 
 def kill_series(name: str, args: list[str], points: list[tuple[str, Callable[[float], bool], float]],
-                capsys, probe: Callable[[], str] | None = None) -> list[str]:
+                capsys, probe: Callable[[], str] | None = None, urgent: Callable[[], bool] | None = None) -> list[str]:
     """Run ``args`` once per kill point; ``probe()`` describes what each kill left behind."""
-    results = []
+    results, lines = [], []
     for label, ready, delay in points:
-        results.append(run_and_kill(args, ready, delay))
+        results.append(run_and_kill(args, ready, delay, urgent=urgent))
+        lines.append(f"kill at {label} + {delay:.2f} s: {results[-1]}" + (f"; left {probe()}" if probe else ""))
         with capsys.disabled():
-            print(f"\n{name}: kill at {label} + {delay:.2f} s: {results[-1]}"
-                  + (f"; left {probe()}" if probe else ""), end="")
+            print(f"\n{name}: {lines[-1]}", end="")
+    LANDED[name] = lines
     return results
+
+
+# stage -> how its kills landed; ``identical(stage)`` reports them once the rerun matched the reference.
+LANDED: dict[str, list[str]] = {}
+
+
+def identical(name: str) -> None:
+    KILL_POINTS[name] = LANDED.pop(name)
 
 
 # ---- comparing -------------------------------------------------------------------------------
@@ -180,13 +200,15 @@ def test_dataset_killed_at_random_moments(tiny_store, tmp_path, capsys):
     rng = random.Random(KILL_SEED)
     root = tmp_path / "killed"
     args = ["dataset", "--config", str(TINY), f"store={root}", "--quiet"]
-    n_img, n_frames = rng.randint(4, 12), rng.randint(1, 2)
+    n_img, n_gt2, n_frames = rng.randint(4, 12), rng.randint(1, 2), rng.randint(1, 2)
     # The last kill must leave a frame unfinished for verify to find: at most all frames but one
     # complete (the kills before it may already have let all but one finish).
     last = count(reference, "frame.json")() - 1
     points = [
+        ("the store's dataset.json written", lambda t: count(root, "dataset.json")() > 0, rng.uniform(0, 0.05)),
         ("an EXR half-written (.exr.*.tmp appears)", lambda t: count(root, ".*.exr.*.tmp")() > 0, rng.uniform(0, 0.01)),
         (f"{n_img} more EXRs written", more(count(root, "*.exr"), n_img), rng.uniform(0, 0.2)),
+        (f"{n_gt2} more GT2 images written", more(count(root, "gt2.exr"), n_gt2), rng.uniform(0, 0.2)),
         (f"{n_frames} more frames complete (at most {last})", more(count(root, "frame.json"), n_frames, cap=last),
          rng.uniform(0, 0.2)),
     ]
@@ -201,6 +223,7 @@ def test_dataset_killed_at_random_moments(tiny_store, tmp_path, capsys):
     assert_same_store(reference, root)
     assert_same_manifests(reference, root)
     assert_verified(root)
+    identical("dataset")
 
 
 def test_killing_the_dataset_process_alone_stops_its_workers(tmp_path):
@@ -236,11 +259,14 @@ def test_gt_clean_killed_at_random_moments(tiny_store, cleaned, tmp_path, capsys
     shutil.copytree(reference, store)
     args = ["gt-clean", "--config", str(TINY), f"store={store}", f"runs={runs}", *CLEAN_TINY, "--quiet"]
     done = epochs_done(runs / "cleaner")
-    e1, n = rng.randint(1, 2), rng.randint(1, 3)
+    # 5 epochs (CLEAN_TINY), 6 frames: the epoch kills stop at 4 epochs at most, the image kills at 3 images
+    e1, n = rng.randint(1, 2), rng.randint(1, 2)
     points = [
         (f"{e1} cleaner epochs done", more(done, e1), rng.uniform(0, 0.5)),
         ("1 more cleaner epoch done", more(done, 1), rng.uniform(0, 0.5)),
+        ("1 more cleaner epoch done", more(done, 1), rng.uniform(0, 0.5)),
         (f"{n} gt_clean images written", more(count(store, "gt_clean.exr"), n), rng.uniform(0, 0.05)),
+        ("1 more gt_clean image written", more(count(store, "gt_clean.exr"), 1), rng.uniform(0, 0.05)),
     ]
     left = lambda: f"{epochs_done(runs / 'cleaner')()} epochs in last.safetensors, {count(store, 'gt_clean.exr')()} gt_clean"
     results = kill_series("gt-clean", args, points, capsys, probe=left)
@@ -259,6 +285,7 @@ def test_gt_clean_killed_at_random_moments(tiny_store, cleaned, tmp_path, capsys
             assert (pa["channels"][ch] == pb["channels"][ch]).all(), f"{rel}:{ch}"
     assert strip(json.loads((store / "cleaner.json").read_text())) == strip(json.loads((ref_store / "cleaner.json").read_text()))
     assert_verified(store)
+    identical("gt-clean")
 
 
 # ---- training --------------------------------------------------------------------------------
@@ -280,6 +307,11 @@ class TrainCase:
     history_file: str = "train.json"
 
 
+# The Control Module on OIDN's frozen network (train/oidn_refine.py), one optimisation step an epoch.
+REFINE_TINY = ["diffusion.base=oidn", "diffusion.epochs=5", "diffusion.crop=16", "diffusion.batch_size=2",
+               "diffusion.crops_per_frame=1", "diffusion.warmup_steps=1", "diffusion.lr=1e-3", "diffusion.device=cpu",
+               "diffusion.val_frames=1"]
+REFINE = TrainCase("diffusion", 4, "diffusion_spp4", REFINE_TINY, best="control.safetensors")
 TRAIN_CASES = [
     pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY + ["clean.epochs=8"]), id="isik"),
     pytest.param(TrainCase("afgsa", 4, "afgsa_spp4", AFGSA_TINY), id="afgsa"),
@@ -291,40 +323,177 @@ TRAIN_CASES = [
                             "diffusion.val_frames=1", "diffusion.warmup_steps=2", "diffusion.device=cpu",
                             "diffusion.base_network=rt_hdr_alb_nrm"],   # the EMA state resumes too
                            best="control.safetensors"), id="diffusion"),
+    pytest.param(REFINE, id="diffusion_oidn"),
 ]
 
 
+def train_args(case: TrainCase, store: Path) -> list[str]:
+    return ["train", "--model", case.model, "--spp", str(case.spp), "--config", str(TINY), f"store={store}",
+            *case.overrides]
+
+
+@pytest.fixture(scope="module")
+def reference_runs(cleaned, tmp_path_factory):
+    """``get(case)``: (run folder, seconds) of an uninterrupted run of ``case``, trained on first use, so
+    that the export test reuses the training test's reference."""
+    store, _ = cleaned
+    root, done = tmp_path_factory.mktemp("reference_runs"), {}
+
+    def get(case: TrainCase) -> tuple[Path, float]:
+        key = repr(case)
+        if key not in done:
+            runs = root / str(len(done))
+            t0 = time.time()
+            cli(*train_args(case, store), f"runs={runs}", "--quiet")
+            done[key] = (runs / case.folder, time.time() - t0)
+        return done[key]
+    return get
+
+
 @pytest.mark.parametrize("case", TRAIN_CASES)
-def test_training_killed_resumes_with_the_same_trajectory(case, cleaned, tmp_path, capsys):
+def test_training_killed_resumes_with_the_same_trajectory(case, cleaned, reference_runs, tmp_path, capsys, request):
     store, _ = cleaned
     rng = random.Random(KILL_SEED + 2)
-    ref_runs, runs = tmp_path / "ref", tmp_path / "killed"
-    base = ["train", "--model", case.model, "--spp", str(case.spp), "--config", str(TINY), f"store={store}",
-            *case.overrides]
-    t0 = time.time()
-    cli(*base, f"runs={ref_runs}", "--quiet")
-    t_ref = time.time() - t0
-    ref = ref_runs / case.folder
-    epochs = len(history(ref, case.history_file))
+    runs = tmp_path / "killed"
+    base = train_args(case, store)
+    ref, t_ref = reference_runs(case)
+    epochs = epochs_done(ref, case.checkpoint)()      # the last checkpoint's epoch
     assert epochs >= 4
     done = epochs_done(runs / case.folder, case.checkpoint)
     e1 = rng.randint(1, epochs // 2)
     # A fraction of the reference run's time, not fixed seconds: on a quiet machine the tiny runs
     # finished most epochs within 3 s, and the later kill points then found nothing left to kill.
     t_kill = rng.uniform(0.1, 0.3) * t_ref
+    # The second timed kill lands early in a rerun: while it loads the checkpoint or in the epoch after.
+    # The last epoch kills are capped at all epochs but one, so that each still finds a run to kill.
+    t_resume = rng.uniform(0.05, 0.15) * t_ref
+    # Every point also fires, without its delay, once all epochs but one are done, so that a slow
+    # reference (a loaded machine) or kills that let the run get far cannot make a point miss the run.
+    last = epochs - 1
     points = [
-        (f"{t_kill:.1f} s after start", lambda t: t >= t_kill, 0.0),
-        (f"{e1} epochs done", more(done, e1), rng.uniform(0, 0.5)),
-        ("1 more epoch done", more(done, 1), rng.uniform(0, 0.5)),
+        (f"{t_kill:.1f} s after start (or {last} epochs done)", lambda t: t >= t_kill or done() >= last, 0.0),
+        (f"{e1} epochs done (at most {last})", more(done, e1, cap=last), rng.uniform(0, 0.5)),
+        (f"1 more epoch done (at most {last})", more(done, 1, cap=last), rng.uniform(0, 0.5)),
+        (f"{t_resume:.1f} s after start (or {last} epochs done)", lambda t: t >= t_resume or done() >= last, 0.0),
+        (f"1 more epoch done (at most {last})", more(done, 1, cap=last), rng.uniform(0, 0.5)),
     ]
-    results = kill_series(f"train {case.model}", base + [f"runs={runs}", "--quiet"], points, capsys,
-                          probe=lambda: f"{done()} epochs in {case.checkpoint}")
+    name = f"train {request.node.callspec.id}"
+    results = kill_series(name, base + [f"runs={runs}", "--quiet"], points, capsys,
+                          probe=lambda: f"{done()} epochs in {case.checkpoint}", urgent=lambda: done() >= last)
     assert results.count("killed") == len(points), results
     cli(*base, f"runs={runs}", "--quiet")
     got = runs / case.folder
     assert history(got, case.history_file) == history(ref, case.history_file)
     assert_same_weights(got / case.checkpoint, ref / case.checkpoint)
     assert (got / case.best).read_bytes() == (ref / case.best).read_bytes()
+    identical(name)
+
+
+# ---- eval and export: killed at their file-system events ---------------------------------------------
+# Their writes come within milliseconds of each other, after seconds of start-up and computing: the
+# kill comes from inside the process (tests/killhook.py), just before its N-th file opened for writing,
+# renamed or removed in the output folder. Every such moment of a run is a possible kill point; five are
+# drawn, the stage's commit point (the last event) always among them.
+
+def run_hooked(args: list[str], under: Path, events: Path | None = None, kill: tuple[str, int] | None = None) -> str:
+    """``python -m pipeline ARGS`` under tests/killhook.py: list its events in ``events``, or SIGKILL it at
+    ``kill`` (an event's name and occurrence)."""
+    env = {**os.environ, "KILL_UNDER": str(under)}
+    if events is not None:
+        env["EVENTS_FILE"] = str(events)
+    if kill is not None:
+        env["KILL_EVENT"], env["KILL_OCCURRENCE"] = kill[0], str(kill[1])
+    proc = subprocess.run([sys.executable, "-m", "tests.killhook", *map(str, args)], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    if proc.returncode == -signal.SIGKILL:
+        return "killed"
+    assert proc.returncode == 0, proc.stderr
+    return "finished first"
+
+
+def kill_at_events(name: str, args: list[str], out: Path, prepare: Callable[[], None], rng: random.Random,
+                   capsys, each: Callable[[Path], None] | None = None) -> Path:
+    """``prepare()`` the folder of ``out``; the reference run ``args --out OUT``, listing its events, is moved
+    aside and returned (``out`` is named in what it writes); then a run killed before each of five of the
+    events, in their order, the last (the stage's commit point) included: one after the other from one
+    ``prepare()``, or with ``each(reference)``, each from a new ``prepare()`` and followed by a rerun and
+    ``each`` (where what a kill leaves changes the events of the next run)."""
+    folder = out.parent
+    prepare()
+    log = folder.parent / f"{name}.events"
+    assert run_hooked([*args, "--out", out], folder, events=log) == "finished first"
+    events = log.read_text().splitlines()
+    assert len(events) >= 5, events
+    reference = folder.parent / f"{name}.reference"
+    folder.rename(reference)
+    prepare()
+    points = sorted(rng.sample(range(1, len(events)), 4)) + [len(events)]
+    lines = []
+    for k in points:
+        if each is not None and k != points[0]:
+            shutil.rmtree(folder)
+            prepare()
+        kill = (events[k - 1], events[:k].count(events[k - 1]))
+        result = run_hooked([*args, "--out", out], folder, kill=kill)
+        lines.append(f"kill before event {k}/{len(events)} ({kill[0]}): {result}")
+        with capsys.disabled():
+            print(f"\n{name}: {lines[-1]}", end="")
+        assert result == "killed", lines[-1]
+        if each is not None:
+            cli(*args, "--out", out)
+            each(reference)
+    LANDED[name] = lines
+    return reference
+
+
+EVAL_TINY = ["eval.methods=[noisy, oidn, oidn_color]", "eval.spp=[4, 16]", "eval.metrics=[l1, psnr, ssim]",
+             "eval.equal_time=none", "eval.device=cpu"]
+
+
+def report_payload(folder: Path) -> dict:
+    """A report's numbers without wall-clock times: eval.json and the CSVs without timing fields, the
+    PNGs of images (crops, per-scene bars) byte for byte; the error-vs-time plot and eval.md show times."""
+    out = {"files": sorted(p.name for p in folder.iterdir()),
+           "eval.json": strip({k: v for k, v in json.loads((folder / "eval.json").read_text()).items()}),
+           "png": {p.name: p.read_bytes() for p in folder.glob("*.png") if not p.name.startswith("error_vs_time")}}
+    out["eval.json"]["meta"].pop("date")
+    for p in folder.glob("*.csv"):
+        rows = list(csv.reader(p.read_text().splitlines()))
+        keep = [i for i, h in enumerate(rows[0]) if "seconds" not in h]
+        out[p.name] = [[r[i] for i in keep] for r in rows]
+    return out
+
+
+def test_eval_killed_at_its_writes(cleaned, tmp_path, capsys):
+    store, runs = cleaned
+    rng = random.Random(KILL_SEED + 3)
+    args = ["eval", "--config", TINY, f"store={store}", f"runs={runs}", *EVAL_TINY, "--quiet"]
+    out = tmp_path / "reports" / "tiny"
+    ref = kill_at_events("eval", args, out, lambda: out.parent.mkdir(), rng, capsys)
+    cli(*args, "--out", out)
+    assert report_payload(out) == report_payload(ref / out.name)
+    identical("eval")
+
+
+def test_export_killed_at_its_writes(reference_runs, cleaned, tmp_path, capsys):
+    """``export`` of the Control Module on OIDN into a model folder that already holds an ``oidn_ft/``
+    folder (which the export keeps): after each kill the rerun gives the same folder, ``oidn_ft/`` too."""
+    store, _ = cleaned
+    run, _ = reference_runs(REFINE)
+    rng = random.Random(KILL_SEED + 4)
+    args = ["export", "--spp", "4", "--config", TINY, f"store={store}", f"runs={run.parent}", *REFINE.overrides,
+            "--quiet"]
+    out = tmp_path / "models" / "model"
+
+    def prepare():
+        (out / "oidn_ft").mkdir(parents=True)
+        (out / "oidn_ft" / "rt_hdr.json").write_text('{"kept": true}')
+
+    def same(reference: Path) -> None:
+        files = lambda root: {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+        assert files(out.parent) == files(reference)    # nothing else beside the folder either (no .tmp, no .old)
+    kill_at_events("export", args, out, prepare, rng, capsys, each=same)
+    identical("export")
 
 
 # ---- a worker process killed mid-frame ----------------------------------------------------------
@@ -520,3 +689,40 @@ def test_stale_temporary_files_of_a_killed_clean_run_are_removed(tmp_path):
     assert cmd_gt_clean(cfg, quiet=True) == 0
     assert not stale_image.exists() and not stale_ckpt.exists()
     assert not list(Path(cfg.store).rglob("*.tmp"))
+
+
+def _stage_args(stage: str, cleaned, reference_runs) -> list[str]:
+    store, runs = cleaned
+    if stage == "eval":
+        return ["eval", "--config", TINY, f"store={store}", f"runs={runs}", *EVAL_TINY, "--quiet"]
+    run, _ = reference_runs(REFINE)
+    return ["export", "--spp", "4", "--config", TINY, f"store={store}", f"runs={run.parent}", *REFINE.overrides,
+            "--quiet"]
+
+
+@pytest.mark.parametrize("stage", ["eval", "export"])
+def test_eval_and_export_on_a_full_disk_or_read_only_folder_fail_in_one_line(stage, cleaned, reference_runs,
+                                                                              tmp_path):
+    """Every write past 20 kB refused (RLIMIT_FSIZE, as a full disk would: the report's first figure, the
+    model's base.tza), then an output folder that cannot be written: one line naming the file, exit 2,
+    no file left, not even a temporary one."""
+    args = _stage_args(stage, cleaned, reference_runs)
+    run = lambda out, preexec: subprocess.run([sys.executable, "-m", "pipeline", *map(str, args), "--out", out],
+                                              cwd=ROOT, capture_output=True, text=True, timeout=300,
+                                              preexec_fn=preexec)
+    full, locked = tmp_path / "full", tmp_path / "locked"
+    locked.mkdir()
+    proc = run(full / "out", _limit_file_size(20_000))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and str(full / "out") in errors[0] and "File too large" in errors[0], proc.stderr
+    assert not [p for p in full.rglob("*") if p.is_file()]
+    subprocess.run(["chmod", "a-w", str(locked)], check=True)
+    try:
+        proc = run(locked / "out", _read_only_preexec())
+    finally:
+        subprocess.run(["chmod", "u+w", str(locked)], check=True)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(errors) == 1 and str(locked / "out") in errors[0] and "Permission denied" in errors[0], proc.stderr
+    assert not list(locked.rglob("*"))

@@ -8,7 +8,12 @@ reader process with a time limit per case, so a native crash in OpenEXR or a han
 such instead of killing pytest. Malformed manifests (dataset.json, scene.json, frame.json) go
 through the Store API in process (pure Python): StoreError or a valid answer.
 
-Each test prints how many cases ran and how they ended.
+TZA blobs (OIDN's weights), trained model folders (model.json + safetensors) and config files are
+fuzzed in process (pure Python readers; a few thousand cases a second): a clean one-line error (a
+``PipelineError``), or a read that is right by that reader's own standard (see each test).
+
+Each test prints how many cases ran and how they ended; ``tests/conftest.py`` prints the totals
+per reader at the end of the run (inputs, clean errors, correct reads, crashes, silent wrong reads).
 """
 from __future__ import annotations
 
@@ -662,3 +667,57 @@ def test_fuzz_config_files(tmp_path, capsys):
 
     case()
     out.report(capsys)
+
+
+# ---- what the fuzzing found, one case each ----------------------------------------------------------
+
+def test_tza_tensor_offset_off_oidn_layout_is_an_error():
+    """A table entry pointing 64 bytes further (still inside the blob) once read other bytes as the weights."""
+    from mcdenoise.pipeline import tza
+    from mcdenoise.pipeline.errors import WeightsError
+    blob = bytearray(_tza_original())
+    table = int.from_bytes(blob[4:12], "little")
+    name = b"enc_conv0.bias"
+    at = blob.index(name, table) + len(name) + 1 + 4 + 1 + 1      # ndims, shape, layout, dtype code
+    offset = int.from_bytes(blob[at:at + 8], "little")
+    blob[at:at + 8] = (offset + 64).to_bytes(8, "little")
+    with pytest.raises(WeightsError, match=r"x\.tza: tensor 'enc_conv0\.bias' starts at byte \d+, expected \d+"):
+        tza.read(bytes(blob), "x.tza")
+
+
+def test_flipped_bit_in_saved_weights_is_a_checkpoint_error(tmp_path):
+    import torch
+
+    from mcdenoise.pipeline import weights
+    from mcdenoise.pipeline.errors import CheckpointError
+    weights.save(tmp_path, "affinity", {"w": torch.arange(16, dtype=torch.float32)}, {"hparams": {}})
+    path = tmp_path / "model.safetensors"
+    assert torch.equal(weights.load_tensors(path)["w"], torch.arange(16, dtype=torch.float32))
+    data = bytearray(path.read_bytes())
+    data[-5] ^= 0x01                                   # one bit of the last weight
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=r"model\.safetensors: damaged \(CRC-32 .*\); restore it or train it"):
+        weights.load_tensors(path)
+
+
+def test_saving_the_same_tensors_twice_gives_the_same_bytes(tmp_path):
+    """safetensors orders metadata keys as a Rust HashMap does (anew each call); the header is rewritten sorted."""
+    import torch
+
+    from mcdenoise.pipeline.checkpoint import save_safetensors
+    tensors, meta = {"w": torch.ones(3)}, {"format": "f", "state": "{}", "z": "1", "a": "2"}
+    for i in range(8):
+        save_safetensors(tmp_path / f"{i}.safetensors", tensors, meta)
+    assert len({(tmp_path / f"{i}.safetensors").read_bytes() for i in range(8)}) == 1
+
+
+def test_yaml_error_and_a_range_of_non_numbers_are_one_line_config_errors(tmp_path):
+    from mcdenoise.pipeline.config import ConfigError, load_config
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("dataset:\n  scenes: 3\n stacks: [\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML \(line \d+, column \d+: ") as info:
+        load_config(bad)
+    assert "\n" not in str(info.value)
+    bad.write_text("scene:\n  objects: [{}, []]\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml: scene\.objects: expected a range \[min, max\]"):
+        load_config(bad)
