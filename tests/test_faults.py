@@ -12,8 +12,8 @@ its whole process group (worker processes too), then the same command is rerun t
   manifests identical but for timings, ``verify`` clean;
 - ``gt-clean``: the cleaner's final weights and optimizer state bitwise equal, the same loss
   history, identical gt_clean images and cleaner.json;
-- ``train --model M`` (isik, afgsa with its critic, oidn_ft, diffusion on the stand-in base, and
-  the Control Module on OIDN: ``diffusion.base=oidn``): resumed from the last checkpoint with the
+- ``train --model M`` (isik, afgsa with its critic, oidn_ft, and diffusion: the Control Module on
+  OIDN's frozen network): resumed from the last checkpoint with the
   same per-epoch losses and bitwise-equal final weights. ``TRAIN_CASES`` lists the models: another
   trainer joins by adding one ``TrainCase``;
 - ``eval`` and ``export``, whose writes all come within milliseconds: killed from inside, just
@@ -307,23 +307,18 @@ class TrainCase:
     history_file: str = "train.json"
 
 
-# The Control Module on OIDN's frozen network (train/oidn_refine.py), one optimisation step an epoch.
-REFINE_TINY = ["diffusion.base=oidn", "diffusion.epochs=5", "diffusion.crop=16", "diffusion.batch_size=2",
-               "diffusion.crops_per_frame=1", "diffusion.warmup_steps=1", "diffusion.lr=1e-3", "diffusion.device=cpu",
-               "diffusion.val_frames=1"]
-REFINE = TrainCase("diffusion", 4, "diffusion_spp4", REFINE_TINY, best="control.safetensors")
+# The Control Module on OIDN's frozen network (train/train.py RefineTask); the EMA state resumes too.
+REFINE = TrainCase("diffusion", 4, "diffusion_spp4",
+                   ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2", "diffusion.val_frames=1",
+                    "diffusion.warmup_steps=2", "diffusion.device=cpu", "diffusion.base_network=rt_hdr_alb_nrm"],
+                   best="control.safetensors")
 TRAIN_CASES = [
     pytest.param(TrainCase("isik", 4, "isik_spp4", CLEAN_TINY + ["clean.epochs=8"]), id="isik"),
     pytest.param(TrainCase("afgsa", 4, "afgsa_spp4", AFGSA_TINY), id="afgsa"),
     pytest.param(TrainCase("oidn_ft", "any", "oidn_ft_rt_hdr_alb_nrm",
                            ["oidn_ft.epochs=5", "oidn_ft.crop=16", "oidn_ft.batch_size=2", "oidn_ft.crops_per_frame=2",
                             "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1", "oidn_ft.device=cpu"]), id="oidn_ft"),
-    pytest.param(TrainCase("diffusion", 4, "diffusion_spp4",
-                           ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2",
-                            "diffusion.val_frames=1", "diffusion.warmup_steps=2", "diffusion.device=cpu",
-                            "diffusion.base_network=rt_hdr_alb_nrm"],   # the EMA state resumes too
-                           best="control.safetensors"), id="diffusion"),
-    pytest.param(REFINE, id="diffusion_oidn"),
+    pytest.param(REFINE, id="diffusion"),
 ]
 
 
