@@ -81,7 +81,7 @@ def compile_vs_render(cfg: Config, scenes: int = 3, frames: int = 2, images: tup
     from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 
     from .dataset import make_plan
-    from .frame import _render_one, _scene, _sensor
+    from .frame import frame_scene, frame_sensor, render_one
 
     sub = dataclasses.replace(cfg, seed=cfg.seed + 7919,   # scenes whose kernels no earlier run cached on disk
                               dataset=dataclasses.replace(cfg.dataset, scenes=scenes, frames=frames, stress=[]))
@@ -91,12 +91,12 @@ def compile_vs_render(cfg: Config, scenes: int = 3, frames: int = 2, images: tup
     rows = []
     try:
         for task in make_plan(sub).frame_tasks(sub):
-            scene, features, _ = _scene(mi, task)
-            sensor = _sensor(mi, task, scene)
+            scene, features, _ = frame_scene(mi, task)
+            sensor = frame_sensor(mi, task, scene)
             dr.kernel_history()                              # empties it
             t0 = time.perf_counter()
             for name in images:
-                _render_one(mi, scene, sensor, task, name, features)
+                render_one(mi, scene, sensor, task, name, features)
             wall = time.perf_counter() - t0
             kernels = [k for k in dr.kernel_history() if "hash" in k]
             compile_s = sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in kernels) / 1000

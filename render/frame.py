@@ -112,7 +112,7 @@ def external_notes(mi, scene) -> list[str]:
 _CACHE: dict = {"scene_id": None, "scene": None, "features": None, "sensors": {}}
 
 
-def _scene(mi, task: FrameTask):
+def frame_scene(mi, task: FrameTask):
     """The Mitsuba scene of ``task``, reusing the previous one when it is the same scene."""
     from mcdenoise.render.buffers import needed_features
 
@@ -134,7 +134,7 @@ def _scene(mi, task: FrameTask):
     return scene, features, time.perf_counter() - t0
 
 
-def _sensor(mi, task: FrameTask, scene):
+def frame_sensor(mi, task: FrameTask, scene):
     w, h = task.resolution or (None, None)
     if "xml" in task.desc:
         return external_sensor(mi, scene, w, h)
@@ -157,9 +157,9 @@ def render_frame(task: FrameTask) -> dict:
     for tmp in frame_dir.glob(".*.tmp") if frame_dir.exists() else ():
         tmp.unlink(missing_ok=True)
     mi = import_mitsuba(task.render["variant"], task.render["threads"])
-    scene, features, build_s = _scene(mi, task)
+    scene, features, build_s = frame_scene(mi, task)
     t0 = time.perf_counter()
-    sensor = _sensor(mi, task, scene)
+    sensor = frame_sensor(mi, task, scene)
     build_s += time.perf_counter() - t0
 
     records: dict[str, dict] = {}
@@ -176,7 +176,7 @@ def render_frame(task: FrameTask) -> dict:
                 continue
             except StoreError:
                 path.unlink()  # unreadable leftover (e.g. written by an older version): render again
-        result, extra = _render_one(mi, scene, sensor, task, name, features)
+        result, extra = render_one(mi, scene, sensor, task, name, features)
         render_s += result.seconds
         t0 = time.perf_counter()
         meta = {"image": name, "spp": extra.pop("spp"), "seed": task.seeds[name], "scene": task.scene,
@@ -211,7 +211,7 @@ def render_frame(task: FrameTask) -> dict:
     return record
 
 
-def _render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tuple:
+def render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tuple:
     """One image of the frame: a stack in one render of stack_spp; a ground truth by the scene's stop
     rule (render.progressive). Returns the result and the extra header fields (spp; for a ground
     truth its estimated PSNR and the number of passes)."""

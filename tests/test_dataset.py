@@ -228,7 +228,8 @@ def test_make_eval_passes_DEFINES_as_scene_parameters_not_config_overrides():
     proc = subprocess.run(["make", "-n", "eval", "VENV=.venv-none", "SCENES=a.xml b.xml", "DEFINES=spp=64 res=256",
                            "dataset.scenes=4"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    command = proc.stdout.strip().splitlines()[-1]
+    # (under `make test` the inner make also prints "Entering/Leaving directory" lines)
+    command = next(line for line in proc.stdout.splitlines() if " -m pipeline eval " in line)
     assert command.split(" -m pipeline ", 1)[1].split() == [
         "eval", "--config", "configs/default.yaml", "dataset.scenes=4", "--scene", "a.xml", "--scene", "b.xml",
         "-D", "spp=64", "-D", "res=256"]

@@ -110,7 +110,7 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
         method, stock = loader.load(family, 4), loader.load(family.replace("_ft", ""), 4)
         network = "rt_hdr_alb" if "albedo" in layers else "rt_hdr"
         shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
-        assert method.checkpoint == f"shipped oidn_ft/{network}.tza"
+        assert method.checkpoint == f"train/shipped/oidn_ft/{network}.tza"
         only = {k: buf[k] for k in layers}
         out = method.denoise(buf)
         assert np.array_equal(out, oidn.denoise(only, weights=shipped.read_bytes()))
@@ -119,7 +119,7 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
     # no run of its own: the oidn_ft row runs the shipped full-layer network, as the other two rows do
     method = Loader(tiny(store, tmp_path / "no_runs")).load("oidn_ft", 4)
     shipped = shipped_model.SHIPPED_MODEL / "oidn_ft" / "rt_hdr_alb_nrm.tza"
-    assert method.checkpoint == "shipped oidn_ft/rt_hdr_alb_nrm.tza"
+    assert method.checkpoint == "train/shipped/oidn_ft/rt_hdr_alb_nrm.tza"
     assert np.array_equal(method.denoise(buf), oidn.denoise(buf, weights=shipped.read_bytes()))
     with pytest.raises(MethodUnavailable, match=r"oidn_ft_rt_hdr.*oidn_ft.network=rt_hdr"):   # the switch
         Loader(tiny(store, runs, "diffusion.shipped=false")).load("oidn_ft_color", 4)

@@ -63,6 +63,7 @@ class Denoiser:
                  precision: str = "auto"):
         """``precision``: 'fp32', 'fp16' or 'bf16' autocast of the networks; 'auto' is fp16 on CUDA (it agrees
         with fp32 at about 70 dB), fp32 elsewhere."""
+        device = torch.device(device)
         self.model, self.meta, self.device, self.folder = model, meta, device, folder
         self.precision = ("fp16" if device.type == "cuda" else "fp32") if precision == "auto" else precision
         if self.precision not in PRECISIONS:
