@@ -49,6 +49,8 @@ from safetensors.torch import load_file
 from mcdenoise.pipeline.verify import verify_store
 from tests.helpers import CLEAN_TINY, KILL_POINTS, TIMING_KEYS, TINY, all_keys, assert_same_store, cli, exr_payload
 
+pytestmark = pytest.mark.slow   # subprocesses killed and rerun: make test runs them, make test-fast does not
+
 ROOT = Path(__file__).resolve().parents[1]
 KILL_SEED = 20261122
 AFGSA_TINY = ["afgsa.epochs=8", "afgsa.batch_size=4", "afgsa.crop=16", "afgsa.crops_per_frame=8",
