@@ -42,6 +42,12 @@ def cli(*args, check=True, timeout=600):
     return proc
 
 
+def train_tiny(model: str, store, runs, *overrides):
+    """``train --model MODEL --spp any`` on the tiny config through the command line; the finished process."""
+    return cli("train", "--model", model, "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",
+               *overrides)
+
+
 def exr_payload(path: Path) -> dict:
     """Pixel data and header record without wall-clock fields."""
     with OpenEXR.File(str(path), separate_channels=True) as f:

@@ -56,6 +56,7 @@ def naive_window_attention(q, k, v, heads, block, halo, key_position=None):
     return out
 
 
+@pytest.mark.slow
 def test_window_attention_matches_the_definition_at_any_size():
     torch.manual_seed(0)
     q, k, v = (torch.randn(2, 8, 11, 7) for _ in range(3))         # not a multiple of the block
@@ -147,6 +148,7 @@ def test_adversarial_weight_zero_is_the_l1_only_loss():
     assert float(loss_adv.detach()) == pytest.approx(float(loss) - 0.5 * float(critic(fake).mean().detach()))
 
 
+@pytest.mark.slow
 def test_weight_zero_step_is_an_l1_step_and_leaves_the_critic(tmp_path):
     """One recipe step at adv_weight 0 moves the generator exactly as Adam on the L1 loss alone does
     and never touches the critic."""
@@ -172,6 +174,7 @@ def test_weight_zero_step_is_an_l1_step_and_leaves_the_critic(tmp_path):
         assert torch.equal(v, critic_before[k]), k
 
 
+@pytest.mark.slow
 def test_critic_loss_prefers_the_target_after_training():
     """The WGAN-GP critic learns to score real (smooth) crops above fake (noisy) ones."""
     torch.manual_seed(6)
@@ -211,6 +214,7 @@ def _linked(tmp_path, store_root, name):
     return d
 
 
+@pytest.mark.slow
 def test_training_writes_a_loadable_run_and_resumes_exactly(tmp_path, store_root):
     """Two epochs in one go and 1 + 1 epochs (a rerun resuming the checkpoint) give bitwise the same
     generator, critic and optimizer state; the best weights load through train.afgsa.load_model."""
@@ -281,6 +285,7 @@ def test_eval_loads_afgsa_and_says_why_it_cannot(tmp_path):
     assert "afgsa" in cfg.eval.methods and label("afgsa").startswith("AFGSA")
 
 
+@pytest.mark.slow
 def test_stability_suite_runs_afgsa_finite_on_every_case(tmp_path):
     """The generator's output is finite on every small case of make stability (NaN/Inf repaired by
     the harness, 1e5, all black, fireflies, sizes down to 8x8), with its run time; 1e5 stays in the
@@ -308,6 +313,7 @@ def test_fine_energy_sees_noise_not_smooth_ramps():
     assert fine_energy(np.zeros((4, 4, 3))) == 0.0
 
 
+@pytest.mark.slow
 def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root):
     """Both runs (GT_clean and GT1 targets) load, the GT1 row is GT1's own metrics against GT_clean,
     and the crop grid is a picture. The tiny store's gt_clean is written here: the mean of GT1 and GT2."""
@@ -341,6 +347,7 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
         assert im.size[0] > im.size[1] > 100 and np.asarray(im.convert("L")).std() > 5
 
 
+@pytest.mark.slow
 def test_spp_any_trains_one_run_for_every_count(tmp_path, store_root):
     d = _linked(tmp_path, store_root, "any")
     summary = train(afgsa_cfg(d, epochs=1), "any", quiet=True)

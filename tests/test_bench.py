@@ -1,11 +1,14 @@
 """`make bench` runs end to end (its numbers are claims for the README, not asserted here)."""
 import json
 
+import pytest
+
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.render.bench import run_bench
 from tests.helpers import TINY
 
 
+@pytest.mark.slow
 def test_bench_writes_its_report(tmp_path):
     cfg = load_config(TINY, [f"store={tmp_path / 'none'}", "dataset.frames=1"])
     result = run_bench(cfg, out=str(tmp_path / "bench"), scenes=1, resolution=32, spp=4, repeats=1)

@@ -102,6 +102,7 @@ def test_smape_finite_at_extremes():
     assert smape(np.full(3, 1e5), np.full(3, 1e5)) == 0.0
 
 
+@pytest.mark.slow
 def test_tiled_inference_matches_whole_frame(variance_channel):
     from mcdenoise.clean.apply import denoise
     model = small_model(variance_channel)

@@ -65,6 +65,7 @@ def _mse(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
 
 
+@pytest.mark.slow
 def test_cleaned_gt1_is_closer_to_gt2_than_gt1(cfg_dir):
     """The point of the cleaner (paper section 3.1): C(GT1) nearer an independent GT2 than GT1 is.
 
@@ -85,6 +86,7 @@ def test_cleaned_gt1_is_closer_to_gt2_than_gt1(cfg_dir):
     assert after < 0.7 * before, (after, before)
 
 
+@pytest.mark.slow
 def test_training_reduces_loss_and_writes_files(cfg_dir):
     # Without the range term: the learned affinities alone must learn (with it, the first epoch
     # already starts near the tiny store's optimum and leaves little to see).
@@ -104,6 +106,7 @@ def test_training_reduces_loss_and_writes_files(cfg_dir):
     assert train(cfg, "cleaner", quiet=True)["trained_epochs"] == 0
 
 
+@pytest.mark.slow
 def test_resume_is_exact(tmp_path, store_root):
     a, b = tmp_path / "a", tmp_path / "b"
     for d in (a, b):
@@ -173,6 +176,7 @@ def test_baseline_trains_from_low_spp(cfg_dir):
     assert meta["mode"] == "baseline" and meta["spp"] == 4
 
 
+@pytest.mark.slow
 def test_baseline_sppany_draws_every_spp_and_serves_them(cfg_dir):
     """SPP=any: one Isik model trained on every sample count the stacks pool (4 and 8 spp for the
     tiny store's two stacks), which the evaluator's lookup finds for a count without its own run
@@ -194,6 +198,7 @@ def test_baseline_sppany_draws_every_spp_and_serves_them(cfg_dir):
     assert baseline_checkpoint(cfg, 8) == folder and baseline_checkpoint(cfg, 16) is None
 
 
+@pytest.mark.slow
 def test_clean_report_scores_and_draws(cfg_dir):
     """clean-report: its GT1 and GT_clean rows are the metrics of the stored images against GT2,
     the MSE ratio shows the gain, the crop grid is a picture; the tiny store has no test split,
@@ -226,6 +231,7 @@ def test_clean_report_scores_and_draws(cfg_dir):
         assert np.asarray(im.convert("L")).std() > 5  # not blank
 
 
+@pytest.mark.slow
 def test_time_budget_stops_after_an_epoch_and_resumes(cfg_dir):
     cfg = tiny_cfg(cfg_dir, epochs=3, time_budget_s="0.000001")
     assert train(cfg, "cleaner", quiet=True)["epochs"] == 1

@@ -51,6 +51,7 @@ def test_the_pinned_reader_is_an_older_openexr():
     assert version and (3, 0) <= (int(version[1]), int(version[2])) < (3, 5), oiio.get_string_attribute("library_list")
 
 
+@pytest.mark.slow
 def test_store_frames_open_in_openimageio(tiny_store):
     """Every image of a rendered frame (the default compact encoding, ZIP) opens; each stored channel
     holds what our reader returns for it."""
@@ -95,6 +96,7 @@ def inputs(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, method", [("black", "ours"), ("nonfinite", "ours"), ("nonfinite", "oidn")])
 def test_denoise_outputs_open_in_openimageio_with_real_rgb(inputs, tmp_path, name, method):
     """A denoised image has R, G, B (and its variance and std layers) as stored channels, even when they are

@@ -98,6 +98,7 @@ def test_inspect_says_identical_instead_of_the_json_psnr_ceiling():
     assert "median identical (min 41.5 dB)" in line and "estimated PSNR median n/a" in line and "999" not in line
 
 
+@pytest.mark.slow
 def test_kill_and_resume_matches_uninterrupted_run(tiny_store, tmp_path):
     """SIGKILL mid-run at several moments; the rerun completes and equals an uninterrupted run."""
     reference, _ = tiny_store
@@ -121,6 +122,7 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_store, tmp_path):
     assert_same_store(reference, root)
 
 
+@pytest.mark.slow
 def test_shards_cover_the_dataset(tiny_store, tmp_path):
     reference, _ = tiny_store
     root = tmp_path / "sharded"
@@ -150,6 +152,7 @@ def test_store_made_with_another_config_is_refused(tiny_store):
     assert proc.returncode == 2 and "different 'dataset'" in proc.stderr
 
 
+@pytest.mark.slow
 def test_unreadable_scene_xml_is_a_clear_error(tmp_path):
     bad = tmp_path / "broken.xml"
     bad.write_text("<scene version='3.0.0'><shape type='nosuchshape'/></scene>")
@@ -159,6 +162,7 @@ def test_unreadable_scene_xml_is_a_clear_error(tmp_path):
     assert not (tmp_path / "ext").exists()          # the store this call would have made: not left behind
 
 
+@pytest.mark.slow
 def test_failed_scene_leaves_an_existing_store_as_it_was(tmp_path, tiny_store):
     """A bad scene added to a dataset store: no manifest entry, no scene folder, nothing else touched."""
     root, _ = tiny_store
@@ -172,6 +176,7 @@ def test_failed_scene_leaves_an_existing_store_as_it_was(tmp_path, tiny_store):
     assert all(p.read_bytes() == data for p, data in before.items())
 
 
+@pytest.mark.slow
 def test_render_scene_writes_a_test_frame(tmp_path):
     xml = tmp_path / "box.xml"
     xml.write_text("""<scene version="3.0.0">
@@ -194,6 +199,7 @@ def test_render_scene_writes_a_test_frame(tmp_path):
 
 
 
+@pytest.mark.slow
 def test_scene_parameters_are_given_with_D_as_on_mitsubas_command_line(tmp_path):
     """``-D name=value`` fills the XML's ``$name`` (Mitsuba's -D); a parameter without a value is named in the
     error with the way to give it, and the store is left as it was."""
@@ -241,6 +247,7 @@ _CAMERA = """<sensor type="{camera}"><float name="fov" value="45"/>{lens}
   <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>"""
 
 
+@pytest.mark.slow
 def test_what_the_render_leaves_out_of_a_users_scene_is_said(tmp_path):
     """A thin-lens camera and a participating medium render without depth of field and without the
     medium; render-scene says so instead of leaving the user to find out from the images."""
@@ -263,6 +270,7 @@ def test_what_the_render_leaves_out_of_a_users_scene_is_said(tmp_path):
     assert "note:" not in proc.stdout
 
 
+@pytest.mark.slow
 def test_a_scene_mitsuba_cannot_render_gets_mitsubas_reason(tmp_path):
     """Mitsuba loads a bump map on a procedural texture but cannot render it; the error is the
     plugin's own message with the file, not drjit's "custom differentiable operation (see above)"."""
@@ -288,6 +296,7 @@ def test_corrupt_image_in_store_names_the_file(tiny_store, tmp_path):
         read_image(copy)
 
 
+@pytest.mark.slow
 def test_stress_presets_render_finite_with_counts(tmp_path):
     """Every stress preset renders through the real integrator; NaN/Inf, if any, are counted."""
     from mcdenoise.render.scene import STRESS_PRESETS

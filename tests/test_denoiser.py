@@ -16,7 +16,7 @@ from mcdenoise.pipeline.store import Store, sha256
 from mcdenoise.train import data, infer, model as tmodel, sampler
 from mcdenoise.train.formulation import Formulation
 from mcdenoise.train.model import ControlledOIDN
-from tests.helpers import TINY, cli
+from tests.helpers import TINY, cli, train_tiny
 
 REFINE_TINY = ["diffusion.base_network=rt_hdr_alb_nrm", "diffusion.epochs=2", "diffusion.crop=16", "diffusion.batch_size=2",
                "diffusion.warmup_steps=1", "diffusion.lr=1e-3", "diffusion.device=cpu", "diffusion.val_frames=1"]
@@ -99,9 +99,7 @@ def test_inputs_pad_like_oidn_and_mark_missing_groups():
 def trained(cleaned, tmp_path_factory):
     store, runs = cleaned
     out = tmp_path_factory.mktemp("refine") / "runs"
-    proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={out}",
-               *REFINE_TINY)
-    return store, out, proc
+    return store, out, train_tiny("diffusion", store, out, *REFINE_TINY)
 
 
 @pytest.mark.slow

@@ -116,6 +116,7 @@ def cli(*args, timeout=600):
                           text=True, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
     runs = tmp_path / "runs"
     save_untrained_isik(runs / "isik_spp4")
@@ -218,6 +219,7 @@ TINY_ISIK = ["clean.epochs=1", "clean.batch_size=2", "clean.crop=8", "clean.crop
              "clean.device=cpu"]
 
 
+@pytest.mark.slow
 def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_path):
     root = make_store(tmp_path / "store", {SCENE: "test", "s00002": "train", "s00003": "val",
                                            "stress_fireflies": "stress"})
@@ -262,6 +264,7 @@ def test_isik_sppany_serves_every_spp_and_stress_frames_are_their_own_group(tmp_
     assert list(frame_groups(load_config(TINY, overrides + ["eval.stress=false"]), Store(root))) == ["test"]
 
 
+@pytest.mark.slow
 def test_identical_method_reports_psnr_inf(store_root, tmp_path, monkeypatch):
     """A 'denoiser' that returns GT_clean: PSNR inf in the JSON (as the string) and the table."""
     import mcdenoise.evaluate.methods as em
@@ -291,6 +294,7 @@ def test_identical_method_reports_psnr_inf(store_root, tmp_path, monkeypatch):
     assert "| **0.0000** ± 0.0000 | **inf** | **1.0000** ± 0.0000 |" in (tmp_path / "r" / "eval.md").read_text()
 
 
+@pytest.mark.slow
 def test_cli_missing_store_is_a_clear_error(tmp_path):
     proc = cli("eval", "--config", TINY, f"store={tmp_path / 'nope'}", f"runs={tmp_path}", "--out", tmp_path / "r")
     assert proc.returncode == 2
@@ -348,6 +352,7 @@ def test_external_scene_rendered_and_reported_separately(tmp_path):
     assert set(rows["noisy"]["metrics"]) == {"l1", "psnr"}
 
 
+@pytest.mark.slow
 def test_realizations_average_each_frame_over_disjoint_stack_groups(store_root, tmp_path):
     """eval.realizations=N: a frame's metrics are the mean over its disjoint stack groups (as many as the
     stacks hold at that spp), scored one by one here with the store's own reader."""

@@ -19,6 +19,7 @@ def _layer(prefix: str, image: np.ndarray, suffixes: str) -> dict[str, np.ndarra
     return {f"{prefix}.{s}": image[..., i] for i, s in enumerate(suffixes)}
 
 
+@pytest.mark.slow
 def test_mitsubas_aov_exr_gives_colour_albedo_and_its_named_normal(tmp_path):
     """The file Mitsuba's own film writes for `aovs="albedo:albedo,nn:sh_normal"`: the normal is `nn`."""
     from mcdenoise.pipeline.mitsuba_env import import_mitsuba

@@ -10,6 +10,7 @@ from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.train.formulation import CONFIG_KEYS, Formulation, FormulationError, snr_weight
 
 
+@pytest.mark.slow
 def test_min_snr_weight_has_a_floor_at_zero_snr_and_gamma_at_low_noise():
     sched = Formulation().scheduler("ddpm")
     t = torch.tensor([0, 500, 999])

@@ -190,6 +190,7 @@ def _case(tmp_path: Path, data: bytes) -> Path:
 
 # ---- EXR mutations -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_fuzz_truncated(reader, original, tmp_path_factory, capsys):
     tally, tmp = Tally("truncated EXR"), tmp_path_factory.mktemp("trunc")
     data = original["bytes"]
@@ -204,6 +205,7 @@ def test_fuzz_truncated(reader, original, tmp_path_factory, capsys):
     assert tally.counts["correct read"] == 0
 
 
+@pytest.mark.slow
 def test_fuzz_bit_flips(reader, original, tmp_path_factory, capsys):
     tally, tmp = Tally("bit-flipped EXR"), tmp_path_factory.mktemp("flip")
     data = original["bytes"]
@@ -223,6 +225,7 @@ def test_fuzz_bit_flips(reader, original, tmp_path_factory, capsys):
     tally.report(capsys)
 
 
+@pytest.mark.slow
 def test_fuzz_overwritten_bytes(reader, original, tmp_path_factory, capsys):
     tally, tmp = Tally("overwritten EXR bytes"), tmp_path_factory.mktemp("over")
     data = original["bytes"]
@@ -245,6 +248,7 @@ def _attr_value_offset(data: bytes, name: str) -> int:
     return j + 1 + 4
 
 
+@pytest.mark.slow
 def test_fuzz_absurd_dimensions(reader, original, tmp_path_factory, capsys):
     """Header claims up to 2^31 pixels a side (1e9 x 1e9 included): refused before any allocation."""
     tally, tmp = Tally("absurd data/display windows"), tmp_path_factory.mktemp("dims")
@@ -285,6 +289,7 @@ json_values = st.recursive(
     max_leaves=8)
 
 
+@pytest.mark.slow
 def test_fuzz_record_mutations(reader, original, tmp_path_factory, capsys):
     """The ``mcdenoise`` record with keys removed, values replaced, or not JSON at all."""
     tally, tmp = Tally("mutated mcdenoise records"), tmp_path_factory.mktemp("rec")
@@ -316,6 +321,7 @@ def test_fuzz_record_mutations(reader, original, tmp_path_factory, capsys):
     tally.report(capsys)
 
 
+@pytest.mark.slow
 def test_fuzz_channel_names_and_types(reader, original, tmp_path_factory, capsys):
     """Channels renamed (to other schema names or foreign ones), dropped, added or retyped."""
     tally, tmp = Tally("renamed/retyped channels"), tmp_path_factory.mktemp("chan")
@@ -378,6 +384,7 @@ def _exercise(store: Store) -> set[str]:
     return served
 
 
+@pytest.mark.slow
 def test_fuzz_manifests(tmp_path_factory, capsys):
     tally = Counter()
     failures = []
@@ -578,6 +585,7 @@ def test_fuzz_tza_blobs(capsys):
     out.report(capsys)
 
 
+@pytest.mark.slow
 def test_fuzz_model_folders(tmp_path, capsys):
     """A trained model folder (model.json + model.safetensors, here a small Isik network) with either file
     damaged, or model.json's values replaced: a CheckpointError, or the model with exactly the trained
@@ -630,6 +638,7 @@ def _subset_of(given, resolved) -> bool:
     return type(given) is type(resolved) and given == resolved
 
 
+@pytest.mark.slow
 def test_fuzz_config_files(tmp_path, capsys):
     """configs/tiny.yaml damaged as text, or with a key's value replaced: a ConfigError naming the file,
     or a config holding every key and value the file gives (none ignored, none read as another)."""

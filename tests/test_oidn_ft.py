@@ -12,7 +12,7 @@ from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.store import Store, stack_name
 from mcdenoise.train import oidn_ft
-from tests.helpers import TINY, cli
+from tests.helpers import TINY, cli, train_tiny
 
 FT_TINY = ["oidn_ft.epochs=2", "oidn_ft.crop=16", "oidn_ft.batch_size=2", "oidn_ft.crops_per_frame=2",
            "oidn_ft.warmup_steps=1", "oidn_ft.lr=1e-3", "oidn_ft.device=cpu"]
@@ -27,9 +27,7 @@ def trained(cleaned, tmp_path_factory):
     """One small oidn_ft run on the tiny cleaned store (through the command line)."""
     store, _ = cleaned
     runs = tmp_path_factory.mktemp("oidn_ft") / "runs"
-    proc = cli("train", "--model", "oidn_ft", "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",
-               *FT_TINY, "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1")
-    return store, runs, proc
+    return store, runs, train_tiny("oidn_ft", store, runs, *FT_TINY, "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1")
 
 
 @pytest.mark.slow
@@ -205,6 +203,7 @@ def test_wrong_settings_are_named():
         load_config(None, ["oidn_ft.trainable=fine", "oidn_ft.fine_levels=6"])
 
 
+@pytest.mark.slow
 def test_the_target_is_gt_clean_or_the_raw_gt1(cleaned):
     store = Store(cleaned[0])
     key = store.frames_with("train")[0]

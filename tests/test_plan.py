@@ -52,6 +52,7 @@ def test_cost_grows_with_spp_depth_and_resolution():
     assert big["frame_bytes"] == pytest.approx(4 * estimate(base)["frame_bytes"], rel=0.01)
 
 
+@pytest.mark.slow
 def test_cli_prints_the_table_and_writes_nothing(tmp_path):
     proc = cli("plan", "--config", PAPER, f"store={tmp_path / 'never'}", "--workers", "1,64")
     out = proc.stdout
@@ -63,6 +64,7 @@ def test_cli_prints_the_table_and_writes_nothing(tmp_path):
     assert bad.returncode == 2 and "--workers 'many'" in bad.stderr
 
 
+@pytest.mark.slow
 def test_calibration_on_a_rendered_store(tiny_store):
     root, _ = tiny_store
     c = calibrate_from_store(root)
@@ -112,6 +114,7 @@ def test_fit_survives_timing_noise():
     assert b == pytest.approx(1e-4) and a == pytest.approx(0.0, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_progressive_gt_uses_the_expected_spp_from_the_target():
     """Every GT of a (synthetic) measured distribution estimates 48 dB at 1024 spp: a 45 dB target needs
     1024·10^(-0.3) = 513.2 spp, i.e. 9 whole passes of 64 (576 spp), each pass with its overhead."""

@@ -66,6 +66,7 @@ def test_pass_seeds_are_deterministic_and_distinct():
     assert len(set(seeds)) == len(seeds) and all(0 <= s < 2 ** 32 for s in seeds)
 
 
+@pytest.mark.slow
 def test_progressive_render_matches_one_render_of_the_total():
     """On a real scene, 4 passes of 16 spp pooled vs one render of 64 spp: the same estimator, so the
     two means differ by their combined noise only and the variances of the mean agree."""
@@ -110,6 +111,7 @@ def progressive_store(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_dataset_records_spp_estimate_and_gt_psnr(progressive_store):
     store = Store(progressive_store)
     reached = []
@@ -134,6 +136,7 @@ def test_dataset_records_spp_estimate_and_gt_psnr(progressive_store):
     assert "GT1 vs GT2" in cli("inspect", progressive_store).stdout
 
 
+@pytest.mark.slow
 def test_progressive_frame_resumes_to_the_identical_images(progressive_store, tmp_path):
     """A frame that lost its GT2 and frame.json (killed mid-frame) re-renders GT2 pass by pass to the
     same pixels, spp and seeds."""

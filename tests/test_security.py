@@ -125,6 +125,7 @@ def test_pickle_model_checkpoint_is_refused(tmp_path):
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_pickle_training_checkpoint_is_refused_by_the_cli(tmp_path):
     marker = tmp_path / "pwned"
     _evil_checkpoint(tmp_path / "runs" / "isik_spp4" / "last.safetensors", marker)
@@ -189,6 +190,7 @@ def test_film_filename_in_scene_xml_writes_nothing_outside(tmp_path):
     assert not outside.exists()
 
 
+@pytest.mark.slow
 def test_manifest_scene_ids_cannot_leave_the_store(tmp_path):
     root = tmp_path / "deep" / "store"
     Store(root).write_manifest({"scenes": ["../../../escaped"], "splits": {"train": ["../../../escaped"]}})

@@ -123,6 +123,7 @@ def test_each_of_oidns_networks_ships_fine_tuned_with_its_card(network):
     assert net.in_channels == {"rt_hdr": 3, "rt_hdr_alb": 6, "rt_hdr_alb_nrm": 9}[network]
 
 
+@pytest.mark.slow
 def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     """`python -m mcdenoise denoise --exr IN --out OUT` from another folder with nothing trained (the command
     an installed package gives; the checkout is on PYTHONPATH): an R,G,B EXR comes out denoised."""
@@ -138,6 +139,7 @@ def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
     assert np.isfinite(out).all() and _mse(out, truth) < 0.5 * _mse(noisy, truth)
 
 
+@pytest.mark.slow
 def test_denoise_exr_warns_when_a_wide_reconstruction_filter_correlated_the_noise(tmp_path):
     """Mitsuba's default film filter (gaussian) splats samples over neighbours; OIDN leaves such noise in
     place, so `denoise --exr` says so and how to render instead; a box-filtered render gets no warning."""
@@ -191,6 +193,7 @@ def _on_a_fine_tuned_base(tmp_path: Path, blend: float) -> tuple[Path, Path]:
     return out, base
 
 
+@pytest.mark.slow
 def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module(tmp_path):
     """export --base-blend: OIDN + b x what fine-tuning changed, from a base recorded at blend a."""
     from mcdenoise.pipeline import oidn_weights, tza
@@ -232,6 +235,7 @@ def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module
     assert proc.returncode != 0 and "model.json: no base_blend" in proc.stderr and not (tmp_path / "never").exists()
 
 
+@pytest.mark.slow
 def test_export_puts_an_exported_model_on_another_base_and_keeps_its_control_module(tmp_path):
     """export --base FILE: the frozen base becomes FILE (its blend from the card beside it), the Control Module
     stays; a file of another OIDN network is refused with a one-line error naming it, nothing written."""

@@ -63,6 +63,7 @@ def test_every_case_every_method(tmp_path):
     assert json.loads((tmp_path / "r" / "stability.json").read_text())["spp"] == 4
 
 
+@pytest.mark.slow
 def test_the_shipped_model_is_finite_on_every_case(tmp_path):
     """`ours` with no run of the config's own falls back to train/shipped: finite on every stiff and
     extreme case, black in gives black out, 1e5 in keeps about 1e5 (the model's range is clamped and
@@ -134,6 +135,7 @@ def test_harness_repairs_a_copy_and_times():
     assert oc.ok and oc.input_repaired == {"color": 3} and oc.seconds >= 0
 
 
+@pytest.mark.slow
 def test_make_stability_cli(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pipeline", "stability", "--config", str(TINY),
                            "eval.methods=[noisy, oidn_color]", "eval.stability_large=false", "--out", str(tmp_path)],

@@ -24,6 +24,7 @@ def store(cleaned, tmp_path):
     return root
 
 
+@pytest.mark.slow
 def test_intact_store_passes(store):
     proc = cli("verify", store)
     assert proc.returncode == 0
@@ -132,6 +133,7 @@ def test_damage_is_reported_by_path(store, damage):
     assert hits, f"expected a problem about {where} with '{what}', got:\n" + "\n".join(problems[:10])
 
 
+@pytest.mark.slow
 def test_cli_exits_1_and_names_the_file(store):
     (store / FRAME / "gt2.exr").unlink()
     proc = cli("verify", store, check=False)
@@ -147,6 +149,7 @@ def test_missing_store_is_an_error(tmp_path):
     assert proc.returncode == 1 and "store folder does not exist" in proc.stdout
 
 
+@pytest.mark.slow
 def test_parallel_verify_reports_the_same(store):
     (store / FRAME / "gt2.exr").unlink()
     _flip(store / "scenes/s00001/001/s02.exr")

@@ -11,8 +11,8 @@ import sys
 from pathlib import Path
 
 from safetensors import safe_open
-from safetensors.torch import save_file
 
+from mcdenoise.pipeline.checkpoint import save_safetensors
 from mcdenoise.train import model as oidn_refine
 
 
@@ -32,7 +32,7 @@ def main(run: Path, out: Path) -> None:
         shutil.copy(run / name, out / name)
     with safe_open(str(run / "control.safetensors"), "pt") as f:
         meta = f.metadata()
-    save_file(state, str(out / "control.safetensors"), meta)
+    save_safetensors(out / "control.safetensors", state, meta)   # a new CRC-32 for the new tensors
     print(f"{out}: the last epoch's EMA weights ({len(names)} tensors)")
 
 
