@@ -426,3 +426,30 @@ def test_precision_changes_the_networks_arithmetic_only():
     assert bf16.dtype == np.float32 and 0 < mse and 10 * np.log10(1 / mse) > 30
     with pytest.raises(TrainError, match="precision 'fp8'"):
         infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu", precision="fp8")
+
+
+def test_the_sampler_does_no_work_twice(base):
+    """Its arithmetic: the base's encoder once, its decoder for the estimate, then per step the Control Module
+    and the decoder again; the base alone is one encoder and one decoder."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from mcdenoise.train.bench import network_gflops
+
+    model = ControlledOIDN(base, len(data.cond_names()))
+    x, cond = _random_inputs(n=1)
+    z, t = torch.zeros(1, 3, 32, 32), torch.tensor([999])
+
+    def gflop_per_mpix(fn):
+        with FlopCounterMode(display=False) as counter, torch.no_grad():
+            fn()
+        return counter.get_total_flops() / 1e9 / (32 * 32 / 1e6)
+    feats = base.encode(x)
+    enc, dec = gflop_per_mpix(lambda: base.encode(x)), gflop_per_mpix(lambda: base.decode(feats))
+    ctl = gflop_per_mpix(lambda: model.control(torch.cat([x, cond, z], 1), t))
+    for steps in (1, 3):
+        g = network_gflops(model, FORM, steps, side=32)
+        assert g["base"] == pytest.approx(enc + dec, abs=0.01)
+        assert g["ours"] == pytest.approx(enc + dec + steps * (ctl + dec), abs=0.01)
+    model.control = None
+    g = network_gflops(model, FORM, 1, side=32)
+    assert g["ours"] == g["base"]

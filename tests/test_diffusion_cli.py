@@ -142,7 +142,10 @@ def test_bench_denoise_times_ours_its_base_and_oidn(setup, tmp_path):
         assert all(r[k] > 0 for k in ("ours_1step_s", "ours_3step_s", "base_s", "ours_network_s", "base_network_s",
                                       "oidn_prefilter_s", "oidn_s"))
         assert r["ours_over_oidn_prefilter"] == round(r["ours_1step_s"] / r["oidn_prefilter_s"], 2)
-    assert "| 48x32 |" in (tmp_path / "denoise.md").read_text()
+    g = result["gflop_per_megapixel"]
+    assert g["ours"] > g["base"] > 0
+    md = (tmp_path / "denoise.md").read_text()
+    assert "| 48x32 |" in md and f"ours {g['ours']} GFLOP, its base {g['base']} GFLOP" in md
     bad = run("bench-denoise", *keys, "--sizes", "32by32", "--out", tmp_path, check=False)
     assert bad.returncode == 2 and "WxH" in bad.stderr
 

@@ -13,7 +13,10 @@ the base alone), after one warm-up call, best of ``repeats``:
 - ``oidn_prefilter`` / ``oidn``: OIDN's own engine (pyoidn, on the device OIDN picks) in its final-frame mode
   (the same large network with prefiltered aux) and as usually called, when pyoidn is installed.
 
-``ours / oidn_prefilter`` is the price of the Control Module against what a user has.
+``ours / oidn_prefilter`` is the price of the Control Module against what a user has. The networks'
+arithmetic per megapixel (``network_gflops``) is the floor of ``ours / base`` on any device and engine:
+the base's encoder once, then per sampler step its decoder and the Control Module, plus the base's own
+decoder for the estimate the strength blends with.
 """
 from __future__ import annotations
 
@@ -53,6 +56,26 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
         return [(int(t.split("x")[1]), int(t.split("x")[0])) for t in text.split(",")]
     except (IndexError, ValueError):
         raise ValueError(f"--sizes {text!r}: expected WxH[,WxH...], e.g. 256x256,1920x1080") from None
+
+
+def network_gflops(model, formulation, steps: int, side: int = 64) -> dict:
+    """GFLOP per megapixel of the sampler (``ours``, at ``steps``) and of the base alone, counted by
+    ``torch.utils.flop_counter`` on a ``side``² input (every layer is a convolution or elementwise, so the
+    count scales with the pixels)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    side += -side % model.multiple
+    x = torch.zeros(1, model.base.in_channels, side, side)
+    cond = torch.zeros(1, model.cond_channels, side, side)
+    p = next(model.base.parameters())
+    x, cond = x.to(p.device, p.dtype), cond.to(p.device, p.dtype)
+
+    def gflop(fn) -> float:
+        with FlopCounterMode(display=False) as counter, torch.no_grad():
+            fn()
+        return round(counter.get_total_flops() / 1e9 / (side * side / 1e6), 2)
+    return {"ours": gflop(lambda: sample(model, x, cond, formulation, steps)), "base": gflop(lambda: model.base(x))}
 
 
 def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", precision: str = "auto",
@@ -104,6 +127,7 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
     mach = machine()
     return {"model": str(model), "device": str(dev), "precision": den.precision, "machine": mach,
             "torch_threads": torch.get_num_threads(), "repeats": repeats, "rows": rows,
+            "gflop_per_megapixel": network_gflops(m, den.formulation, steps),
             "parameters_millions": round(sum(p.numel() for p in m.parameters()) / 1e6, 2)}
 
 
@@ -115,6 +139,9 @@ def markdown(result: dict) -> str:
              f"{where}, {result['precision']}; best of {result['repeats']} after a warm-up)", "",
              "| frame | " + " | ".join(cols) + " |", "| --- |" + " ---: |" * len(cols)]
     lines += ["| " + r["size"] + " | " + " | ".join(str(r.get(c, "")) for c in cols) + " |" for r in result["rows"]]
+    g = result["gflop_per_megapixel"]
+    lines += ["", f"Arithmetic per megapixel: ours {g['ours']} GFLOP, its base {g['base']} GFLOP "
+              f"({g['ours'] / g['base']:.2f}×, the floor of ours / base on any engine)."]
     return "\n".join(lines) + "\n"
 
 
