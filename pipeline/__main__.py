@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import re
 import sys
 
 from mcdenoise.pipeline.errors import PipelineError
@@ -31,6 +32,36 @@ def build_parser(prog: str = "python -m pipeline") -> argparse.ArgumentParser:
     return parser
 
 
+OVERRIDE = re.compile(r"^[A-Za-z_][\w.]*=")
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``parser``'s namespace, with key=value overrides and a scene file taken wherever they stand."""
+    # key=value overrides may follow options too (`gt-clean --quiet clean.epochs=3`): argparse
+    # stops the positional list at the first option, so collect the rest here.
+    args, extra = parser.parse_known_args(argv)
+    takes_scene = isinstance(getattr(args, "scene", None), str)
+    stray = [a for a in extra if a.startswith("-") or not hasattr(args, "overrides") or not ("=" in a or takes_scene)]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = list(args.overrides) + extra
+    if takes_scene and hasattr(args, "overrides"):
+        # `render-scene --store S X.xml key=value`: argparse hands the first words to the overrides and
+        # the last to the scene; the scene is the one word that is not key=value, wherever it stands
+        pool, words = [*args.overrides, args.scene], []
+        for a in sys.argv[1:] if argv is None else argv:      # in the command line's order: a later override wins
+            if a in pool:
+                pool.remove(a)
+                words.append(a)
+        scenes = [w for w in words if not OVERRIDE.match(w)]
+        if len(scenes) != 1:
+            parser.error(f"{args.command}: expected one scene file and key=value overrides, got: {' '.join(words)}")
+        words.remove(scenes[0])
+        args.scene, args.overrides = scenes[0], words
+    return args
+
+
 # What a full or read-only disk raises (errno -> what it means for the user).
 FILE_SYSTEM = {errno.ENOSPC: ": the disk is full", errno.EDQUOT: ": the disk is full",
                errno.EFBIG: ": the disk is full or the file size is limited", errno.EROFS: ": not writable",
@@ -39,15 +70,7 @@ FILE_SYSTEM = {errno.ENOSPC: ": the disk is full", errno.EDQUOT: ": the disk is 
 
 def main(argv: list[str] | None = None, prog: str = "python -m pipeline") -> int:
     """Run one stage; ``prog`` is the name --help shows (the installed command is ``mcdenoise``)."""
-    parser = build_parser(prog)
-    # key=value overrides may follow options too (`gt-clean --quiet clean.epochs=3`): argparse
-    # stops the positional list at the first option, so collect the rest here.
-    args, extra = parser.parse_known_args(argv)
-    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
-    if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
-    if extra:
-        args.overrides = list(args.overrides) + extra
+    args = parse_args(build_parser(prog), argv)
     try:
         return args.fn(args)
     except PipelineError as exc:

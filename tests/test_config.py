@@ -106,6 +106,26 @@ def test_overrides_may_follow_options(capsys):
         assert f"unrecognized arguments: {stray[0]}" in capsys.readouterr().err
 
 
+
+def test_a_scene_file_may_stand_anywhere_among_the_overrides(capsys):
+    """`render-scene X.xml --store S key=value` and `render-scene --store S X.xml key=value` say the same;
+    no scene file or two of them is one line and status 2."""
+    from mcdenoise.pipeline.__main__ import build_parser, parse_args
+
+    parser = build_parser()
+    orders = (["render-scene", "a/x.xml", "--store", "st", "dataset.gt_spp=64", "seed=3"],
+              ["render-scene", "--store", "st", "a/x.xml", "dataset.gt_spp=64", "seed=3"],
+              ["render-scene", "--store", "st", "dataset.gt_spp=64", "a/x.xml", "seed=3"],
+              ["render-scene", "dataset.gt_spp=64", "--store", "st", "seed=3", "a/x.xml"])
+    for argv in orders:
+        args = parse_args(parser, argv)
+        assert (args.scene, args.overrides, args.store) == ("a/x.xml", ["dataset.gt_spp=64", "seed=3"], "st"), argv
+    for argv in (["render-scene", "--store", "st", "seed=3", "dataset.gt_spp=64"],
+                 ["render-scene", "a.xml", "b.xml", "seed=3"]):
+        with pytest.raises(SystemExit) as exc:
+            parse_args(parser, argv)
+        assert exc.value.code == 2 and "expected one scene file and key=value overrides" in capsys.readouterr().err
+
 # ---- sections: each checks its own keys; the trainer sections share TrainingConfig ---------------
 
 SHARED = {"epochs", "batch_size", "crop", "lr", "grad_clip", "nan_limit", "time_budget_s", "device"}
