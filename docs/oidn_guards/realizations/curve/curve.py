@@ -1,11 +1,10 @@
 """The training curve of the shipped Control Module trained on: validation gain against megapixels trained.
 
     python docs/oidn_guards/realizations/curve/curve.py RUN/train.json OUT_DIR [--crop 64] [--batch 8]
-        [--start-mpix 41.9] [--points NAME=realizations.json ...]
+        [--start-mpix 41.9]
 
 Reads the trainer's per-epoch validation (ship val, strength 1, gain over the base at each spp; epoch 0 is
-the starting model) and, optionally, ``realizations.py --json`` results of snapshots; writes ``curve.png``
-and ``curve.md`` (the table) into OUT_DIR.
+the starting model) and writes ``curve.png`` and ``curve.md`` (the table) into OUT_DIR.
 """
 import argparse
 import json
@@ -44,7 +43,6 @@ def main() -> None:
     ax = fig.add_subplot()
     for k in keys:
         ax.plot([r["mpix"] for r in table], [r[k] for r in table], "o-", markersize=3, label=f"{k[8:]} spp")
-    ax.set_xscale("log")
     ax.set_xlabel("megapixels trained (64² crops; the shipped model: 42)")
     ax.set_ylabel("ship val: gain over the base (dB)")
     ax.grid(True, alpha=0.3)
