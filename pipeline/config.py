@@ -371,6 +371,10 @@ class DiffusionConfig(TrainingConfig):
                            "0: every crop.", 80)
     weight_decay: float = doc("AdamW weight decay.", 0.01)
     warmup_steps: int = doc("Linear learning-rate warm-up steps, then a cosine decay to 0 over the run.", 100)
+    keep_epochs: list = doc("Epochs whose EMA Control Module is kept as well as the best one, each a model folder "
+                            "<run>/epoch<N>: the best is chosen on the config's val split alone, which a long run "
+                            "can fit while it loses on scenes unlike the training data (docs/diffusion.md).",
+                            factory=list)
     precision: str = doc("'auto' (bf16 autocast on CUDA, fp32 on CPU), 'fp32' or 'bf16'.", "auto")
     shipped: bool = doc("Use the denoiser shipped in train/shipped wherever this config has no trained run of its "
                         "own (make eval's ours rows, make denoise), and its oidn_ft weights for make eval's "
@@ -418,6 +422,8 @@ class DiffusionConfig(TrainingConfig):
         check_formulation(self, bad)
         if not self.train_steps or not all(isinstance(n, int) and 1 <= n <= TRAIN_STEPS for n in self.train_steps):
             bad("train_steps", f"expected step counts from 1 to {TRAIN_STEPS}, got {self.train_steps!r}")
+        if not all(isinstance(n, int) and n >= 1 for n in self.keep_epochs):
+            bad("keep_epochs", f"expected epoch numbers >= 1, got {self.keep_epochs!r}")
         self.one_of(bad, "precision", PRECISIONS)
         if self.base not in ("oidn", "oidn_ft") and not self.base.endswith(".tza"):
             bad("base", f"expected 'oidn', 'oidn_ft' or a .tza file of OIDN's weights, got {self.base!r}")

@@ -11,7 +11,7 @@ models (its data, one optimisation step, validation, what is saved), the loop do
 - per epoch: the task's batches (on the task's device) through ``task.step``, under a
   ``NanGuard`` (a non-finite step is skipped and counted, ``nan_limit`` in a row stop the run)
   and a progress bar; then, on rank 0: validation, the best checkpoint (``task.save_best`` when
-  the score improves), the history files (``task.write_history``) and ``last.safetensors``,
+  the score improves; ``task.keep``, e.g. chosen epochs), the history files (``task.write_history``) and ``last.safetensors``,
   written last: it is the commit point of an epoch, so a kill before it reruns the epoch
   (same result) and rewrites the files above;
 - ``apply_update``: the optimiser step the tasks share (backward, clipping, the finite check);
@@ -107,6 +107,10 @@ class Task:
 
     def save_best(self, entry: dict) -> None:
         raise NotImplementedError
+
+    def keep(self, entry: dict) -> None:
+        """After every epoch's validation, with the evaluated weights in place: a task may keep that epoch's
+        weights beside the best (the best is chosen on the run's validation split alone)."""
 
     def write_history(self, history: list, best: dict | None) -> None:
         raise NotImplementedError
@@ -227,6 +231,7 @@ def _end_epoch(task: Task, entry: dict, history: list, best: dict | None, t_star
         if _better(task, score, best):
             best = {"epoch": entry["epoch"], "score": score, "val": entry["val"], "train_loss": entry["train_loss"]}
             task.save_best(entry)
+        task.keep(entry)
     task.write_history(history, best)
     fields, tensors = task.checkpoint()
     save_last(task.folder / "last.safetensors", task.state, task.optimizers,

@@ -66,7 +66,7 @@ def test_the_whole_recipe_runs_on_the_cpu(tmp_path):
     files = {p.name for p in out.iterdir()}
     assert {"control.safetensors", "base.tza", "model.json", "report.md", "result.json", "logs.txt"} <= files
     assert len(files) <= 8 and files <= {"control.safetensors", "base.tza", "model.json", "report.md", "result.json",
-                                         "logs.txt", "loss.png"}
+                                         "logs.txt", "loss.png", "snapshots.safetensors"}
     r = json.loads((out / "result.json").read_text())
     assert list(r["phases"]) == ["render_val", "render", "clean", "train", "bench"]
     render = r["phases"]["render"]
@@ -81,3 +81,25 @@ def test_the_whole_recipe_runs_on_the_cpu(tmp_path):
     model, meta = load(out)
     assert meta["base_network"] == "rt_hdr_calb_cnrm_large" and next(model.control.parameters()).dtype == torch.float32
     assert "# GPU recipe on CPU only" in (out / "report.md").read_text()
+    # the kept epochs come back too (here the one epoch the dry run trains), and unpack as model folders that load
+    assert r["phases"]["train"]["snapshots"] == [{"epoch": 1, "mpix": curve[1]["mpix"], "val_psnr": curve[1]["val_psnr"]}]
+    dest = tmp_path / "candidate"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "gpu-unpack", str(out), str(dest)], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split() == [str(dest), str(dest / "epoch1")]
+    kept, kept_meta = load(work / "runs" / "diffusion_sppany_gpu" / "epoch1")
+    snap, snap_meta = load(dest / "epoch1")
+    assert snap_meta == kept_meta and snap_meta["epoch"] == 1
+    for (name, a), b in zip(kept.control.state_dict().items(), snap.control.state_dict().values()):
+        assert torch.equal(a.half().float(), b), name    # float16 on the way back, exactly that rounding
+    assert torch.equal(next(load(dest)[0].control.parameters()), next(model.control.parameters()))
+
+
+def test_snapshots_spread_over_the_kept_epochs():
+    assert gpu_recipe.spread([], 6) == []
+    assert gpu_recipe.spread([1, 2, 4], 6) == [1, 2, 4]
+    kept = [2 ** i for i in range(8)]    # 1 .. 128: a run of 128 to 255 epochs
+    assert gpu_recipe.spread(kept, 6) == [1, 2, 8, 16, 64, 128]
+    assert all(gpu_recipe.spread(kept[:n], 6)[-1] == kept[n - 1] for n in range(1, 9))
+    assert set(gpu_recipe.KEEP_EPOCHS[:8]) == set(kept)

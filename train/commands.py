@@ -1,5 +1,5 @@
 """The denoisers' subcommands of ``python -m pipeline``: ``train`` (every model: the diffusion denoiser,
-oidn_ft, and the Isik and AFGSA baselines), ``export``, ``gpu-prepare``, ``gpu-recipe``,
+oidn_ft, and the Isik and AFGSA baselines), ``export``, ``gpu-prepare``, ``gpu-recipe``, ``gpu-unpack``,
 ``pack``, ``denoise``, ``afgsa-report`` and ``bench-denoise``.
 
 ``add_commands`` declares them (see ``pipeline.commands``); each handler imports what it runs
@@ -88,6 +88,12 @@ def _gpu_commands(sub) -> None:
     p.add_argument("--work", default="/tmp/mcdenoise_gpu", help="where the store and the runs go (emptied first)")
     p.add_argument("overrides", nargs="*", default=[], help="key=value config overrides for every phase")
     p.set_defaults(fn=_gpu_recipe)
+
+    p = sub.add_parser("gpu-unpack", help="the GPU recipe's files as model folders to score: DEST (the best epoch) and "
+                                          "DEST/epoch<N> for each of snapshots.safetensors")
+    p.add_argument("files", help="what the recipe's --out brought back")
+    p.add_argument("dest", help="e.g. train/candidates/gpu")
+    p.set_defaults(fn=_gpu_unpack)
 
 
 def _inference_commands(sub) -> None:
@@ -216,6 +222,13 @@ def _gpu_recipe(args) -> int:
     from .gpu_recipe import Settings, run
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Settings) if f.name != "overrides"}
     return run(Settings(**values, overrides=tuple(args.overrides)))
+
+
+def _gpu_unpack(args) -> int:
+    from .gpu_recipe import unpack
+    for folder in unpack(Path(args.files), Path(args.dest)):
+        print(folder)
+    return 0
 
 
 def _pack(args) -> int:

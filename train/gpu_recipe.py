@@ -25,9 +25,12 @@ after every phase, so a run cut short still says how far it got:
    val frames after every epoch, the best kept; for the time left;
 4. **bench**: ``denoise`` end to end and the networks alone at 256², 1080p and 4K, fp32 and fp16.
 
-Back in ``--out`` (at most 8 files under 16 MiB): a model folder (``control.safetensors`` in float16,
-``model.json``, ``base.tza``: copy it to ``train/candidates/<name>`` and score it), ``report.md``, ``result.json``
-(every timing, the validation curve against megapixels trained), ``loss.png`` and ``logs.txt``.
+Back in ``--out`` (8 files under 16 MiB): a model folder (``control.safetensors`` in float16, ``model.json``,
+``base.tza``: the best epoch on the new store's val frames), ``snapshots.safetensors`` (the Control Modules of up to
+six epochs 1, 2, 4, 8, … spread over the run: on the ship data the val frames' best is not the best on scenes unlike
+them, docs/diffusion.md), ``report.md``, ``result.json`` (every timing, the validation curve against megapixels
+trained), ``loss.png`` and ``logs.txt``. ``python -m pipeline gpu-unpack FILES train/candidates/<name>`` turns them
+into model folders to score.
 """
 from __future__ import annotations
 
@@ -170,6 +173,7 @@ class Recipe:
                 f"diffusion.batch_size={s.batch}", f"diffusion.crop={self.crop()}", f"diffusion.lr={s.lr}",
                 "diffusion.epoch_steps=50", "diffusion.crops_per_frame=64", "diffusion.epochs=100000",
                 "diffusion.warmup_steps=50", f"diffusion.device={dev}", f"diffusion.loader_workers={s.loader_workers}",
+                f"diffusion.keep_epochs=[{','.join(map(str, KEEP_EPOCHS))}]",
                 # the time limit of the run itself leaves room to pack the frames and to save the best
                 f"diffusion.time_budget_s={max(1.0, budget * 0.85):.1f}", "diffusion.name=gpu", *self.common]
         # On a lease the run is stopped at its budget (its best epoch is on disk); the CPU's dry run goes on until
@@ -194,6 +198,7 @@ class Recipe:
                      mpix_per_s=round(curve[-1]["mpix"] / curve[-1]["seconds"], 3) if curve and curve[-1]["seconds"]
                      else None)
         self.pack_model(run)
+        entry["snapshots"] = self.pack_snapshots(run, {c["epoch"]: c for c in curve})
         self.write()
 
     def crop(self) -> int:
@@ -219,6 +224,30 @@ class Recipe:
         if (run / "loss.png").exists():
             shutil.copy(run / "loss.png", self.out / "loss.png")
 
+    def pack_snapshots(self, run: Path, curve: dict) -> list[dict]:
+        """``snapshots.safetensors``: the Control Modules of up to SNAPSHOTS kept epochs (``keep_epochs``, spread
+        over the run) in float16, keys ``epoch<N>.<name>``, each epoch's model.json in the metadata. The best epoch
+        is chosen on the new store's val frames alone; these let the CPU score the run at several lengths on the
+        ``val_*`` scenes too (``gpu-unpack``)."""
+        import torch
+        from safetensors.torch import load_file
+
+        from mcdenoise.pipeline.checkpoint import save_safetensors
+
+        from .model import FORMAT
+        kept = sorted(int(d.name[5:]) for d in run.glob("epoch*") if (d / "control.safetensors").exists())
+        chosen = spread(kept, SNAPSHOTS)
+        if not chosen:
+            return []
+        tensors, meta = {}, {"format": FORMAT, "epochs": json.dumps(chosen)}
+        for n in chosen:
+            for k, v in load_file(str(run / f"epoch{n}" / "control.safetensors")).items():
+                tensors[f"epoch{n}.{k}"] = v.to(torch.float16).contiguous()
+            meta[f"epoch{n}.model.json"] = (run / f"epoch{n}" / "model.json").read_text()
+        save_safetensors(self.out / "snapshots.safetensors", tensors, meta)
+        return [{"epoch": n, "mpix": curve.get(n, {}).get("mpix"), "val_psnr": curve.get(n, {}).get("val_psnr")}
+                for n in chosen]
+
     def bench(self) -> None:
         """``bench-denoise``'s timings (train.bench) of the model it started from, on this machine."""
         from .bench import GPU_SIZES, measure, parse_sizes
@@ -235,6 +264,47 @@ class Recipe:
         self.result["wall_s"] = round(time.perf_counter() - self.t0, 1)
         (self.out / "result.json").write_text(json.dumps(self.result, indent=1, default=str))
         (self.out / "report.md").write_text(report(self.result))
+
+
+def spread(kept: list[int], k: int) -> list[int]:
+    """At most ``k`` of the sorted ``kept``, evenly spread over their indices, the first and the last included."""
+    if len(kept) <= k:
+        return list(kept)
+    return sorted({kept[round(i * (len(kept) - 1) / (k - 1))] for i in range(k)})
+
+
+def unpack(files: Path, dest: Path) -> list[Path]:
+    """The model folders of what a run brought back (``files``: its --out): ``dest`` (the best epoch) and
+    ``dest/epoch<N>`` for each snapshot, each with the run's base. Returns the folders written."""
+    from safetensors import safe_open
+
+    from mcdenoise.pipeline.checkpoint import save_safetensors
+    from mcdenoise.pipeline.exr import atomic_write_bytes
+
+    from .model import FORMAT, load
+    folders = [dest]
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in ("control.safetensors", "model.json", "base.tza"):
+        atomic_write_bytes(dest / name, lambda tmp, name=name: Path(tmp).write_bytes((files / name).read_bytes()))
+    snaps = files / "snapshots.safetensors"
+    if snaps.exists():
+        with safe_open(str(snaps), "pt") as f:
+            meta = f.metadata() or {}
+            if meta.get("format") != FORMAT:
+                raise TrainError(f"{snaps}: format {meta.get('format')!r}, not {FORMAT!r} snapshots")
+            for n in json.loads(meta["epochs"]):
+                d = dest / f"epoch{n}"
+                d.mkdir(exist_ok=True)
+                prefix = f"epoch{n}."
+                save_safetensors(d / "control.safetensors",
+                                 {k[len(prefix):]: f.get_tensor(k) for k in f.keys() if k.startswith(prefix)},
+                                 {"format": FORMAT})
+                atomic_write_bytes(d / "base.tza", lambda tmp: Path(tmp).write_bytes((dest / "base.tza").read_bytes()))
+                atomic_write_bytes(d / "model.json", lambda tmp, n=n: Path(tmp).write_text(meta[f"epoch{n}.model.json"]))
+                folders.append(d)
+    for d in folders:
+        load(d)    # each loads: its base's checksum, its condition layout, every tensor of the Control Module
+    return folders
 
 
 def run(s: Settings) -> int:
@@ -308,6 +378,12 @@ def report(r: dict) -> str:
     elif r.get("bench"):
         lines += ["", f"bench: {r['bench']['error']}"]
     return "\n".join(lines) + "\n"
+
+
+# Epochs whose Control Module a run keeps (log-spaced: the curve's shape, not its end alone) and how many of them
+# come back in snapshots.safetensors (2.35 MB each in float16; a file comes back only under 16 MiB).
+KEEP_EPOCHS = tuple(2 ** i for i in range(17))
+SNAPSHOTS = 6
 
 
 # ---- preparation, on this machine ------------------------------------------------------------------

@@ -13,7 +13,8 @@ around the base's output is noised at a t drawn with ``t_focus`` on the sampler'
 (``train.loss``), weighted by min-SNR; then validation (``train.sampler``, PSNR against the base's)
 and the files. DDP under torchrun. The run folder: ``control.safetensors`` (the Control Module, EMA),
 ``base.tza`` (the frozen base's float16 weights, so the run is self-contained), ``model.json``,
-``last.safetensors``, ``train.json``, ``loss.png``; σ is fitted at the end (``train.infer.calibrate``).
+``last.safetensors``, ``train.json``, ``loss.png``, and ``epoch<N>/`` for each of ``diffusion.keep_epochs``
+(model folders of those epochs' EMA weights); σ is fitted at the end (``train.infer.calibrate``).
 """
 from __future__ import annotations
 
@@ -237,6 +238,14 @@ class RefineTask(Task):
               "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
               # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
               **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
+
+    def keep(self, entry: dict) -> None:
+        """The EMA Control Module of the epochs in ``diffusion.keep_epochs``, each a model folder
+        ``<run>/epoch<N>``: for scoring on other scenes than the run's validation frames."""
+        if entry["epoch"] in self.d.keep_epochs:
+            save(self.folder / f"epoch{entry['epoch']}", self.model, self.blob, self.base_what, self.network, self.form,
+                 self.spps, {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
+                             "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept})
 
     def write_history(self, history: list, best: dict | None) -> None:
         atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,
