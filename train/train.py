@@ -233,19 +233,21 @@ class RefineTask(Task):
         return entry["val"]["psnr"] if entry["val"] else None
 
     def save_best(self, entry: dict) -> None:
-        save(self.folder, self.model, self.blob, self.base_what, self.network, self.form, self.spps,
-             {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
-              "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
-              # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
-              **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
+        self.save_epoch(self.folder, entry)
 
     def keep(self, entry: dict) -> None:
         """The EMA Control Module of the epochs in ``diffusion.keep_epochs``, each a model folder
         ``<run>/epoch<N>``: for scoring on other scenes than the run's validation frames."""
         if entry["epoch"] in self.d.keep_epochs:
-            save(self.folder / f"epoch{entry['epoch']}", self.model, self.blob, self.base_what, self.network, self.form,
-                 self.spps, {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
-                             "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept})
+            self.save_epoch(self.folder / f"epoch{entry['epoch']}", entry)
+
+    def save_epoch(self, folder: Path, entry: dict) -> None:
+        """The model in place (the EMA weights under ``evaluation``) as a model folder, with the epoch's record."""
+        save(folder, self.model, self.blob, self.base_what, self.network, self.form, self.spps,
+             {"epoch": entry["epoch"], "metrics": entry["val"], "train_loss": entry["train_loss"],
+              "store": str(self.cfg.store), "settings": self.fingerprint, **self.kept,
+              # how far the base is from OIDN (what fine-tuning changed, WiSE-FT), where known: export --base-blend
+              **({} if self.base_blend is None else {"base_blend": float(self.base_blend)})})
 
     def write_history(self, history: list, best: dict | None) -> None:
         atomic_write_json(self.folder / "train.json", {"name": self.name, "history": history, "best": best,
