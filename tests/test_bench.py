@@ -29,7 +29,44 @@ def test_bench_writes_its_report(tmp_path):
     assert f"{o['disk_saving']:.1%} saved" in md and f"{o['time_saving']:.1%} saved" in md
     assert result["omission"] == o
     c = report["compile"]
-    assert [(r["scene"], r["frame"]) for r in c["rows"]] == [("s00000", 0), ("s00000", 1)]
+    assert [(r["scene"], r["frame"], r["kind"]) for r in c["rows"]] == [
+        ("s00000", 0, "first"), ("s00000", 1, "later"), ("s00000", 0, "revalued")]
     # the scene's second camera view reuses the kernels its first compiled (or found in drjit's disk cache)
     assert c["rows"][1]["compiled"] == 0 and all(r["kernels"] > 0 and r["render_s"] > 0 for r in c["rows"])
-    assert "Kernel compilation against rendering" in md and f"| first | {c['compile_s_first']:.2f} |" in md
+    assert c["scenes_later"] == 1 and c["compiled_scenes_later"] == 0 and c["scenes_revalued"] == 1
+    assert "Kernel compilation against rendering" in md
+    assert (f"| first frame of a scene | {c['compile_s_first']:.2f} | {c['render_s_first']:.2f} | "
+            f"{c['compiled_scenes_first']} of 1 |") in md
+
+
+def test_revalued_changes_values_not_structure():
+    import numpy as np
+
+    from mcdenoise.render.bench import revalued
+    from mcdenoise.render.scene import random_scene
+
+    cfg = load_config(TINY)
+    desc = random_scene(cfg.scene, 5, 0, 2)
+    new = revalued(desc, np.random.default_rng(1))
+    assert new["camera"] == desc["camera"] and new["cluster"] == desc["cluster"]
+    assert [o["shape"] for o in new["objects"]] == [o["shape"] for o in desc["objects"]]
+    assert [o["transform"] for o in new["objects"]] == [o["transform"] for o in desc["objects"]]
+    changed = []
+
+    def compare(a, b):
+        assert type(a) is type(b)
+        if isinstance(a, dict):
+            assert a.keys() == b.keys()
+            for k in a:
+                compare(a[k], b[k])
+        elif isinstance(a, list):
+            assert len(a) == len(b)
+            for x, y in zip(a, b):
+                compare(x, y)
+        elif isinstance(a, float):
+            assert abs(b - a) <= 0.05 * abs(a) * (1 + 1e-12)
+            changed.append(a != b)
+        else:
+            assert a == b                  # ints, strings, booleans, None: the structure
+    compare(desc, new)
+    assert sum(changed) > 10                # colours, roughness, light strengths moved
