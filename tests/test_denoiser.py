@@ -428,6 +428,23 @@ def test_precision_changes_the_networks_arithmetic_only():
         infer.load_denoiser(tmodel.SHIPPED_MODEL, "cpu", precision="fp8")
 
 
+def test_channels_last_tensors_give_the_same_output(base):
+    """bench-denoise times the networks on NHWC tensors too: the same computation in another memory layout
+    (convolutions sum in another order: equal to float32 rounding, not bit for bit)."""
+    model = ControlledOIDN(base, len(data.cond_names()))
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for p in model.control.parameters():      # a trained-like Control Module: its zero convolutions not zero
+            p.add_(0.05 * torch.randn(p.shape, generator=g))
+    x, cond = _random_inputs(n=1)
+    mean, _, est = sampler.sample(model, x, cond, FORM, steps=2)
+    assert float((mean - est).abs().max()) > 1e-3               # the Control Module changes the output
+    model.to(memory_format=torch.channels_last)
+    nhwc = [t.contiguous(memory_format=torch.channels_last) for t in (x, cond)]
+    mean_l, _, est_l = sampler.sample(model, *nhwc, FORM, steps=2)
+    assert torch.allclose(mean_l, mean, atol=2e-5, rtol=1e-4) and torch.allclose(est_l, est, atol=2e-5, rtol=1e-4)
+
+
 def test_the_sampler_does_no_work_twice(base):
     """Its arithmetic: the base's encoder once, its decoder for the estimate, then per step the Control Module
     and the decoder again; the base alone is one encoder and one decoder."""

@@ -9,7 +9,8 @@ the base alone), after one warm-up call, best of ``repeats``:
 - ``ours``: ``train.infer.Denoiser.denoise`` end to end at the model's sampler steps (encoding the buffers,
   OIDN's aux prefilter, the base, the Control Module, back to HDR) and at 3 steps (the σ layer's);
 - ``base``: the same path with the Control Module off: OIDN's final-frame mode run in PyTorch;
-- ``ours network`` / ``base network``: the networks alone on inputs already on the device;
+- ``ours network`` / ``base network``: the networks alone on inputs already on the device, and ``nhwc``: the
+  same on channels-last tensors (the layout of fp16 tensor-core convolutions on a GPU);
 - ``oidn_prefilter`` / ``oidn``: OIDN's own engine (pyoidn, on the device OIDN picks) in its final-frame mode
   (the same large network with prefiltered aux) and as usually called, when pyoidn is installed.
 
@@ -119,6 +120,16 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
         with torch.no_grad(), den.autocast():
             row["ours_network_s"] = timed(lambda: sample(m, x, cond, den.formulation, steps))
             row["base_network_s"] = timed(lambda: m.base(x))
+        # The same networks on NHWC tensors, the layout of the GPU's fp16 tensor-core convolutions (OIDN's
+        # engine uses its own blocked layouts); the same numbers, checked in tests/test_denoiser.py.
+        xl, cl = x.contiguous(memory_format=torch.channels_last), cond.contiguous(memory_format=torch.channels_last)
+        m.to(memory_format=torch.channels_last)
+        try:
+            with torch.no_grad(), den.autocast():
+                row["ours_network_nhwc_s"] = timed(lambda: sample(m, xl, cl, den.formulation, steps))
+                row["base_network_nhwc_s"] = timed(lambda: m.base(xl))
+        finally:
+            m.to(memory_format=torch.contiguous_format)
         if oidn.available() is None:
             row["oidn_prefilter_s"] = timed(lambda: oidn.denoise(buf, clean_aux=True))
             row["oidn_s"] = timed(lambda: oidn.denoise(buf))
