@@ -1,6 +1,7 @@
 """Fixtures shared by several test modules. The rendered ones are session-scoped: the tiny
 dataset renders (and is cleaned) once per test run, not once per module that uses it. Tests must
 not change these stores; a test that damages or extends one works on a copy."""
+import json
 import shutil
 
 import pytest
@@ -25,6 +26,29 @@ def cleaned(tiny_store, tmp_path_factory):
     shutil.copytree(reference, store)
     cli("gt-clean", "--config", TINY, f"store={store}", f"runs={runs}", *CLEAN_TINY, "--quiet")
     return store, runs
+
+
+def pytest_sessionfinish(session):
+    """In a pytest-xdist worker (make test runs several): hand this worker's fuzz and kill counts to the
+    controller, which prints the summary."""
+    out = getattr(session.config, "workeroutput", None)
+    if out is not None:
+        from tests.helpers import FUZZ_TOTALS, KILL_POINTS
+        out["fuzz_totals"], out["kill_points"] = json.dumps(FUZZ_TOTALS), json.dumps(KILL_POINTS)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """The controller: a worker's counts, added to its own (empty under xdist)."""
+    from tests.helpers import FUZZ_TOTALS, KILL_POINTS
+
+    out = getattr(node, "workeroutput", {})
+    for reader, counts in json.loads(out.get("fuzz_totals", "{}")).items():
+        mine = FUZZ_TOTALS.setdefault(reader, {})
+        for k, v in counts.items():
+            mine[k] = mine.get(k, 0) + v
+    for stage, points in json.loads(out.get("kill_points", "{}")).items():
+        KILL_POINTS.setdefault(stage, []).extend(points)
 
 
 def pytest_terminal_summary(terminalreporter):
