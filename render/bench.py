@@ -142,9 +142,8 @@ def revalued(desc: dict, rng) -> dict:
 
     out = dict(desc)
     out["objects"] = [{**o, "material": walk(o["material"])} for o in desc.get("objects", [])]
-    for key in ("ground",):
-        if desc.get(key):
-            out[key] = {**desc[key], "material": walk(desc[key]["material"])}
+    if desc.get("ground"):
+        out["ground"] = {**desc["ground"], "material": walk(desc["ground"]["material"])}
     out["walls"] = [{**w, "material": walk(w["material"])} for w in desc.get("walls", [])]
     out["lights"] = walk(desc.get("lights", []))
     out["environment"] = walk(desc.get("environment"))
