@@ -485,9 +485,11 @@ def test_eval_killed_at_its_writes(cleaned, tmp_path, capsys):
     identical("eval")
 
 
-def test_export_killed_at_its_writes(reference_runs, cleaned, tmp_path, capsys):
+def test_export_killed_at_its_writes(reference_runs, cleaned, tmp_path, capsys, monkeypatch):
     """``export`` of the Control Module on OIDN into a model folder that already holds an ``oidn_ft/``
-    folder (which the export keeps): after each kill the rerun gives the same folder, ``oidn_ft/`` too."""
+    folder (which the export keeps): after each kill the rerun gives the same folder, ``oidn_ft/`` too.
+    The export date is pinned (SOURCE_DATE_EPOCH), as the runs may straddle midnight."""
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1764892800")      # the subprocesses inherit it
     store, _ = cleaned
     run, _ = reference_runs(REFINE)
     rng = random.Random(KILL_SEED + 4)

@@ -193,6 +193,26 @@ def _on_a_fine_tuned_base(tmp_path: Path, blend: float) -> tuple[Path, Path]:
     return out, base
 
 
+def test_export_dates_follow_source_date_epoch(monkeypatch):
+    """A model folder's dates are SOURCE_DATE_EPOCH's when it is set (UTC), today's otherwise; a value that
+    is not whole seconds is a one-line error naming the variable."""
+    import datetime
+
+    from mcdenoise.pipeline.errors import CheckpointError
+    from mcdenoise.train.export import _today
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1764892799")       # 2025-12-04 23:59:59 UTC
+    assert _today() == "2025-12-04"
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1764892800")
+    assert _today() == "2025-12-05"
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    with pytest.raises(CheckpointError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
+        _today()
+    monkeypatch.delenv("SOURCE_DATE_EPOCH")
+    before, got, after = datetime.date.today().isoformat(), _today(), datetime.date.today().isoformat()
+    assert got in {before, after}
+
+
 @pytest.mark.slow
 def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module(tmp_path):
     """export --base-blend: OIDN + b x what fine-tuning changed, from a base recorded at blend a."""

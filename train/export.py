@@ -12,6 +12,8 @@ any checkout and any working directory:
     oidn_ft/              OIDN fine-tuned for inputs without albedo or normal (kept when already in --out)
     README.md             the model card: data, formulation, training, validation numbers, the commands
 
+The dates it records are today's, or that of ``SOURCE_DATE_EPOCH`` when set (a reproducible export).
+
 Weights are stored in float16 (half the size in the repository and in a GPU run's 64 MiB; loading
 turns them back into float32): the shipped model is evaluated from the exported files, so the
 numbers its card and ``docs/example_report`` give are those of what ships.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import shlex
 import shutil
 from pathlib import Path
@@ -50,13 +53,25 @@ def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None 
             shutil.copytree(kept / "oidn_ft", tmp / "oidn_ft")
         shutil.copy(folder / "base.tza", tmp / "base.tza")
         state = weights.load_tensors(folder / "control.safetensors")
-        record = {**meta, "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat()}}
+        record = {**meta, "exported": {"from": str(folder.resolve()), "date": _today()}}
         weights.save(tmp, "oidn_control", {k: _half(v) for k, v in state.items()}, record, weights="control.safetensors")
         (tmp / "README.md").write_text(model_card(cfg, record, folder, config or "<config>", out, overrides))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return _publish(tmp, out, folder, quiet)
+
+
+def _today() -> str:
+    """The date a model folder records (ISO): today, or the date of ``SOURCE_DATE_EPOCH`` when set (the
+    reproducible-builds convention), so that two exports of one run can be byte for byte the same."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch is None:
+        return datetime.date.today().isoformat()
+    try:
+        return datetime.datetime.fromtimestamp(int(epoch), datetime.timezone.utc).date().isoformat()
+    except (ValueError, OverflowError, OSError):
+        raise CheckpointError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since 1970-01-01 UTC") from None
 
 
 def _aside(out: Path) -> Path:
@@ -129,7 +144,7 @@ def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, confi
         "network": name, "blend": record["blend"], "sha256": hashlib.sha256(blob).hexdigest(), "bytes": len(blob),
         "prior_sha256": record["prior_sha256"], "epoch": record["epoch"], "metrics": record["metrics"],
         "spp": record["spp"], "store": record["store"], "settings": record["settings"],
-        "exported": {"from": str(folder.resolve()), "date": datetime.date.today().isoformat(), "command": command}})
+        "exported": {"from": str(folder.resolve()), "date": _today(), "command": command}})
     if not quiet:
         print(f"exported {folder} (blend {record['blend']:g}) -> {out} ({len(blob) / 2**20:.2f} MiB, float16 TZA; "
               f"OIDN runs it as its '{name}' network: denoise --oidn-weights {out})", flush=True)
@@ -164,7 +179,7 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
     what = f"{meta.get('base_what')}, moved from blend {old:g} to {blend:g} after training"
     return _updated(model, meta, out, quiet, _rebase_note(model, out, old, blend), blob,
                     base_blend=float(blend), base_what=what,
-                    rebased={"from": old, "to": float(blend), "date": datetime.date.today().isoformat()})
+                    rebased={"from": old, "to": float(blend), "date": _today()})
 
 
 def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool = False) -> Path:
@@ -190,7 +205,7 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
     return _updated(model, meta, out, quiet, _swap_note(model, base_file, out, blend), blob,
                     base_blend=blend, base_what=f"{base_file} (blend {blend})",
                     base_swapped={"from": meta.get("base_what"), "to": str(base_file),
-                                  "date": datetime.date.today().isoformat()})
+                                  "date": _today()})
 
 
 def _updated(model: Path, meta: dict, out: Path, quiet: bool, note: str, blob: bytes | None = None, **record) -> Path:
@@ -221,7 +236,7 @@ def set_strength(model: Path, strength: float, out: Path | None = None, quiet: b
     out = Path(out) if out else model
     meta = weights.read_record(model, "oidn_control", "give a model folder exported from a run on OIDN's network")
     k = check_strength(strength, "--strength")
-    note = (f"## Strength set after training ({datetime.date.today().isoformat()})\n\nThe model applies {k:g} of "
+    note = (f"## Strength set after training ({_today()})\n\nThe model applies {k:g} of "
             f"what its Control Module changes to its base's output (it was {meta.get('strength', 1.0):g}); the "
             f"weights are unchanged. Made by:\n\n```sh\npython -m pipeline export --from {model} --strength {k:g} "
             f"--out {out}\n```\n")
@@ -255,7 +270,7 @@ def fit_sigma(cfg: Config, model: Path, out: Path | None = None, quiet: bool = F
     fit.update(store=str(cfg.store), frames=len(keys))
     command = shlex.join(["python", "-m", "pipeline", "export", "--from", str(model), "--fit-sigma", "--out", str(out),
                           *(["--config", config] if config else []), *overrides])
-    note = (f"## σ fitted again ({datetime.date.today().isoformat()})\n\nσ's scale is now {fit['scale']:.3g} (was "
+    note = (f"## σ fitted again ({_today()})\n\nσ's scale is now {fit['scale']:.3g} (was "
             f"{(meta.get('sigma') or {}).get('scale', 1.0):.3g}), fitted at strength {fit['strength']:g} on "
             f"{fit['pixels']} pixels of {len(keys)} val frames of `{cfg.store}` ({fit['steps']} steps, "
             f"{fit['samples']} samples); the weights are unchanged. Made by:\n\n```sh\n{command}\n```\n")
@@ -266,13 +281,13 @@ def fit_sigma(cfg: Config, model: Path, out: Path | None = None, quiet: bool = F
 
 
 def _swap_note(model: Path, base_file: Path, out: Path, blend) -> str:
-    return (f"## Base replaced after training ({datetime.date.today().isoformat()})\n\nThe base is now `{base_file}` "
+    return (f"## Base replaced after training ({_today()})\n\nThe base is now `{base_file}` "
             f"(blend {blend}); the Control Module above was trained on the previous base and is unchanged. Made by:"
             f"\n\n```sh\npython -m pipeline export --from {model} --base {base_file} --out {out}\n```\n")
 
 
 def _rebase_note(model: Path, out: Path, old: float, new: float) -> str:
-    return (f"## Base moved after training ({datetime.date.today().isoformat()})\n\nThe base is now OIDN + {new:g} "
+    return (f"## Base moved after training ({_today()})\n\nThe base is now OIDN + {new:g} "
             f"x what fine-tuning changed (it was {old:g} before this move; the training record above is the model "
             "it was trained as); the Control Module is unchanged. Made by:\n\n```sh\n"
             f"python -m pipeline export --from {model} --base-blend {new:g} --out {out}\n```\n")
