@@ -198,7 +198,7 @@ def test_export_dates_follow_source_date_epoch(monkeypatch):
     is not whole seconds is a one-line error naming the variable."""
     import datetime
 
-    from mcdenoise.pipeline.errors import CheckpointError
+    from mcdenoise.pipeline.errors import ConfigError
     from mcdenoise.train.export import _today
 
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1764892799")       # 2025-12-04 23:59:59 UTC
@@ -206,7 +206,7 @@ def test_export_dates_follow_source_date_epoch(monkeypatch):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1764892800")
     assert _today() == "2025-12-05"
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
-    with pytest.raises(CheckpointError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
+    with pytest.raises(ConfigError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
         _today()
     monkeypatch.delenv("SOURCE_DATE_EPOCH")
     before, got, after = datetime.date.today().isoformat(), _today(), datetime.date.today().isoformat()

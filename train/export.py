@@ -31,7 +31,7 @@ import numpy as np
 
 from mcdenoise.pipeline import weights
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json
 
 from .model import run_dir
@@ -71,7 +71,7 @@ def _today() -> str:
     try:
         return datetime.datetime.fromtimestamp(int(epoch), datetime.timezone.utc).date().isoformat()
     except (ValueError, OverflowError, OSError):
-        raise CheckpointError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since 1970-01-01 UTC") from None
+        raise ConfigError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since 1970-01-01 UTC") from None
 
 
 def _aside(out: Path) -> Path:
