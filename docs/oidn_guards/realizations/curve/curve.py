@@ -1,10 +1,12 @@
 """The training curve of the shipped Control Module trained on: validation gain against megapixels trained.
 
-    python docs/oidn_guards/realizations/curve/curve.py RUN/train.json OUT_DIR [--crop 64] [--batch 8]
-        [--start-mpix 41.9] [--scored e0=42 e16=84]
+    python docs/oidn_guards/realizations/curve/curve.py RUN/train.json [RUN2/train.json ...] OUT_DIR [--crop 64]
+        [--batch 8] [--start-mpix 41.9] [--scored e0=42 e16=84]
 
 Reads the trainer's per-epoch validation (ship val, strength 1, gain over the base at each spp; epoch 0 is
-the starting model) and writes ``curve.png`` and ``curve.md`` (the table) into OUT_DIR. ``--scored
+the starting model); several runs are one curve when each started from the one before's last epoch (a later
+run's epoch 0 is that epoch again, read back from its folder: it is checked to validate within 0.01 dB of it
+and left out). Writes ``curve.png`` and ``curve.md`` (the table) into OUT_DIR. ``--scored
 LABEL=MPIX``: snapshots scored by ``realizations.py --json`` into OUT_DIR/LABEL_default_val.json and
 LABEL_val9.json, drawn beside the curve (mean gain over the scenes at 4 spp, every realization).
 """
@@ -27,6 +29,21 @@ def rows(history: list, crop: int, batch: int, start: float) -> list[dict]:
     return out
 
 
+def chained(histories: list[list], crop: int, batch: int, start: float) -> list[dict]:
+    """The rows of runs trained one after the other; epochs numbered from the first run's start."""
+    table: list[dict] = []
+    for history in histories:
+        part = rows(history, crop, batch, table[-1]["mpix"] if table else start)
+        if table:
+            head = part.pop(0)
+            if head["epoch"] != 0 or any(abs(head[k] - table[-1][k]) > 0.01 for k in head if k.startswith("gain_spp")):
+                raise SystemExit(f"a run does not start where the one before ended: {head} after {table[-1]}")
+            for r in part:
+                r["epoch"] += table[-1]["epoch"]
+        table += part
+    return table
+
+
 def scored_gain(path: Path, method: str, spp: str = "4", reference: str = "oidn_prefilter") -> float:
     """The mean over scenes of each scene's mean gain over its realizations (what realizations.py prints)."""
     scenes = json.loads(path.read_text())[spp]
@@ -36,15 +53,14 @@ def scored_gain(path: Path, method: str, spp: str = "4", reference: str = "oidn_
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("train_json")
+    ap.add_argument("train_json", nargs="+", help="train.json of each run, in the order they were trained")
     ap.add_argument("out")
     ap.add_argument("--crop", type=int, default=64)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--start-mpix", type=float, default=41.9, help="what the starting model had seen")
     ap.add_argument("--scored", nargs="*", default=[], help="LABEL=MPIX of snapshots scored into OUT_DIR")
     a = ap.parse_args()
-    history = json.loads(Path(a.train_json).read_text())["history"]
-    table = rows(history, a.crop, a.batch, a.start_mpix)
+    table = chained([json.loads(Path(p).read_text())["history"] for p in a.train_json], a.crop, a.batch, a.start_mpix)
     keys = sorted({k for r in table for k in r if k.startswith("gain_spp")}, key=lambda k: int(k[8:]))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
