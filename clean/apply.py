@@ -25,10 +25,9 @@ import time
 import numpy as np
 import torch
 
-from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.config import Config, pick_device, run_dir
 from mcdenoise.pipeline.exr import StoreError, atomic_write_json, read_json
 from mcdenoise.pipeline.progress import progress
-from mcdenoise.pipeline.runs import pick_device, run_dir
 from mcdenoise.pipeline.store import Store, sha256
 
 from .data import RADIANCE, frame_inputs

@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from mcdenoise.pipeline import features, schema
-from mcdenoise.pipeline.features import (
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.schema import (
     RELATIVE_VARIANCE_MIN,
     VARIANCE_FLOOR,
     relative_variance_feature as relative_variance_feature,  # re-exported
@@ -38,13 +38,13 @@ RADIANCE = "color"
 # Preprocessed frames are kept in memory up to this many bytes (the EXR reads dominate otherwise).
 CACHE_BYTES = 1 << 30
 
-ENCODING = features.Encoding()   # log1p radiance, normals as stored, no spp channel
+ENCODING = schema.Encoding()   # log1p radiance, normals as stored, no spp channel
 # The encoded inputs lie in roughly [-20, 20]; every network on them (clean.model's, and any other
 # that reads this encoding) clamps them to +-INPUT_CLAMP first, which only guards against
 # pathological finite inputs (1e30 would otherwise overflow the convolutions to inf).
 INPUT_CLAMP = 1e3
 # (key, channels, kind) of every input channel group, in order.
-CHANNELS: tuple[tuple[str, int, str], ...] = features.TABLE
+CHANNELS: tuple[tuple[str, int, str], ...] = schema.TABLE
 IN_CHANNELS: int = sum(n for _, n, _ in CHANNELS)
 # Index of the filtered radiance's relative-variance feature among the input channels: the
 # affinity network's range term decodes the pixel variance from it (``decode_variance``).
@@ -53,7 +53,7 @@ COLOR_VARIANCE_CHANNEL: int = IN_CHANNELS - len(schema.BUFFERS) + [b.name for b 
 
 def channel_names() -> list[str]:
     """One name per input channel, e.g. ``color.R``, ``normal.X``, ``depth.variance`` (for JSON sidecars)."""
-    return features.names(ENCODING)
+    return schema.names(ENCODING)
 
 
 def decode_variance(feature: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
@@ -76,7 +76,7 @@ def frame_inputs(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     A buffer missing from ``buffers`` (e.g. a feature a reader did not ask for) counts as 0.
     """
     radiance = np.ascontiguousarray(np.moveaxis(buffers[RADIANCE].astype(np.float32), 2, 0))
-    return features.encode(buffers, ENCODING), radiance
+    return schema.encode(buffers, ENCODING), radiance
 
 
 def crop_and_flip(arrays: list[np.ndarray], crop: int, rng: np.random.Generator) -> list[np.ndarray]:

@@ -19,10 +19,9 @@ import numpy as np
 
 from mcdenoise.pipeline import figures
 from mcdenoise.pipeline.color import reinhard
-from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.config import Config, pick_device
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.metrics import all_metrics, mse
-from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.store import Store
 
 from .data import frame_inputs

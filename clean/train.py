@@ -43,14 +43,12 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from mcdenoise.pipeline import runs, weights
-from mcdenoise.pipeline.checkpoint import plot_curves
-from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline import config as config_mod, weights
+from mcdenoise.pipeline.config import Config, pick_device
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
-from mcdenoise.pipeline.fit import Task, apply_update, fit
+from mcdenoise.pipeline.figures import plot_curves
 from mcdenoise.pipeline.metrics import PSNR_CEILING, all_metrics
-from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.store import Store
 
 from .data import (
@@ -62,6 +60,7 @@ from .data import (
     channel_names,
     usable_frames,
 )
+from .fit import Task, apply_update, fit
 from .losses import smape
 from .model import AffinityDenoiser
 
@@ -69,7 +68,7 @@ from .model import AffinityDenoiser
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
     """``pipeline.runs.run_dir`` by this module's mode names (``baseline``: the Isik baseline)."""
     _check_mode(mode)
-    return runs.run_dir(cfg, "isik" if mode == "baseline" else mode, spp)
+    return config_mod.run_dir(cfg, "isik" if mode == "baseline" else mode, spp)
 
 
 def _check_mode(mode: str) -> None:
@@ -80,7 +79,7 @@ def _check_mode(mode: str) -> None:
 def baseline_checkpoint(cfg: Config, spp: int) -> Path | None:
     """The Isik baseline that serves ``spp``: the run trained at that spp (isik_spp<N>) if there is
     one, else the spp-conditioned run (isik_sppany) when it was trained on that count; None if neither."""
-    return runs.find_run(cfg, "isik", spp, "model.safetensors", serves=lambda folder: int(spp) in trained_spps(folder))
+    return config_mod.find_run(cfg, "isik", spp, "model.safetensors", serves=lambda folder: int(spp) in trained_spps(folder))
 
 
 def trained_spps(folder: Path) -> list[int]:

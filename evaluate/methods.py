@@ -15,7 +15,7 @@ Names (``eval.methods``):
   ``oidn_prefilter``: OIDN's mode for final frames with noisy aux (albedo and normal denoised by its
   aux networks first, then ``cleanAux``: its ``rt_hdr_calb_cnrm_large`` network at quality high),
   three filter runs.
-- ``oidn_ft``: OIDN's network fine-tuned on the store (``train.oidn_ft``, run
+- ``oidn_ft``: OIDN's network fine-tuned on the store (``train.baselines.oidn_ft``, run
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
   spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
   ``oidn_ft.blend``; ``oidn_ft_albedo`` and ``oidn_ft_color``: the colour + albedo and the colour-only
@@ -26,7 +26,7 @@ Names (``eval.methods``):
 - ``isik``: the affinity-network baseline of ``runs/<...>/isik_spp<N>`` (``make train MODEL=isik``),
   or where that run does not exist the spp-conditioned ``isik_sppany`` (``SPP=any``) if it was
   trained at N spp.
-- ``afgsa``: AFGSA (Yu et al. 2021, ``train.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
+- ``afgsa``: AFGSA (Yu et al. 2021, ``train.baselines.afgsa``) of ``runs/<...>/afgsa_spp<N>``, else of the
   all-spp run ``afgsa_sppany`` (``make train MODEL=afgsa SPP=N|any``); Isik and AFGSA both run
   through ``clean.apply.denoise`` (tiled).
 - ``ours``: the diffusion denoiser of ``train.infer`` (run ``diffusion_spp<N>``, else the
@@ -60,10 +60,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mcdenoise.pipeline import ensemble
 from mcdenoise.pipeline.config import Config, ConfigError
 from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.exr import StoreError
+from mcdenoise.train import infer
 
 # Diffusion families: family -> without the Control Module. Name tokens after the family select the
 # run variant and the sampling (see the module docstring).
@@ -132,8 +132,8 @@ def parse(name: str) -> Spec:
         raise ConfigError(f"eval.methods: {name!r}: strengthN is a percentage from 0 to 100")
     if spec.samples < 1 or (spec.steps is not None and spec.steps < 1):
         raise ConfigError(f"eval.methods: {name!r}: steps and samples must be at least 1")
-    if spec.ensemble not in ensemble.SIZES or (spec.ensemble > 1 and tokens[-1] != f"x{spec.ensemble}"):
-        raise ConfigError(f"eval.methods: {name!r}: a self-ensemble xN comes last, N in {ensemble.SIZES}")
+    if spec.ensemble not in infer.ENSEMBLE_SIZES or (spec.ensemble > 1 and tokens[-1] != f"x{spec.ensemble}"):
+        raise ConfigError(f"eval.methods: {name!r}: a self-ensemble xN comes last, N in {infer.ENSEMBLE_SIZES}")
     return spec
 
 
@@ -199,7 +199,7 @@ class Noisy(Method):
 
 @dataclass
 class OIDN(Method):
-    """OIDN on colour and the aux layers of ``network`` (``oidn_weights.network_aux``), with its built-in
+    """OIDN on colour and the aux layers of ``network`` (``oidn.network_aux``), with its built-in
     weights or, for the oidn_ft rows, ``weights`` (the float16 TZA blob of an oidn_ft run or shipped file);
     a ``_calb_cnrm`` network gets its aux prefiltered by OIDN (``pipeline.oidn``'s ``clean_aux``)."""
     name: str = "oidn"
@@ -210,7 +210,7 @@ class OIDN(Method):
     checkpoint: str = ""
 
     def __post_init__(self):
-        from mcdenoise.pipeline import oidn
+        from mcdenoise.train import oidn
         why = oidn.available()
         if why:
             raise MethodUnavailable(why)
@@ -218,15 +218,15 @@ class OIDN(Method):
             self.checkpoint = "OIDN's built-in weights"
 
     def denoise(self, buffers):
-        from mcdenoise.pipeline import oidn
+        from mcdenoise.train import oidn
         return oidn.denoise(_layers_of(self.network, buffers), quality=self.quality, weights=self.weights,
                             clean_aux="_calb_cnrm" in self.network)
 
 
 def _layers_of(network: str, buffers: dict) -> dict:
     """The buffers an OIDN network reads that the frame has: colour and its aux layers, nothing else."""
-    from mcdenoise.pipeline import oidn_weights
-    return {k: buffers[k] for k in ("color", *oidn_weights.network_aux(network)) if k in buffers}
+    from mcdenoise.train import oidn
+    return {k: buffers[k] for k in ("color", *oidn.network_aux(network)) if k in buffers}
 
 
 @dataclass
@@ -305,7 +305,7 @@ class SelfEnsemble(Method):
         return self.inner.note()
 
     def denoise(self, buffers):
-        return ensemble.ensemble(self.inner.denoise, buffers, self.n)
+        return infer.self_ensemble(self.inner.denoise, buffers, self.n)
 
 
 @dataclass
@@ -316,7 +316,7 @@ class Loader:
     _models: dict = field(default_factory=dict)
 
     def device(self) -> str:
-        from mcdenoise.pipeline.runs import pick_device
+        from mcdenoise.pipeline.config import pick_device
         return str(pick_device(self.cfg.eval.device))
 
     def load(self, name: str, spp: int) -> Method:
@@ -336,9 +336,9 @@ class Loader:
         return self._diffusion(name, spec, spp)
 
     def _oidn_ft(self, family: str) -> Method:
-        from mcdenoise.pipeline.runs import run_dir
+        from mcdenoise.pipeline.config import run_dir
+        from mcdenoise.train.baselines.oidn_ft import export_blob, load_run
         from mcdenoise.train.model import SHIPPED_MODEL, oidn_ft_blob
-        from mcdenoise.train.oidn_ft import export_blob, load_run
 
         folder = run_dir(self.cfg, "oidn_ft", variant=OIDN_FT[family])
         trained = (folder / "model.safetensors").exists()
@@ -361,8 +361,8 @@ class Loader:
     def _clean_net(self, family: str, spp: int) -> Method:
         from mcdenoise.clean.model import load_model as load_isik
         from mcdenoise.clean.train import baseline_checkpoint, run_dir
-        from mcdenoise.pipeline.runs import find_run, run_candidates
-        from mcdenoise.train.afgsa import load_model as load_afgsa
+        from mcdenoise.pipeline.config import find_run, run_candidates
+        from mcdenoise.train.baselines.afgsa import load_model as load_afgsa
 
         if family == "isik":
             folder = baseline_checkpoint(self.cfg, spp)

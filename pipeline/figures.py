@@ -4,7 +4,8 @@
 the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row shows the same
 ``size``² window of every image, picked where the row's reference image has the most gradient
 energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
-``pipeline.color.gamma_compress``).
+``pipeline.color.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
+when every value is positive).
 """
 from __future__ import annotations
 
@@ -76,3 +77,38 @@ def save_figure(fig, path: str | Path, **kwargs) -> None:
         atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", **kwargs))
     finally:
         plt.close(fig)
+
+
+def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title: str, xlabel: str = "epoch",
+                ylabel: str = "loss", right: dict[str, list[tuple[float, float]]] | None = None,
+                right_label: str = "") -> None:
+    """Named (x, y) series as a PNG, written atomically; ``right`` series get their own y axis."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    values = []
+    for name, pts in curves.items():
+        if pts:
+            ax.plot(*zip(*pts), "o-" if len(pts) < 60 else "-", label=name, markersize=3)
+            values += [y for _, y in pts]
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if values and all(v > 0 for v in values):
+        ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    if right:
+        ax2 = ax.twinx()
+        for i, (name, pts) in enumerate(right.items()):
+            if pts:
+                ax2.plot(*zip(*pts), "s--" if i == 0 else ":", color=f"C{3 + i}", label=name, markersize=3)
+        ax2.set_ylabel(right_label)
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.set_title(title)
+    ax.legend(handles, labels)
+    fig.tight_layout()
+    atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))

@@ -1,4 +1,4 @@
-"""AFGSA (train.afgsa: the network, its losses, its recipe on clean.train's loop): attention against a
+"""AFGSA (train.baselines.afgsa: the network, its losses, its recipe on clean.train's loop): attention against a
 naive reference, finite output on the stability suite's inputs, the L1-only ablation, exact resume."""
 import json
 import os
@@ -11,10 +11,9 @@ from mcdenoise.clean.data import CHANNELS, IN_CHANNELS, BaselinePairs
 from mcdenoise.clean.train import save_best
 from mcdenoise.evaluate.methods import Loader, MethodUnavailable, label
 from mcdenoise.evaluate.stability import run_stability
-from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.runs import run_dir
+from mcdenoise.pipeline.config import load_config, run_dir
 from mcdenoise.pipeline.store import Store
-from mcdenoise.train.afgsa import (
+from mcdenoise.train.baselines.afgsa import (
     AFGSANet,
     GuidedAttention,
     PatchCritic,
@@ -27,7 +26,7 @@ from mcdenoise.train.afgsa import (
     train,
     window_attention,
 )
-from mcdenoise.train.afgsa_report import fine_energy
+from mcdenoise.train.baselines.afgsa_report import fine_energy
 from tests.helpers import TINY, make_clean_store
 
 # A network that runs in a fraction of a second on the tiny store.
@@ -116,7 +115,7 @@ def test_output_is_at_most_twice_the_brightest_noisy_pixel_nearby():
     """An overshooting network (head bias +5 in log space, x150) is held to 2 m + 1, m the brightest
     noisy colour within BOUND_RADIUS of the pixel; the raw log-space output (what the losses see)
     is not clamped."""
-    from mcdenoise.train.afgsa import BOUND_RADIUS
+    from mcdenoise.train.baselines.afgsa import BOUND_RADIUS
 
     torch.manual_seed(7)
     net = AFGSANet(IN_CHANNELS, channels=8, extractor_channels=4, blocks=1, block_size=4, halo=1).eval()
@@ -217,7 +216,7 @@ def _linked(tmp_path, store_root, name):
 @pytest.mark.slow
 def test_training_writes_a_loadable_run_and_resumes_exactly(tmp_path, store_root):
     """Two epochs in one go and 1 + 1 epochs (a rerun resuming the checkpoint) give bitwise the same
-    generator, critic and optimizer state; the best weights load through train.afgsa.load_model."""
+    generator, critic and optimizer state; the best weights load through train.baselines.afgsa.load_model."""
     a, b = _linked(tmp_path, store_root, "a"), _linked(tmp_path, store_root, "b")
     train(afgsa_cfg(a), 4, quiet=True)
     train(afgsa_cfg(b, epochs=1), 4, quiet=True)
@@ -320,7 +319,7 @@ def test_afgsa_report_scores_both_targets_against_gt_clean(tmp_path, store_root)
     from PIL import Image
 
     from mcdenoise.pipeline.metrics import all_metrics
-    from mcdenoise.train.afgsa_report import run_afgsa_report
+    from mcdenoise.train.baselines.afgsa_report import run_afgsa_report
 
     root = _linked(tmp_path, store_root, "report")
     store = Store(root / "store")

@@ -8,14 +8,14 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from mcdenoise.pipeline import oidn_net
-from mcdenoise.pipeline.checkpoint import save_safetensors
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.store import Store, sha256
+from mcdenoise.pipeline.weights import save_safetensors
 from mcdenoise.train import data, infer, model as tmodel, sampler
-from mcdenoise.train.formulation import Formulation
-from mcdenoise.train.model import ControlledOIDN
+from mcdenoise.train.data import network_input
+from mcdenoise.train.model import ControlledOIDN, load_unet
+from mcdenoise.train.sampler import Formulation
 from tests.helpers import TINY, cli, train_tiny
 
 REFINE_TINY = ["diffusion.base_network=rt_hdr_alb_nrm", "diffusion.epochs=2", "diffusion.crop=16", "diffusion.batch_size=2",
@@ -26,14 +26,14 @@ FORM = Formulation(estimate="oidn", residual_scale=0.02, steps=1)
 @pytest.fixture(scope="module")
 def base():
     torch.set_num_threads(1)
-    return oidn_net.load_unet("rt_hdr_alb_nrm")
+    return load_unet("rt_hdr_alb_nrm")
 
 
 @pytest.fixture(scope="module", params=["rt_hdr_alb_nrm", "rt_hdr_calb_cnrm_large"])
 def any_base(request):
     """OIDN's UNet and its large layout (the network of its prefiltered-aux mode at quality high)."""
     torch.set_num_threads(1)
-    return oidn_net.load_unet(request.param)
+    return load_unet(request.param)
 
 
 def _random_inputs(n=2, side=32, seed=0):
@@ -82,7 +82,7 @@ def test_inputs_pad_like_oidn_and_mark_missing_groups():
                "normal": rng.random((21, 35, 3), dtype=np.float32)}
     x, cond, scale = data.inputs(buffers, 4)
     assert x.shape == (9, 32, 48) and cond.shape == (len(data.cond_names()), 32, 48)
-    ref = oidn_net.network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
+    ref = network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
     np.testing.assert_array_equal(x, ref)
     names = data.cond_names()
     for g in data.GROUPS:
@@ -286,8 +286,8 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
 def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_mode(cleaned, tmp_path):
     """diffusion.base_network=rt_hdr_calb_cnrm: the pack and every caller give the base albedo and normal
     prefiltered by OIDN's aux networks, so the untrained model (and the base alone) is OIDN's final-frame mode."""
-    from mcdenoise.pipeline import oidn
     from mcdenoise.pipeline.metrics import psnr
+    from mcdenoise.train import oidn
     store, _ = cleaned
     runs = tmp_path / "runs"
     cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}", f"runs={runs}",

@@ -3,17 +3,17 @@ import numpy as np
 import pytest
 
 from mcdenoise.evaluate.methods import parse
-from mcdenoise.pipeline import ensemble
 from mcdenoise.pipeline.config import ConfigError
+from mcdenoise.train import infer
 
 
 def test_every_transform_is_undone_and_the_eight_are_distinct():
     x = np.random.default_rng(0).random((5, 7, 3), np.float32)
     seen = set()
-    for t in ensemble.TRANSFORMS:
-        y = ensemble.apply(x, t)
+    for t in infer.TRANSFORMS:
+        y = infer.apply_transform(x, t)
         assert y.shape == ((7, 5, 3) if t[0] else (5, 7, 3))
-        np.testing.assert_array_equal(ensemble.invert(y, t), x)
+        np.testing.assert_array_equal(infer.invert_transform(y, t), x)
         seen.add(np.ascontiguousarray(y).tobytes())
     assert len(seen) == 8
 
@@ -21,14 +21,14 @@ def test_every_transform_is_undone_and_the_eight_are_distinct():
 def test_an_equivariant_denoiser_is_unchanged_and_a_position_bias_is_averaged_away():
     color = np.random.default_rng(1).random((4, 6, 3), np.float32)
     buffers = {"color": color, "albedo": np.ones_like(color)}
-    squared = ensemble.ensemble(lambda b: b["color"] ** 2 * b["albedo"], buffers, 8)
+    squared = infer.self_ensemble(lambda b: b["color"] ** 2 * b["albedo"], buffers, 8)
     np.testing.assert_allclose(squared, color ** 2, rtol=1e-6)
 
     def biased(b):   # adds 1 to the first column of whatever copy it is given
         out = b["color"].copy()
         out[:, 0] += 1.0
         return out
-    two = ensemble.ensemble(biased, buffers, 2)   # the identity and the horizontal flip
+    two = infer.self_ensemble(biased, buffers, 2)   # the identity and the horizontal flip
     expected = color.copy()
     expected[:, 0] += 0.5
     expected[:, -1] += 0.5
@@ -40,9 +40,9 @@ def test_an_equivariant_denoiser_is_unchanged_and_a_position_bias_is_averaged_aw
     expected[:, -1] += 0.25
     expected[0] += 0.25
     expected[-1] += 0.25
-    np.testing.assert_allclose(ensemble.ensemble(biased, buffers, 8), expected, rtol=1e-6)
+    np.testing.assert_allclose(infer.self_ensemble(biased, buffers, 8), expected, rtol=1e-6)
     with pytest.raises(ValueError, match="self-ensemble of 3"):
-        ensemble.ensemble(biased, buffers, 3)
+        infer.self_ensemble(biased, buffers, 3)
 
 
 def test_method_names_take_the_ensemble_last():

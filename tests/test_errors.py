@@ -17,7 +17,7 @@ from mcdenoise.pipeline.errors import (
     TrainError,
 )
 from mcdenoise.render.frame import ExternalSceneError
-from mcdenoise.train.formulation import FormulationError
+from mcdenoise.train.sampler import FormulationError
 
 BUILTIN_BASES = {ConfigError: ValueError, StoreError: RuntimeError, StoreWriteError: OSError,
                  CheckpointError: RuntimeError, TrainError: RuntimeError, MitsubaSetupError: RuntimeError,

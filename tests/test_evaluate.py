@@ -74,7 +74,7 @@ class FakeDiffusion:
     calls: list = []
 
     def __init__(self, folder, device, base_only):
-        from mcdenoise.train.formulation import Formulation
+        from mcdenoise.train.sampler import Formulation
         self.folder, self.device, self.base_only = Path(folder), device, base_only
         self.formulation, self.meta = Formulation(steps=27), {"base_what": "a box blur"}
 

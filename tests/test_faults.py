@@ -578,14 +578,15 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
     import numpy as np
 
     import mcdenoise.pipeline.exr as exr
-    from mcdenoise.pipeline import checkpoint, schema
+    from mcdenoise.pipeline import schema, weights
     from mcdenoise.pipeline.store import Store
+    from mcdenoise.pipeline.weights import save_safetensors
 
     store = Store(tmp_path / "store")
     store.write_manifest({"scenes": [], "splits": {}})
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     _fail_mid_write(monkeypatch)
-    monkeypatch.setattr(checkpoint, "atomic_write_bytes", exr.atomic_write_bytes)
+    monkeypatch.setattr(weights, "atomic_write_bytes", exr.atomic_write_bytes)
     arrays = {k: np.ones((4, 5, schema.BY_NAME[k.removesuffix(".variance")].size), np.float32) for k in all_keys()}
     target = {"image": tmp_path / "store/scenes/s0/000/gt1.exr", "manifest": store.manifest_path,
               "checkpoint": tmp_path / "runs/last.safetensors"}[what]
@@ -596,7 +597,7 @@ def test_disk_full_mid_write_leaves_nothing(what, tmp_path, monkeypatch):
         elif what == "manifest":
             store.write_manifest({"scenes": ["s0"], "splits": {"train": ["s0"]}})
         else:
-            checkpoint.save_safetensors(target, {"w": torch.ones(3)}, {"format": "x"})
+            save_safetensors(target, {"w": torch.ones(3)}, {"format": "x"})
     after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     assert after == before            # the old manifest intact, no partial or temporary file
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.pipeline import features, schema
+from mcdenoise.clean.fit import Task, fit
+from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
-from mcdenoise.pipeline.fit import Task, fit
 
 
 class Toy(Task):
@@ -119,10 +119,10 @@ def _buffers(rng, size=6):
 
 def test_a_missing_buffer_is_its_background_before_the_encoding():
     b = _buffers(np.random.default_rng(1))
-    full = features.encode(b, features.Encoding(normals01=True, spp=True), spp=4)
+    full = schema.encode(b, schema.Encoding(normals01=True, spp=True), spp=4)
     del b["normal"], b["emission"]
-    part = features.encode(b, features.Encoding(normals01=True, spp=True), spp=4)
-    names = features.names(features.Encoding(spp=True))
+    part = schema.encode(b, schema.Encoding(normals01=True, spp=True), spp=4)
+    names = schema.names(schema.Encoding(spp=True))
     assert part.shape == full.shape and len(names) == part.shape[0]
     assert np.all(part[names.index("normal.Y")] == 0.5)          # background 0 -> (0 + 1) / 2
     assert np.all(part[names.index("emission.G")] == 0.0)         # log1p(0)

@@ -3,9 +3,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.errors import StoreError
 from mcdenoise.pipeline.exr import read_layers
+from mcdenoise.train import oidn
 from tests.helpers import cli
 
 

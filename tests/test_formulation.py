@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from mcdenoise.pipeline.config import ConfigError, load_config
-from mcdenoise.train.formulation import CONFIG_KEYS, Formulation, FormulationError, snr_weight
+from mcdenoise.train.sampler import CONFIG_KEYS, Formulation, FormulationError, snr_weight
 
 
 @pytest.mark.slow

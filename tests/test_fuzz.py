@@ -532,12 +532,12 @@ class Outcomes:
 
 
 def _tza_original() -> bytes:
-    from mcdenoise.pipeline import tza
+    from mcdenoise.pipeline.weights import TZATensor, write_tza
     rng = np.random.default_rng(3)
-    return tza.write({"enc_conv0.weight": tza.Tensor(rng.standard_normal((4, 3, 3, 3)).astype(np.float16), "oihw"),
-                      "enc_conv0.bias": tza.Tensor(rng.standard_normal(4).astype(np.float16), "x"),
-                      "dec_conv0.weight": tza.Tensor(rng.standard_normal((3, 4, 1, 1)).astype(np.float32), "oihw"),
-                      "scale": tza.Tensor(np.arange(5, dtype=np.int8), "x")})
+    return write_tza({"enc_conv0.weight": TZATensor(rng.standard_normal((4, 3, 3, 3)).astype(np.float16), "oihw"),
+                      "enc_conv0.bias": TZATensor(rng.standard_normal(4).astype(np.float16), "x"),
+                      "dec_conv0.weight": TZATensor(rng.standard_normal((3, 4, 1, 1)).astype(np.float32), "oihw"),
+                      "scale": TZATensor(np.arange(5, dtype=np.int8), "x")})
 
 
 def _tza_padding(tensors) -> list[tuple[int, int]]:
@@ -554,21 +554,21 @@ def _tza_padding(tensors) -> list[tuple[int, int]]:
 def test_fuzz_tza_blobs(capsys):
     """OIDN weight archives: a TZAError (a WeightsError), or a faithful read: written back, the tensors
     give the same bytes but for the zero padding and the minor version (no byte misread, none ignored)."""
-    from mcdenoise.pipeline import tza
+    from mcdenoise.pipeline.weights import TZA_VERSION, read_tza, write_tza
     original = _tza_original()
-    assert tza.write(tza.read(original)) == original
+    assert write_tza(read_tza(original)) == original
     out = Outcomes("TZA blobs (pipeline/tza.py)")
     table = int.from_bytes(original[4:12], "little")
 
     def faithful(blob):
         def judge(tensors):
-            again = bytearray(tza.write(tensors))
+            again = bytearray(write_tza(tensors))
             given = bytearray(blob)
             if len(again) != len(given):
                 return f"read {len(blob)} bytes as an archive of {len(again)}"
             for a, b in _tza_padding(tensors):
                 given[a:b] = bytes(b - a)
-            given[3] = tza.VERSION[1]       # any 2.x minor version reads as 2.0 (the writer's)
+            given[3] = TZA_VERSION[1]       # any 2.x minor version reads as 2.0 (the writer's)
             return "correct read" if again == given else "read as other tensors than the bytes hold"
         return judge
 
@@ -579,7 +579,7 @@ def test_fuzz_tza_blobs(capsys):
                      st.tuples(st.integers(table, len(original) - 1), st.binary(min_size=1, max_size=8))
                      .map(lambda a: original[:a[0]] + a[1] + original[a[0] + len(a[1]):])))
     def case(blob):
-        out.run(f"{blob.hex()}", lambda: tza.read(blob, "case.tza"), faithful(blob))
+        out.run(f"{blob.hex()}", lambda: read_tza(blob, "case.tza"), faithful(blob))
 
     case()
     out.report(capsys)
@@ -682,8 +682,8 @@ def test_fuzz_config_files(tmp_path, capsys):
 
 def test_tza_tensor_offset_off_oidn_layout_is_an_error():
     """A table entry pointing 64 bytes further (still inside the blob) once read other bytes as the weights."""
-    from mcdenoise.pipeline import tza
     from mcdenoise.pipeline.errors import WeightsError
+    from mcdenoise.pipeline.weights import read_tza
     blob = bytearray(_tza_original())
     table = int.from_bytes(blob[4:12], "little")
     name = b"enc_conv0.bias"
@@ -691,7 +691,7 @@ def test_tza_tensor_offset_off_oidn_layout_is_an_error():
     offset = int.from_bytes(blob[at:at + 8], "little")
     blob[at:at + 8] = (offset + 64).to_bytes(8, "little")
     with pytest.raises(WeightsError, match=r"x\.tza: tensor 'enc_conv0\.bias' starts at byte \d+, expected \d+"):
-        tza.read(bytes(blob), "x.tza")
+        read_tza(bytes(blob), "x.tza")
 
 
 def test_flipped_bit_in_saved_weights_is_a_checkpoint_error(tmp_path):
@@ -713,7 +713,7 @@ def test_saving_the_same_tensors_twice_gives_the_same_bytes(tmp_path):
     """safetensors orders metadata keys as a Rust HashMap does (anew each call); the header is rewritten sorted."""
     import torch
 
-    from mcdenoise.pipeline.checkpoint import save_safetensors
+    from mcdenoise.pipeline.weights import save_safetensors
     tensors, meta = {"w": torch.ones(3)}, {"format": "f", "state": "{}", "z": "1", "a": "2"}
     for i in range(8):
         save_safetensors(tmp_path / f"{i}.safetensors", tensors, meta)

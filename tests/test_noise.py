@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mcdenoise.pipeline.noise import CORRELATED_BELOW, correlated_noise, neighbour_ratio
+from mcdenoise.train.infer import CORRELATED_BELOW, correlated_noise, neighbour_ratio
 from tests.helpers import cornell_box
 
 

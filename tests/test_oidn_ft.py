@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.pipeline import oidn, oidn_net, oidn_weights
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.errors import PipelineError
 from mcdenoise.pipeline.store import Store, stack_name
-from mcdenoise.train import oidn_ft
+from mcdenoise.train import oidn
+from mcdenoise.train.baselines import oidn_ft
+from mcdenoise.train.model import LAYERS, LEVEL, load_unet, unet_denoise
 from tests.helpers import TINY, cli, train_tiny
 
 FT_TINY = ["oidn_ft.epochs=2", "oidn_ft.crop=16", "oidn_ft.batch_size=2", "oidn_ft.crops_per_frame=2",
@@ -41,14 +42,14 @@ def test_training_starts_at_oidn_and_moves_away(trained):
     assert all(h["val"]["images"] == len(Store(store).frames("val")) * 3 for h in hist)   # 4, 8, 16 spp
     assert all(h["train_loss"] > 0 and h["terms"]["l2sp"] > 0 for h in hist[1:])
     last = oidn_ft.load_run(folder, tiny(store, runs))[0]
-    stock = oidn_net.load_unet("rt_hdr_alb_nrm")
+    stock = load_unet("rt_hdr_alb_nrm")
     # the last checkpoint moved away from OIDN (whichever epoch was best)
     from safetensors.torch import load_file
     moved = load_file(str(folder / "last.safetensors"))
     assert not torch.equal(moved["model.dec_conv0.weight"], stock.dec_conv0.weight)
     record = json.loads((folder / "model.json").read_text())
     assert record["network"] == "rt_hdr_alb_nrm" and record["spp"] == [4, 8, 16]
-    assert record["prior_sha256"] == __import__("hashlib").sha256(oidn_weights.load("rt_hdr_alb_nrm")).hexdigest()
+    assert record["prior_sha256"] == __import__("hashlib").sha256(oidn.weights_blob("rt_hdr_alb_nrm")).hexdigest()
     assert last.in_channels == 9
     assert "already trained" in cli("train", "--model", "oidn_ft", "--spp", "any", "--config", TINY, f"store={store}",
                                     f"runs={runs}", *FT_TINY, "oidn_ft.distill=0.5", "oidn_ft.l2sp=0.1").stdout
@@ -74,11 +75,11 @@ def test_exported_weights_run_in_oidn_as_in_the_twin(trained, tmp_path):
     net = oidn_ft.load_run(run, cfg)[0]
     buf = Store(store).read(*_first(store), 4)
     theirs = oidn.denoise(buf, weights=out.read_bytes())
-    ours = oidn_net.denoise(net, buf["color"], buf["albedo"], buf["normal"])
+    ours = unet_denoise(net, buf["color"], buf["albedo"], buf["normal"])
     stock = oidn.denoise(buf)
     assert _psnr(theirs, ours) >= 80 and _psnr(theirs, stock) < 70
     # blend 0 is OIDN's own weights, bit for bit
-    assert oidn_ft.export_blob(oidn_ft.load_run(run, cfg, blend=0.0)[0]) == oidn_weights.load("rt_hdr_alb_nrm")
+    assert oidn_ft.export_blob(oidn_ft.load_run(run, cfg, blend=0.0)[0]) == oidn.weights_blob("rt_hdr_alb_nrm")
     # the command line runs them too, and refuses weights that need layers the input lacks
     exr = tmp_path / "in.exr"
     from tests.helpers import write_rgb_exr
@@ -103,7 +104,7 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
     method = loader.load("oidn_ft", 4)
     buf = Store(store).read(*_first(store), 4)
     best = oidn_ft.load_run(runs / "oidn_ft_rt_hdr_alb_nrm", tiny(store, runs))[0]
-    assert _psnr(method.denoise(buf), oidn_net.denoise(best, buf["color"], buf["albedo"], buf["normal"])) >= 80
+    assert _psnr(method.denoise(buf), unet_denoise(best, buf["color"], buf["albedo"], buf["normal"])) >= 80
     for family, layers in (("oidn_ft_color", ("color",)), ("oidn_ft_albedo", ("color", "albedo"))):
         method, stock = loader.load(family, 4), loader.load(family.replace("_ft", ""), 4)
         network = "rt_hdr_alb" if "albedo" in layers else "rt_hdr"
@@ -127,11 +128,11 @@ def test_the_evaluator_runs_the_run_and_says_what_is_missing(trained, tmp_path, 
 
 
 def test_trainable_subsets():
-    net = oidn_net.load_unet("rt_hdr_small")
+    net = load_unet("rt_hdr_small")
     n = sum(p.numel() for p in net.parameters())
     bias = sum(p.numel() for p in oidn_ft.trainable_parameters(net, "bias"))
     decoder = sum(p.numel() for p in oidn_ft.trainable_parameters(net, "decoder"))
-    assert bias == sum(net.widths[k][0] for k in oidn_net.LAYERS) and bias < 0.01 * n
+    assert bias == sum(net.widths[k][0] for k in LAYERS) and bias < 0.01 * n
     assert 0.3 * n < decoder < n
     assert sum(p.numel() for p in oidn_ft.trainable_parameters(net, "all")) == n
 
@@ -140,8 +141,8 @@ def test_fine_levels_train_only_the_finest_resolutions():
     """'fine' with 2 levels: the layers that see the full and the half-resolution image train, the coarse ones
     (a quarter resolution and below) stay OIDN's bit for bit through an Adam step; the count grows with the
     levels up to every weight."""
-    assert sorted(oidn_net.LEVEL) == sorted(oidn_net.LAYERS)        # every layer has its resolution
-    net = oidn_net.load_unet("rt_hdr_small")
+    assert sorted(LEVEL) == sorted(LAYERS)        # every layer has its resolution
+    net = load_unet("rt_hdr_small")
     prior = {k: v.detach().clone() for k, v in net.named_parameters()}
     params = oidn_ft.trainable_parameters(net, "fine", 2)
     trained = {n.split(".")[0] for n, p in net.named_parameters() if p.requires_grad}
@@ -159,7 +160,7 @@ def test_fine_levels_train_only_the_finest_resolutions():
 
 
 def test_l2sp_is_zero_at_the_prior_and_grows_with_the_change():
-    net = oidn_net.load_unet("rt_hdr_small")
+    net = load_unet("rt_hdr_small")
     oidn_ft.trainable_parameters(net, "all")
     ref = {k: v.detach().clone() for k, v in net.named_parameters()}
     assert float(oidn_ft.l2sp_penalty(net, ref).detach()) == 0

@@ -4,8 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.pipeline import oidn, oidn_net, oidn_weights, tza
 from mcdenoise.pipeline.errors import WeightsError
+from mcdenoise.pipeline.weights import TZATensor, read_tza, write_tza
+from mcdenoise.train import oidn
+from mcdenoise.train.data import HDR_MAX, autoexposure, from_pu, to_pu
+from mcdenoise.train.model import UNET_LARGE, UNet, load_unet, unet_denoise
 from tests.helpers import cornell_box_aux
 
 SETS = {"rt_hdr": (), "rt_hdr_alb": ("albedo",), "rt_hdr_alb_nrm": ("albedo", "normal")}
@@ -32,8 +35,8 @@ def test_twin_equals_pyoidn(frame, name, gain):
     buffers = {**frame, "color": frame["color"] * gain}
     aux = [buffers[k] for k in SETS[name]]
     if gain != 1.0:
-        assert oidn_net.autoexposure(buffers["color"]) > 100 * oidn_net.autoexposure(frame["color"])
-    ours = oidn_net.denoise(oidn_net.load_unet(name), buffers["color"], *aux)
+        assert autoexposure(buffers["color"]) > 100 * autoexposure(frame["color"])
+    ours = unet_denoise(load_unet(name), buffers["color"], *aux)
     stock = oidn.denoise({"color": buffers["color"], **dict(zip(SETS[name], aux))}, aux=bool(aux))
     assert ours.shape == stock.shape == frame["color"].shape
     assert tonemapped_psnr(ours / gain, stock / gain) >= 100
@@ -42,39 +45,39 @@ def test_twin_equals_pyoidn(frame, name, gain):
 
 
 def test_every_builtin_blob_round_trips_bit_exactly():
-    table = oidn_weights.blobs(str(oidn_weights.library_path()))
+    table = oidn.blobs(str(oidn.library_path()))
     assert {"rt_hdr", "rt_hdr_alb", "rt_hdr_alb_nrm", "rt_hdr_small"} <= set(table)
     for name in table:
-        blob = oidn_weights.load(name)
-        assert tza.write(tza.read(blob, name)) == blob, name
+        blob = oidn.weights_blob(name)
+        assert write_tza(read_tza(blob, name)) == blob, name
 
 
 def test_unet_shapes_come_from_the_blob():
     for name, channels in (("rt_hdr", 3), ("rt_hdr_alb", 6), ("rt_hdr_alb_nrm", 9), ("rt_hdr_alb_nrm_small", 9)):
-        net = oidn_net.load_unet(name)
+        net = load_unet(name)
         assert net.in_channels == channels
         assert net.widths["dec_conv1a"][1] == net.widths["dec_conv2b"][0] + channels
-    full = oidn_net.load_unet("rt_hdr_alb_nrm")
+    full = load_unet("rt_hdr_alb_nrm")
     assert sum(p.numel() for p in full.parameters()) == 919_811
-    assert sum(p.numel() for p in oidn_net.load_unet("rt_hdr_alb_nrm_small").parameters()) < 400_000
+    assert sum(p.numel() for p in load_unet("rt_hdr_alb_nrm_small").parameters()) < 400_000
     # weights written back are the file's float16 values exactly
     back = full.to_tza()
-    blob = tza.read(oidn_weights.load("rt_hdr_alb_nrm"))
+    blob = read_tza(oidn.weights_blob("rt_hdr_alb_nrm"))
     assert all(np.array_equal(back[k].array, blob[k].array) and back[k].layout == blob[k].layout for k in blob)
 
 
 @pytest.mark.slow
 def test_oidn_runs_weights_we_wrote(frame):
-    net = oidn_net.load_unet("rt_hdr_alb_nrm")
-    same = tza.write(net.to_tza())
+    net = load_unet("rt_hdr_alb_nrm")
+    same = write_tza(net.to_tza())
     stock = oidn.denoise(frame)
     np.testing.assert_array_equal(oidn.denoise(frame, weights=same), stock)
     with torch.no_grad():
         net.dec_conv0.bias += torch.tensor([0.02, -0.01, 0.01])
         net.enc_conv2.weight.mul_(1.05)
-    changed = tza.write(net.to_tza())
+    changed = write_tza(net.to_tza())
     theirs = oidn.denoise(frame, weights=changed)
-    ours = oidn_net.denoise(oidn_net.UNet.from_tza(tza.read(changed)), frame["color"], frame["albedo"],
+    ours = unet_denoise(UNet.from_tza(read_tza(changed)), frame["color"], frame["albedo"],
                             frame["normal"])
     assert tonemapped_psnr(theirs, ours) >= 80
     assert tonemapped_psnr(theirs, stock) < 50
@@ -84,14 +87,14 @@ def test_oidn_runs_weights_we_wrote(frame):
 
 @pytest.mark.slow
 def test_oidn_refuses_bad_blobs(frame):
-    net = oidn_net.load_unet("rt_hdr_alb_nrm")
-    as_float32 = {k: tza.Tensor(v.array.astype(np.float32), v.layout) for k, v in net.to_tza().items()}
+    net = load_unet("rt_hdr_alb_nrm")
+    as_float32 = {k: TZATensor(v.array.astype(np.float32), v.layout) for k, v in net.to_tza().items()}
     with pytest.raises(WeightsError, match="OIDN refused"):
-        oidn.denoise(frame, weights=tza.write(as_float32))
+        oidn.denoise(frame, weights=write_tza(as_float32))
     with pytest.raises(WeightsError, match="OIDN refused"):
         oidn.denoise(frame, weights=b"\x00" * 4096)
     with pytest.raises(WeightsError, match="OIDN refused"):   # colour-only weights for 9 input channels
-        oidn.denoise(frame, weights=oidn_weights.load("rt_hdr"))
+        oidn.denoise(frame, weights=oidn.weights_blob("rt_hdr"))
 
 
 def test_the_aux_prefilter_denoises_albedo_and_normal():
@@ -133,7 +136,7 @@ def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame)
     albedo, normal = oidn.prefilter_aux(np.clip(frame["albedo"], 0, 1), np.clip(frame["normal"], -1, 1))
     by_hand = pyoidn.denoise(frame["color"], albedo, normal, hdr=True, clean_aux=True, quality="high")
     np.testing.assert_array_equal(by_hand, clean)
-    large = oidn_weights.load("rt_hdr_calb_cnrm_large")
+    large = oidn.weights_blob("rt_hdr_calb_cnrm_large")
     np.testing.assert_array_equal(oidn.denoise(frame, weights=large, clean_aux=True), clean)
     assert tonemapped_psnr(clean, oidn.denoise(frame)) < 60     # another network on other aux
     # without aux there is nothing to prefilter: the colour-only network, as without the flag
@@ -154,67 +157,67 @@ def test_clean_aux_mode_is_the_prefilter_then_the_large_clean_aux_network(frame)
 def test_the_large_twin_equals_oidn_on_prefiltered_aux(frame):
     """OIDN's UNetLarge (rt_hdr_calb_cnrm_large, 3.85 M parameters) in PyTorch on the prefiltered aux equals
     OIDN's prefiltered-aux mode, and its weights go back into OIDN unchanged."""
-    net = oidn_net.load_unet("rt_hdr_calb_cnrm_large")
-    assert net.layout is oidn_net.UNET_LARGE and net.in_channels == 9
+    net = load_unet("rt_hdr_calb_cnrm_large")
+    assert net.layout is UNET_LARGE and net.in_channels == 9
     assert sum(p.numel() for p in net.parameters()) == 3_848_387
     albedo, normal = oidn.prefilter_aux(np.clip(frame["albedo"], 0, 1), np.clip(frame["normal"], -1, 1))
-    ours = oidn_net.denoise(net, frame["color"], albedo, normal)
+    ours = unet_denoise(net, frame["color"], albedo, normal)
     stock = oidn.denoise(frame, clean_aux=True)
     assert tonemapped_psnr(ours, stock) >= 100
-    assert tza.write(net.to_tza()) == oidn_weights.load("rt_hdr_calb_cnrm_large")
+    assert write_tza(net.to_tza()) == oidn.weights_blob("rt_hdr_calb_cnrm_large")
 
 
 def test_pu_transfer_inverts():
-    y = torch.cat([torch.zeros(1), torch.logspace(-9, np.log10(oidn_net.HDR_MAX), 2000, dtype=torch.float64)])
-    x = oidn_net.to_pu(y)
+    y = torch.cat([torch.zeros(1), torch.logspace(-9, np.log10(HDR_MAX), 2000, dtype=torch.float64)])
+    x = to_pu(y)
     assert float(x[0]) == 0 and abs(float(x[-1]) - 1) < 1e-9
     assert bool(torch.all(x[1:] > x[:-1]))          # strictly increasing
-    back = oidn_net.from_pu(x)
+    back = from_pu(x)
     assert float(torch.max(torch.abs(back - y) / (y + 1e-12))) < 1e-6
 
 
 def test_autoexposure():
     # a grey image of luminance L exposes to 0.18 / L
-    assert oidn_net.autoexposure(np.full((40, 50, 3), 2.0, np.float32)) == pytest.approx(0.09, rel=1e-6)
+    assert autoexposure(np.full((40, 50, 3), 2.0, np.float32)) == pytest.approx(0.09, rel=1e-6)
     # black, NaN and negative values count as 0: nothing above 1e-8 -> 1
-    assert oidn_net.autoexposure(np.zeros((8, 8, 3), np.float32)) == 1.0
+    assert autoexposure(np.zeros((8, 8, 3), np.float32)) == 1.0
     bad = np.full((8, 8, 3), np.nan, np.float32)
     bad[:4] = -1
-    assert oidn_net.autoexposure(bad) == 1.0
+    assert autoexposure(bad) == 1.0
     # bins (16x16 here) average before the log: half black, half 1 -> per bin mean 0.5 (2 bins of 16x16 each)
     img = np.zeros((16, 32, 3), np.float32)
     img[::2, :16] = 1.0
     img[:, 16:] = 0.5
-    assert oidn_net.autoexposure(img) == pytest.approx(0.36, rel=1e-6)
+    assert autoexposure(img) == pytest.approx(0.36, rel=1e-6)
 
 
 def test_missing_weights_say_where_and_what_to_do(tmp_path, monkeypatch):
     with pytest.raises(WeightsError, match=r"nope\.tza: cannot read OIDN weights"):
-        oidn_weights.load("rt_hdr", tmp_path / "nope.tza")
+        oidn.weights_blob("rt_hdr", tmp_path / "nope.tza")
     with pytest.raises(WeightsError, match=r"no weights named 'rt_unknown' \(it has .*rt_hdr_alb_nrm"):
-        oidn_weights.load("rt_unknown")
+        oidn.weights_blob("rt_unknown")
     (tmp_path / "bad.tza").write_bytes(b"not a tza file at all")
     with pytest.raises(WeightsError, match=r"bad\.tza: not a TZA archive"):
-        oidn_net.load_unet("rt_hdr", tmp_path / "bad.tza")
+        load_unet("rt_hdr", tmp_path / "bad.tza")
     import importlib.util
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
     with pytest.raises(WeightsError, match="pyoidn is not installed.*oidn.weights=FILE.tza") as info:
-        oidn_weights.load("rt_hdr")
+        oidn.weights_blob("rt_hdr")
     assert "\n" not in str(info.value)
 
 
 def test_a_tza_file_loads_like_the_builtin(tmp_path):
     path = tmp_path / "mine.tza"
-    path.write_bytes(oidn_weights.load("rt_hdr_alb"))
-    a, b = oidn_net.load_unet("rt_hdr_alb", path), oidn_net.load_unet("rt_hdr_alb")
+    path.write_bytes(oidn.weights_blob("rt_hdr_alb"))
+    a, b = load_unet("rt_hdr_alb", path), load_unet("rt_hdr_alb")
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
 
 
 def test_tza_reader_rejects_damage():
-    blob = bytearray(oidn_weights.load("rt_hdr_small"))
+    blob = bytearray(oidn.weights_blob("rt_hdr_small"))
     with pytest.raises(WeightsError, match="version"):
-        tza.read(bytes(blob[:2]) + bytes([3]) + bytes(blob[3:]))
+        read_tza(bytes(blob[:2]) + bytes([3]) + bytes(blob[3:]))
     with pytest.raises(WeightsError, match="table at byte .* outside the blob"):
-        tza.read(bytes(blob[: len(blob) // 2]) + bytes(blob[-200:]))
+        read_tza(bytes(blob[: len(blob) // 2]) + bytes(blob[-200:]))
     with pytest.raises(WeightsError, match="layout"):
-        tza.write({"w": tza.Tensor(np.zeros((2, 2), np.float16), "x")})
+        write_tza({"w": TZATensor(np.zeros((2, 2), np.float16), "x")})

@@ -2,8 +2,7 @@
 that delegate to it."""
 import pytest
 
-from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.runs import find_run, pick_device, run_candidates, run_dir
+from mcdenoise.pipeline.config import find_run, load_config, pick_device, run_candidates, run_dir
 
 
 def test_every_model_has_its_folder(tmp_path):

@@ -63,7 +63,7 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
 def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped, monkeypatch):
     """A model output past the end of OIDN's output space (where the inverse transfer overflows) ends at the
     range's top (65504 after exposure), counted; an ordinary frame touches none."""
-    from mcdenoise.pipeline.oidn_net import autoexposure
+    from mcdenoise.train.data import autoexposure
 
     frame = synthetic_buffers(32, 32, seed=5, noise=0.7)
     shipped.denoise(frame, spp=4)
@@ -98,8 +98,8 @@ def test_garbage_normals_are_shortened_counted_and_give_an_ordinary_image(shippe
 def test_inputs_without_normal_run_the_shipped_oidn_ft_network_for_their_layers(shipped, layers):
     """R,G,B alone and R,G,B + albedo (no normal) get OIDN's network for those layers fine-tuned on the ship
     data (train/shipped/oidn_ft/<network>.tza, card beside it), run by OIDN itself, not stock OIDN."""
-    from mcdenoise.pipeline import oidn, oidn_weights
-    blob = SHIPPED_MODEL / "oidn_ft" / f"{oidn_weights.network_for('albedo' in layers, False)}.tza"
+    from mcdenoise.train import oidn
+    blob = SHIPPED_MODEL / "oidn_ft" / f"{oidn.network_for('albedo' in layers, False)}.tza"
     noisy = {k: v for k, v in synthetic_buffers(40, 48, seed=3, noise=0.7).items() if k in layers}
     out = shipped.denoise(noisy, spp=4)
     assert shipped.last_estimate_only and shipped.fallback == str(blob)
@@ -113,13 +113,14 @@ def test_each_of_oidns_networks_ships_fine_tuned_with_its_card(network):
     """train/shipped/oidn_ft has OIDN's three networks fine-tuned on the ship data (what `ours` runs without
     normal, and the oidn_ft rows and `denoise --oidn-weights` without a run of one's own); each card names
     its network, the file's sha256, its blend and the command that made it, and OIDN's reader takes the file."""
-    from mcdenoise.pipeline import oidn_net, tza
+    from mcdenoise.pipeline.weights import read_tza
+    from mcdenoise.train.model import UNet
     blob = SHIPPED_MODEL / "oidn_ft" / f"{network}.tza"
     card = json.loads(blob.with_suffix(".json").read_text())
     assert card["network"] == network and card["sha256"] == sha256(blob) and 0 < card["blend"] <= 1
     assert f"oidn_ft.network={network}" in card["exported"]["command"] and f"oidn_ft.blend={card['blend']:g}" in \
         card["exported"]["command"]
-    net = oidn_net.UNet.from_tza(tza.read(blob.read_bytes(), str(blob)))
+    net = UNet.from_tza(read_tza(blob.read_bytes(), str(blob)))
     assert net.in_channels == {"rt_hdr": 3, "rt_hdr_alb": 6, "rt_hdr_alb_nrm": 9}[network]
 
 
@@ -158,7 +159,7 @@ def test_denoise_self_ensemble_is_recorded_and_averages_flipped_copies(tmp_path)
     """`denoise --ensemble 4`: the mean over flipped/transposed copies, still a denoised image, not the plain output."""
     from mcdenoise.pipeline.config import load_config
     from mcdenoise.pipeline.exr import read_header
-    from mcdenoise.train.cli import cmd_denoise
+    from mcdenoise.train.infer import cmd_denoise
 
     truth = synthetic_buffers(32, 40, seed=8, noise=0.0)["color"]
     noisy = synthetic_buffers(32, 40, seed=8, noise=0.7)["color"]
@@ -178,15 +179,16 @@ def _on_a_fine_tuned_base(tmp_path: Path, blend: float) -> tuple[Path, Path]:
     """(the shipped model on another base of its network, that base's file): OIDN's weights moved by a fixed
     random change, standing for OIDN + ``blend`` x a fine-tuning (the card beside the file says so), put in
     by ``export --base``; whatever base the shipped model has, the base tests below start from this."""
-    from mcdenoise.pipeline import oidn_weights, tza
+    from mcdenoise.pipeline.weights import TZATensor, read_tza, write_tza
+    from mcdenoise.train import oidn
     from tests.helpers import cli
 
     network = json.loads((SHIPPED_MODEL / "model.json").read_text())["base_network"]
     rng = np.random.default_rng(0)
-    moved = {k: tza.Tensor((t.array.astype(np.float32) * (1 + 0.05 * rng.standard_normal(t.array.shape)))
-                           .astype(np.float16), t.layout) for k, t in tza.read(oidn_weights.load(network)).items()}
+    moved = {k: TZATensor((t.array.astype(np.float32) * (1 + 0.05 * rng.standard_normal(t.array.shape)))
+                           .astype(np.float16), t.layout) for k, t in read_tza(oidn.weights_blob(network)).items()}
     base = tmp_path / "fine_tuned.tza"
-    base.write_bytes(tza.write(moved))
+    base.write_bytes(write_tza(moved))
     base.with_suffix(".json").write_text(json.dumps({"network": network, "blend": blend}))
     out = tmp_path / "on_fine_tuned"
     cli("export", "--from", SHIPPED_MODEL, "--base", base, "--out", out, "--quiet")
@@ -216,7 +218,8 @@ def test_export_dates_follow_source_date_epoch(monkeypatch):
 @pytest.mark.slow
 def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module(tmp_path):
     """export --base-blend: OIDN + b x what fine-tuning changed, from a base recorded at blend a."""
-    from mcdenoise.pipeline import oidn_weights, tza
+    from mcdenoise.pipeline.weights import read_tza
+    from mcdenoise.train import oidn
     from tests.helpers import cli
 
     a = 0.5
@@ -228,8 +231,8 @@ def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module
     assert (same / "base.tza").read_bytes() == (model / "base.tza").read_bytes()
     half = tmp_path / "half"
     cli("export", "--from", model, "--base-blend", str(a / 2), "--out", half, "--quiet")
-    stock = tza.read(oidn_weights.load(meta["base_network"]))
-    old, new = tza.read((model / "base.tza").read_bytes()), tza.read((half / "base.tza").read_bytes())
+    stock = read_tza(oidn.weights_blob(meta["base_network"]))
+    old, new = read_tza((model / "base.tza").read_bytes()), read_tza((half / "base.tza").read_bytes())
     moved = 0
     for name, t in new.items():
         s, o = stock[name].array.astype(np.float32), old[name].array.astype(np.float32)
@@ -244,7 +247,7 @@ def test_export_moves_the_base_of_an_exported_model_and_keeps_its_control_module
     # back to OIDN itself (blend 0): stock OIDN's weights exactly, and the folder still loads
     zero = tmp_path / "zero"
     cli("export", "--from", half, "--base-blend", "0", "--out", zero, "--quiet")
-    back = tza.read((zero / "base.tza").read_bytes())
+    back = read_tza((zero / "base.tza").read_bytes())
     assert all(np.array_equal(back[k].array, stock[k].array) for k in stock)
     tmodel.load(zero)
     proc = cli("export", "--from", zero, "--base-blend", "0.3", "--out", tmp_path / "never", check=False)

@@ -15,9 +15,9 @@ The diffusion denoiser, by role (``make train SPP=N`` → ``commands._train`` �
 - ``train.infer``: denoise a frame with a model folder (``load_denoiser``), σ's calibration.
 - ``train.export``: a self-contained model folder (``train/shipped``) and changes to one after training.
 
-The others: ``train.oidn_ft`` (OIDN's network fine-tuned from its pretrained weights: augmentation,
-L2-SP, distillation, trainable subsets, WiSE-FT blend, exported for OIDN itself); ``train.afgsa``
-(AFGSA, Yu et al. 2021) and ``train.afgsa_report``. ``train.cli`` (``denoise``, ``pack``),
+The others: ``train.baselines.oidn_ft`` (OIDN's network fine-tuned from its pretrained weights: augmentation,
+L2-SP, distillation, trainable subsets, WiSE-FT blend, exported for OIDN itself); ``train.baselines.afgsa``
+(AFGSA, Yu et al. 2021) and ``train.baselines.afgsa_report``. ``train.cli`` (``denoise``, ``pack``),
 ``train.bench``, ``train.gpu_recipe`` and ``train.commands`` (the subcommands ``train``, ``export``,
 ``gpu-prepare``, ``gpu-recipe``, ``pack``, ``denoise``, ``afgsa-report``, ``bench-denoise``).
 """

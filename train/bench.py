@@ -84,7 +84,7 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
     """The timings of the module docstring for the model folder ``model``; a dict with ``rows``."""
     import torch
 
-    from mcdenoise.pipeline import oidn
+    from mcdenoise.train import oidn
 
     den = load_denoiser(model, device, precision=precision)
     dev = den.device
@@ -160,7 +160,7 @@ def run(cfg: Config, spp: int = 4, sizes: str | None = None, device: str | None 
         repeats: int = 2, out: str = "reports/bench") -> dict:
     """``measure`` with the config's model for ``spp`` (its run, else the shipped model); writes
     ``denoise.json`` and ``denoise.md`` into ``out``."""
-    from mcdenoise.pipeline.runs import pick_device
+    from mcdenoise.pipeline.config import pick_device
     dev = pick_device(device or cfg.diffusion.device)
     result = measure(find_run(cfg, spp), parse_sizes(sizes or (GPU_SIZES if dev.type == "cuda" else CPU_SIZES)),
                      str(dev), precision, repeats)

@@ -168,11 +168,11 @@ def _train(args) -> int:
         from mcdenoise.clean.cli import cmd_train_isik
         return cmd_train_isik(cfg, args.spp, quiet=args.quiet)
     if args.model == "afgsa":
-        from .afgsa import train as train_afgsa
+        from .baselines.afgsa import train as train_afgsa
         train_afgsa(cfg, args.spp, quiet=args.quiet)
         return 0
     if args.model == "oidn_ft":
-        from .oidn_ft import train as train_oidn_ft
+        from .baselines.oidn_ft import train as train_oidn_ft
         train_oidn_ft(cfg, args.spp, quiet=args.quiet)
         return 0
     from .train import train
@@ -232,12 +232,12 @@ def _gpu_unpack(args) -> int:
 
 
 def _pack(args) -> int:
-    from .cli import cmd_pack
+    from .data import cmd_pack
     return cmd_pack(config(args), args.split or ["train", "val"], quiet=args.quiet)
 
 
 def _denoise(args) -> int:
-    from .cli import cmd_denoise, cmd_denoise_oidn
+    from .infer import cmd_denoise, cmd_denoise_oidn
     if args.method != "ours" or args.oidn_weights:
         return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
                                 spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
@@ -247,7 +247,7 @@ def _denoise(args) -> int:
 
 
 def _afgsa_report(args) -> int:
-    from .afgsa_report import default_runs, run_afgsa_report
+    from .baselines.afgsa_report import default_runs, run_afgsa_report
     cfg = config(args)
     runs = default_runs(cfg, args.spp)
     for text in args.runs or []:

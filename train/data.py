@@ -23,17 +23,22 @@ from __future__ import annotations
 import functools
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from mcdenoise.pipeline import features, oidn_net, oidn_weights, schema
-from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
-from mcdenoise.pipeline.store import FrameKey, Store, combine_stacks, poolable, stack_name
+from mcdenoise.pipeline.weights import save_safetensors
+
+# The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
+if TYPE_CHECKING:
+    from mcdenoise.pipeline.store import FrameKey, Store
 
 FORMAT = "mcdenoise-oidn-pack"
 # Buffer groups an input may lack, each with a presence map in the condition.
@@ -48,6 +53,93 @@ _COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
 PACK_VARIANTS = {4: 2, 16: 1, 64: 1}
 
 
+# ---- OIDN's HDR processing (its core's input_process / output_process / autoexposure) ---------------
+# input: colour × scale, NaN → 0, clamped ≥ 0, then the PU transfer normalised so that 65504 maps to 1
+# (``to_pu``); albedo NaN → 0 and clamped to [0, 1]; normal NaN → 0, clamped to [−1, 1], then n·0.5 + 0.5;
+# zero padding at the bottom and right to a multiple of 16. Output: NaN → 0, clamped ≥ 0, the inverse PU
+# transfer (``from_pu``), divided by the scale. ``autoexposure``: 0.18 / 2^(mean log2 of the mean luminance
+# of ~16×16 bins whose mean is above 1e-8); 1 if none is. The network's output space (PU of the exposed
+# radiance) is where OIDN's training kit puts its loss, and where ours is.
+ALIGNMENT = 16            # input sides are padded to a multiple of this (four 2×2 poolings)
+HDR_MAX = 65504.0         # float16's largest value: PU(HDR_MAX) is normalised to 1
+
+# PU2 fit normalised at 100 cd/m² (Aydin et al. 2008), OIDN's core/color.h.
+PU_A, PU_B, PU_C, PU_D = 1.41283765e+03, 1.64593172e+00, 4.31384981e-01, -2.94139609e-03
+PU_E, PU_F, PU_G = 1.92653254e-01, 6.26026094e-03, 9.98620152e-01
+PU_Y0, PU_Y1 = 1.57945760e-06, 3.22087631e-02
+PU_X0, PU_X1 = 2.23151711e-03, 3.70974749e-01
+
+LUMINANCE = (0.212671, 0.715160, 0.072169)
+AUTOEXPOSURE_BIN, AUTOEXPOSURE_KEY, AUTOEXPOSURE_EPS = 16, 0.18, 1e-8
+
+
+def _pu_curve(y: torch.Tensor) -> torch.Tensor:
+    return torch.where(y <= PU_Y0, PU_A * y,
+                       torch.where(y <= PU_Y1, PU_B * y.clamp(min=PU_Y0) ** PU_C + PU_D,
+                                   PU_E * torch.log(y.clamp(min=PU_Y1) + PU_F) + PU_G))
+
+
+def _pu_curve_inverse(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= PU_X0, x / PU_A,
+                       torch.where(x <= PU_X1, ((x.clamp(min=PU_X0) - PU_D) / PU_B) ** (1.0 / PU_C),
+                                   torch.exp((x.clamp(min=PU_X1) - PU_G) / PU_E) - PU_F))
+
+
+PU_NORM = 1.0 / float(_pu_curve(torch.tensor(HDR_MAX, dtype=torch.float64)))
+
+
+def to_pu(y: torch.Tensor) -> torch.Tensor:
+    """OIDN's HDR transfer: PU(y) / PU(65504), for exposed radiance y ≥ 0 (0 → 0, 65504 → 1)."""
+    return _pu_curve(y) * PU_NORM
+
+
+def from_pu(x: torch.Tensor) -> torch.Tensor:
+    """The inverse of ``to_pu`` (for x ≥ 0)."""
+    return _pu_curve_inverse(x / PU_NORM)
+
+
+def autoexposure(color: np.ndarray) -> float:
+    """OIDN's exposure of an (H, W, 3) HDR image: 0.18 over the geometric mean of its bins' mean luminance."""
+    c = np.nan_to_num(np.asarray(color, np.float32)[..., :3], nan=0.0, posinf=np.finfo(np.float32).max)
+    lum = np.maximum(c, 0.0) @ np.asarray(LUMINANCE, np.float32)
+    H, W = lum.shape
+    nh, nw = -(-H // AUTOEXPOSURE_BIN), -(-W // AUTOEXPOSURE_BIN)
+    hs = [i * H // nh for i in range(nh + 1)]
+    ws = [j * W // nw for j in range(nw + 1)]
+    bins = np.array([[lum[hs[i]:hs[i + 1], ws[j]:ws[j + 1]].mean() for j in range(nw)] for i in range(nh)])
+    bins = bins[bins > AUTOEXPOSURE_EPS]
+    if bins.size == 0:
+        return 1.0
+    return float(np.float32(AUTOEXPOSURE_KEY) / np.exp2(np.log2(bins.astype(np.float32)).mean(dtype=np.float32)))
+
+
+def _chw(image: np.ndarray | torch.Tensor) -> torch.Tensor:
+    t = torch.as_tensor(np.ascontiguousarray(image, dtype=np.float32)) if isinstance(image, np.ndarray) else image
+    return torch.nan_to_num(t.float(), nan=0.0).permute(2, 0, 1)
+
+
+def network_input(color, albedo=None, normal=None, scale: float = 1.0) -> torch.Tensor:
+    """(1, C, H', W') input of OIDN's network from (H, W, 3) images (albedo and normal optional),
+    padded with zeros at the bottom and right to a multiple of ``ALIGNMENT``."""
+    parts = [to_pu(torch.nan_to_num(_chw(color) * scale, nan=0.0).clamp(min=0.0))]
+    if albedo is not None:
+        parts.append(_chw(albedo).clamp(0.0, 1.0))
+    if normal is not None:
+        parts.append(_chw(normal).clamp(-1.0, 1.0) * 0.5 + 0.5)
+    x = torch.cat(parts, 0)[None]
+    H, W = x.shape[-2:]
+    return F.pad(x, (0, -W % ALIGNMENT, 0, -H % ALIGNMENT))
+
+
+def network_output(y: torch.Tensor, scale: float, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """HDR radiance from the network's output (B, 3, H', W'): sanitised, inverse PU, divided by
+    ``scale``; cropped to ``size`` = (H, W) when given."""
+    if size is not None:
+        y = y[..., :size[0], :size[1]]
+    out = from_pu(torch.nan_to_num(y, nan=0.0).clamp(min=0.0))
+    return out * (1.0 / scale if scale != 0 else 0.0)
+
+
 def variant_stacks(spp: int, stack_spp: int, variant: int, stacks: int) -> list[int]:
     """The disjoint stack indices of ``variant`` at ``spp`` (ValueError if the store has too few)."""
     k = spp // stack_spp
@@ -59,6 +151,8 @@ def variant_stacks(spp: int, stack_spp: int, variant: int, stacks: int) -> list[
 
 def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[int, int]:
     """``variants`` limited to what a store with ``stacks`` stacks of ``stack_spp`` can pool disjointly."""
+    from mcdenoise.pipeline.store import poolable
+
     out = {}
     for spp, count in variants.items():
         if poolable(spp, stack_spp, stacks):
@@ -69,16 +163,16 @@ def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[
 
 
 def _pu(x: np.ndarray, scale: float) -> np.ndarray:
-    return oidn_net.to_pu(torch.from_numpy(np.maximum(np.nan_to_num(x, nan=0.0), 0.0) * scale)).numpy()
+    return to_pu(torch.from_numpy(np.maximum(np.nan_to_num(x, nan=0.0), 0.0) * scale)).numpy()
 
 
-def _encoding(scale: float) -> features.Encoding:
-    return features.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
+def _encoding(scale: float) -> schema.Encoding:
+    return schema.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
 
 
 def cond_names() -> list[str]:
     """One name per condition channel: the feature table, ``spp``, then ``has.<group>``."""
-    return features.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
+    return schema.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
 
 
 def present(buffers: dict) -> dict[str, bool]:
@@ -95,22 +189,22 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
     them as rendered."""
     have = present(buffers)
     keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
-    scale = oidn_net.autoexposure(keep["color"])
+    scale = autoexposure(keep["color"])
     missing = [a for a in aux if a not in keep]
     if missing:
         raise StoreError(f"the OIDN-based denoiser needs {', '.join(missing)} (OIDN's network for these inputs "
                          "reads them)")
     net_aux = [keep[a] for a in aux]
     if clean_aux:
-        from mcdenoise.pipeline import oidn
+        from . import oidn
         net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"], device=aux_device))
-    x = oidn_net.network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
-    cond = features.encode(keep, _encoding(scale), spp)
+    x = network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
+    cond = schema.encode(keep, _encoding(scale), spp)
     flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
                             (len(GROUPS), *cond.shape[1:]))
     cond = np.concatenate([cond, flags], 0)
     H, W = cond.shape[1:]
-    cond = np.pad(cond, ((0, 0), (0, -H % oidn_net.ALIGNMENT), (0, -W % oidn_net.ALIGNMENT)))
+    cond = np.pad(cond, ((0, 0), (0, -H % ALIGNMENT), (0, -W % ALIGNMENT)))
     return x, cond.astype(np.float32), scale
 
 
@@ -125,6 +219,8 @@ def pack_path(runs: str | Path, split: str, clean_aux: bool = False) -> Path:
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``."""
+    from mcdenoise.pipeline.store import combine_stacks, stack_name
+
     xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
     for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
         sm = store.scene_manifest(key.scene)
@@ -227,8 +323,8 @@ class Crops(Dataset):
                                                             if n.split(".")[0] in GROUPS[g] or n in GROUPS[g]]
                        for g in GROUPS}
         H, W = pack["x"].shape[-2:]
-        if self.crop > min(H, W) or self.crop % oidn_net.ALIGNMENT:
-            raise StoreError(f"crop {self.crop}: must be a multiple of {oidn_net.ALIGNMENT} up to the frames' {min(H, W)}")
+        if self.crop > min(H, W) or self.crop % ALIGNMENT:
+            raise StoreError(f"crop {self.crop}: must be a multiple of {ALIGNMENT} up to the frames' {min(H, W)}")
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -255,7 +351,7 @@ class Crops(Dataset):
         nx = p["x"].shape[1]
         scale = float(p["scale"][i])
         return {"x": full[:nx].contiguous(), "cond": full[nx:].contiguous(),
-                "target": oidn_net.to_pu(target * scale), "scale": torch.tensor(scale), "spp": p["spp"][i].long()}
+                "target": to_pu(target * scale), "scale": torch.tensor(scale), "spp": p["spp"][i].long()}
 
     def _augment(self, full: torch.Tensor, target: torch.Tensor, rng: np.random.Generator):
         colour, axes = rng.permutation(3).tolist(), rng.permutation(3).tolist()
@@ -285,8 +381,11 @@ class StoreSource:
 
     def __init__(self, cfg: Config, network: str | None = None):
         """``network``: the base's (default ``diffusion.base_network``); a ``_calb_cnrm`` one reads prefiltered aux."""
+        from mcdenoise.pipeline.store import Store
+
         self.cfg, self.store = cfg, Store(cfg.store)
-        self.clean_aux = oidn_weights.clean_aux(network or cfg.diffusion.base_network)
+        from .oidn import clean_aux
+        self.clean_aux = clean_aux(network or cfg.diffusion.base_network)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 
@@ -311,3 +410,15 @@ class StoreSource:
                 items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                               "ref": ref, "spp": spp})
         return items
+
+
+def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
+    """Write the training packs of ``splits`` (``train.data.ensure_pack``) for the configured base's inputs."""
+    source = StoreSource(cfg)
+    for split in splits:
+        keys = source.store.frames_with(split)
+        if not keys:
+            raise StoreError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
+        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux)
+        print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
+    return 0

@@ -120,10 +120,10 @@ def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, confi
     OIDN 2.x loads as custom weights (``pipeline.oidn``; a host's filter parameter ``weights``), with a
     ``.json`` sidecar (network, blend, validation scores, sha256). ``out``: a ``.tza`` path, or a folder
     that gets ``<network>.tza``; default ``<runs>/oidn_ft_<network>.tza``."""
+    from mcdenoise.pipeline.config import run_dir as runs_dir
     from mcdenoise.pipeline.exr import atomic_write_bytes
-    from mcdenoise.pipeline.runs import run_dir as runs_dir
 
-    from .oidn_ft import export_blob, load_run
+    from .baselines.oidn_ft import export_blob, load_run
 
     folder = runs_dir(cfg, "oidn_ft")
     if not (folder / "model.safetensors").exists():
@@ -156,9 +156,10 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
     changed (model.json), with that base moved to OIDN + ``blend`` × the same change (``oidn_ft.blend``'s
     WiSE-FT knob, after training) and everything else kept: a new model to validate, since its Control
     Module was trained on the old base. ``out`` (default: ``model`` itself) is replaced by a rename."""
-    from mcdenoise.pipeline import oidn_weights, tza
+    from mcdenoise.pipeline.weights import TZATensor, read_tza, write_tza
+    from mcdenoise.train import oidn
 
-    from .oidn_ft import blended
+    from .baselines.oidn_ft import blended
 
     model = Path(model)
     out = Path(out) if out else model
@@ -171,11 +172,11 @@ def rebase(model: Path, blend: float, out: Path | None = None, oidn_weights_file
         raise CheckpointError(f"{model / 'model.json'}: base_blend 0, its base is OIDN itself: no fine-tuning to move "
                               "along (train on a fine-tuned base: diffusion.base=oidn_ft)")
     name = meta["base_network"]
-    stock = tza.read(oidn_weights.load(name, oidn_weights.source(name, oidn_weights_file)), name)
-    base = tza.read((model / meta["base"]).read_bytes(), str(model / meta["base"]))
+    stock = read_tza(oidn.weights_blob(name, oidn.weights_source(name, oidn_weights_file)), name)
+    base = read_tza((model / meta["base"]).read_bytes(), str(model / meta["base"]))
     moved = blended({k: t.array.astype(np.float32) for k, t in stock.items()},
                     {k: t.array.astype(np.float32) for k, t in base.items()}, float(blend) / float(old))
-    blob = tza.write({k: tza.Tensor(moved[k].astype(np.float16), t.layout) for k, t in base.items()})
+    blob = write_tza({k: TZATensor(moved[k].astype(np.float16), t.layout) for k, t in base.items()})
     what = f"{meta.get('base_what')}, moved from blend {old:g} to {blend:g} after training"
     return _updated(model, meta, out, quiet, _rebase_note(model, out, old, blend), blob,
                     base_blend=float(blend), base_what=what,
@@ -187,7 +188,7 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
     same network, e.g. an ``export --format oidn`` file; its blend from the card beside it, ``<file>.json``) and
     its Control Module kept: the start of a warm-started run on another base (``diffusion.init``), or a model
     to validate as it is. ``out`` (default: ``model`` itself) is replaced by a rename."""
-    from mcdenoise.pipeline import tza
+    from mcdenoise.pipeline.weights import read_tza
 
     model, base_file = Path(model), Path(base_file)
     out = Path(out) if out else model
@@ -195,7 +196,7 @@ def swap_base(model: Path, base_file: Path, out: Path | None = None, quiet: bool
     if not base_file.is_file():
         raise CheckpointError(f"{base_file}: no such weights file (give a .tza of OIDN's {meta['base_network']})")
     blob = base_file.read_bytes()
-    new, old = tza.read(blob, str(base_file)), tza.read((model / meta["base"]).read_bytes(), str(model / meta["base"]))
+    new, old = read_tza(blob, str(base_file)), read_tza((model / meta["base"]).read_bytes(), str(model / meta["base"]))
     shapes = lambda ts: {k: tuple(t.array.shape) for k, t in ts.items()}  # noqa: E731
     if shapes(new) != shapes(old):
         raise CheckpointError(f"{base_file}: not OIDN's {meta['base_network']} (its tensors differ from "

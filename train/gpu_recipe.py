@@ -213,7 +213,7 @@ class Recipe:
         import torch
         from safetensors.torch import load_file
 
-        from mcdenoise.pipeline.checkpoint import save_safetensors
+        from mcdenoise.pipeline.weights import save_safetensors
 
         from .model import FORMAT
         control = load_file(str(run / "control.safetensors"))
@@ -232,7 +232,7 @@ class Recipe:
         import torch
         from safetensors.torch import load_file
 
-        from mcdenoise.pipeline.checkpoint import save_safetensors
+        from mcdenoise.pipeline.weights import save_safetensors
 
         from .model import FORMAT
         kept = sorted(int(d.name[5:]) for d in run.glob("epoch*") if (d / "control.safetensors").exists())
@@ -278,8 +278,8 @@ def unpack(files: Path, dest: Path) -> list[Path]:
     ``dest/epoch<N>`` for each snapshot, each with the run's base. Returns the folders written."""
     from safetensors import safe_open
 
-    from mcdenoise.pipeline.checkpoint import save_safetensors
     from mcdenoise.pipeline.exr import atomic_write_bytes
+    from mcdenoise.pipeline.weights import save_safetensors
 
     from .model import FORMAT, load
     folders = [dest]
@@ -457,15 +457,17 @@ def keep_member(name: str) -> bool:
 def prepare(out: Path = Path(".gpu"), python: str = "3.12", model: Path | None = None, wheels: bool = True) -> dict:
     """Write ``out``: ``site.tar.xz`` (the carried packages for the machine's Python, trimmed), ``oidn/`` (OIDN's
     aux networks) and ``carried.json`` (names, versions, sizes). Returns carried.json's content."""
-    from mcdenoise.pipeline import oidn_net, oidn_weights
+    from mcdenoise.train import oidn
+
+    from .oidn import AUX_NETWORKS
 
     out.mkdir(parents=True, exist_ok=True)
     pins = check_carried()
     record: dict = {"packages": pins, "python": python, "files": {}}
     (out / "oidn").mkdir(exist_ok=True)
-    for kind, name in oidn_net.AUX_NETWORKS.items():
+    for kind, name in AUX_NETWORKS.items():
         dest = out / "oidn" / f"{name}.tza"
-        dest.write_bytes(oidn_weights.load(name))
+        dest.write_bytes(oidn.weights_blob(name))
         record["files"][str(dest.relative_to(out))] = dest.stat().st_size
     if wheels:
         wheel_dir = out / "wheels"

@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import torch
 
-from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.color import reinhard
+
+from .data import from_pu
 
 FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tonemap, L1 in PU)
 
 
 def hdr_of(pu: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """HDR radiance of OIDN-space images (B, 3, h, w) at exposures ``scale`` (B,)."""
-    return oidn_net.from_pu(pu.clamp(min=0.0)) / scale[:, None, None, None]
+    return from_pu(pu.clamp(min=0.0)) / scale[:, None, None, None]
 
 
 def relative_loss(out: torch.Tensor, est: torch.Tensor, target: torch.Tensor, scale: torch.Tensor,

@@ -31,18 +31,22 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mcdenoise.pipeline import oidn_net, oidn_weights, runs, tza, weights
+from mcdenoise.pipeline import config as config_mod, weights
 from mcdenoise.pipeline.config import Config
-from mcdenoise.pipeline.errors import CheckpointError
+from mcdenoise.pipeline.errors import CheckpointError, WeightsError
 from mcdenoise.pipeline.exr import atomic_write_bytes
+from mcdenoise.pipeline.weights import TZATensor, read_tza
 
-from .data import cond_names
+from . import oidn
+from .data import ALIGNMENT, autoexposure, cond_names, network_input, network_output
 
 EMBED = 64   # sinusoidal timestep features
 FORMAT = weights.FORMATS["oidn_control"]
@@ -52,7 +56,172 @@ NETWORK = "rt_hdr_alb_nrm"      # the base of models whose model.json predates d
 SHIPPED_MODEL = Path(__file__).resolve().parent / "shipped"
 
 
-def skip_sources(layout: oidn_net.Layout) -> dict[str, str]:
+# ---- OIDN's UNet ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The layer names of one UNet layout: ``stages[k]`` are the convolutions at resolution level k
+    before the k-th 2×2 pooling (levels 0–3), then the bottleneck (level 4), the decoder's levels
+    (two convolutions each, skips ``pool3`` … ``pool1`` and the input ``x``) and the output conv."""
+    stages: tuple[tuple[str, ...], ...]
+    bottleneck: tuple[str, ...] = ("enc_conv5a", "enc_conv5b")
+    levels: tuple[tuple[str, str, str], ...] = (("dec_conv4a", "dec_conv4b", "pool3"),
+                                                ("dec_conv3a", "dec_conv3b", "pool2"),
+                                                ("dec_conv2a", "dec_conv2b", "pool1"),
+                                                ("dec_conv1a", "dec_conv1b", "x"))
+    output: str = "dec_conv0"
+
+    @property
+    def encoder(self) -> tuple[str, ...]:
+        return tuple(n for stage in self.stages for n in stage) + self.bottleneck
+
+    @property
+    def decoder(self) -> tuple[str, ...]:
+        return tuple(n for a, b, _ in self.levels for n in (a, b)) + (self.output,)
+
+    @property
+    def layers(self) -> tuple[str, ...]:
+        return self.encoder + self.decoder
+
+    @property
+    def level(self) -> dict[str, int]:
+        """The resolution each layer works at: 0 the full image, k after k 2×2 poolings (4: the bottleneck)."""
+        out = {n: k for k, stage in enumerate(self.stages) for n in stage}
+        out.update({n: 4 for n in self.bottleneck})
+        out.update({n: 3 - k for k, (a, b, _) in enumerate(self.levels) for n in (a, b)})
+        return {**out, self.output: 0}
+
+    @property
+    def first(self) -> str:
+        return self.stages[0][0]
+
+
+UNET = Layout(stages=(("enc_conv0", "enc_conv1"), ("enc_conv2",), ("enc_conv3",), ("enc_conv4",)))
+UNET_LARGE = Layout(stages=(("enc_conv1a", "enc_conv1b"), ("enc_conv2a", "enc_conv2b"), ("enc_conv3a", "enc_conv3b"),
+                            ("enc_conv4a", "enc_conv4b")), output="dec_conv1c")
+LAYOUTS = (UNET, UNET_LARGE)
+# OIDN's (regular) UNet, the layout every network but the _large ones has
+ENCODER, DECODER, LAYERS, LEVEL = UNET.encoder, UNET.decoder, UNET.layers, UNET.level
+
+
+def layout_of(names) -> Layout:
+    """The layout whose layers are all in ``names`` (a TZA archive's tensor names or a widths dict)."""
+    names = {n.split(".")[0] for n in names}
+    for layout in LAYOUTS:
+        if set(layout.layers) <= names:
+            return layout
+    raise WeightsError("not an OIDN UNet: the layers of neither OIDN's UNet nor its UNetLarge "
+                       f"(e.g. no {UNET.first} or {UNET_LARGE.first})")
+
+
+def encode(layout: Layout, conv, x: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The encoder's features for the decoder: ``x`` (the input), ``full`` (level 0 before pooling),
+    ``pool1`` … ``pool3``, ``bottleneck``; ``conv(name, h)`` runs one layer and its ReLU (the base's own,
+    or the Control Module's copy with its timestep bias)."""
+    feats, h = {"x": x}, x
+    for k, stage in enumerate(layout.stages):
+        for name in stage:
+            h = conv(name, h)
+        if k == 0:
+            feats["full"] = h
+        h = F.max_pool2d(h, 2)
+        if k < 3:
+            feats[f"pool{k + 1}"] = h
+    for name in layout.bottleneck:
+        h = conv(name, h)
+    feats["bottleneck"] = h
+    return feats
+
+
+class UNet(nn.Module):
+    """OIDN's UNet with the layer names of its weights; ``widths`` maps a layer to (out, in) channels and
+    says the layout (``layout_of``)."""
+
+    def __init__(self, widths: dict[str, tuple[int, int]]):
+        super().__init__()
+        self.layout = layout_of(widths)
+        self.widths = {n: tuple(widths[n]) for n in self.layout.layers}
+        for name in self.layout.layers:
+            out_c, in_c = self.widths[name]
+            setattr(self, name, nn.Conv2d(in_c, out_c, 3, padding=1))
+        self.in_channels = self.widths[self.layout.first][1]
+
+    @classmethod
+    def from_tza(cls, tensors: dict[str, TZATensor]) -> "UNet":
+        """The network with the archive's weights (float16 in the file, float32 here)."""
+        layout = layout_of(tensors)
+        widths = {}
+        for name in layout.layers:
+            w = tensors.get(f"{name}.weight")
+            if w is None or w.array.ndim != 4:
+                raise WeightsError(f"TZA has no 4-d {name}.weight: not an OIDN UNet")
+            widths[name] = (int(w.array.shape[0]), int(w.array.shape[1]))
+        net = cls(widths)
+        state = {f"{n}.{p}": torch.from_numpy(tensors[f"{n}.{p}"].array.astype(np.float32)) for n in layout.layers
+                 for p in ("weight", "bias")}
+        net.load_state_dict(state)
+        return net
+
+    def to_tza(self) -> dict[str, TZATensor]:
+        """The weights as OIDN reads them: float16, ``oihw`` weights and ``x`` biases, in OIDN's order."""
+        out = {}
+        for name in self.layout.layers:
+            conv = getattr(self, name)
+            out[f"{name}.weight"] = TZATensor(conv.weight.detach().cpu().to(torch.float16).numpy(), "oihw")
+            out[f"{name}.bias"] = TZATensor(conv.bias.detach().cpu().to(torch.float16).numpy(), "x")
+        return out
+
+    def encode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The features the decoder reads: ``x`` (the input), ``pool1``..``pool3``, ``bottleneck``."""
+        feats = encode(self.layout, lambda name, h: F.relu(getattr(self, name)(h)), x)
+        del feats["full"]
+        return feats
+
+    def decode(self, feats: dict[str, torch.Tensor], residuals: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """The output from ``encode``'s features; ``residuals`` (same names and shapes) are added to
+        the skips and the bottleneck first (the Control Module's way in)."""
+        r = residuals or {}
+
+        def feat(name: str) -> torch.Tensor:
+            return feats[name] + r[name] if name in r else feats[name]
+
+        h = feat("bottleneck")
+        for a, b, skip in self.layout.levels:
+            h = torch.cat([F.interpolate(h, scale_factor=2.0, mode="nearest"), feat(skip)], 1)
+            h = F.relu(getattr(self, b)(F.relu(getattr(self, a)(h))))
+        return getattr(self, self.layout.output)(h)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.decode(self.encode(x))
+
+
+def load_unet(name: str, tza_file: str | None = None) -> UNet:
+    """OIDN's network ``name`` (``train.oidn``'s weights): from ``tza_file``, else from pyoidn's library."""
+    source = str(tza_file) if tza_file else f"{oidn.library_path()}:{name}"
+    return UNet.from_tza(read_tza(oidn.weights_blob(name, tza_file), source))
+
+
+@torch.no_grad()
+def unet_denoise(net: UNet, color: np.ndarray, albedo: np.ndarray | None = None, normal: np.ndarray | None = None,
+            device: str | torch.device = "cpu") -> np.ndarray:
+    """(H, W, 3) float32 HDR: what OIDN's filter returns for these images with ``net``'s weights
+    (HDR mode, autoexposure, aux not prefiltered). Albedo/normal are used only if ``net`` reads them."""
+    aux = [albedo, normal][: (net.in_channels - 3) // 3]
+    if any(a is None for a in aux):
+        raise WeightsError(f"this OIDN network reads {net.in_channels} channels: it needs "
+                           f"{'albedo and normal' if net.in_channels == 9 else 'albedo'}")
+    scale = autoexposure(color)
+    x = network_input(color, *aux, scale=scale).to(device)
+    net = net.to(device).eval()
+    out = network_output(net(x), scale, color.shape[:2])
+    return out[0].permute(1, 2, 0).float().cpu().numpy()
+
+
+# ---- the Control Module ---------------------------------------------------------------------------
+
+
+def skip_sources(layout: Layout) -> dict[str, str]:
     """The decoder skips the Control Module adds to, with the encoder layer whose output feeds each
     (the input skip ``x`` gets the level-0 features, as ``pool1`` does before pooling)."""
     last = [stage[-1] for stage in layout.stages]
@@ -71,7 +240,7 @@ class ControlModule(nn.Module):
     """A copy of ``base``'s encoder reading ``extra`` more input channels, with a timestep bias per level
     and zero 1×1 convolutions to the decoder's skips and output."""
 
-    def __init__(self, base: oidn_net.UNet, extra: int):
+    def __init__(self, base: UNet, extra: int):
         super().__init__()
         self.extra, self.layout = int(extra), base.layout
         self.encoder = nn.ModuleDict({n: copy.deepcopy(getattr(base, n)) for n in self.layout.encoder})
@@ -96,7 +265,7 @@ class ControlModule(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
         """Residuals for ``UNet.decode`` (``x``, ``pool1`` … ``bottleneck``) and ``output``."""
         emb = self.embed(timestep_features(t))
-        feats = oidn_net.encode(self.layout, lambda name, h: self._conv(name, h, emb), x)
+        feats = encode(self.layout, lambda name, h: self._conv(name, h, emb), x)
         feats["x"] = feats["output"] = feats["full"]
         return {n: conv(feats[n]) for n, conv in self.zero.items()}
 
@@ -113,9 +282,9 @@ class ControlledOIDN(nn.Module):
     ``x``: OIDN's input (B, 3/6/9, H, W), ``cond``: the condition (B, C, H, W), ``z``: z_t (B, 3, H, W),
     ``t``: timesteps (B,); sides a multiple of 16. ``control=None``: the base alone (x̂₀ = x_est)."""
 
-    multiple = oidn_net.ALIGNMENT
+    multiple = ALIGNMENT
 
-    def __init__(self, base: oidn_net.UNet, cond_channels: int, control: bool = True):
+    def __init__(self, base: UNet, cond_channels: int, control: bool = True):
         super().__init__()
         self.base = base.requires_grad_(False).eval()
         self.cond_channels = int(cond_channels)
@@ -155,17 +324,17 @@ def base_blob(cfg: Config) -> tuple[bytes, str]:
     .tza file of it."""
     base, network = cfg.diffusion.base, cfg.diffusion.base_network
     if base == "oidn":
-        return oidn_weights.load(network, oidn_weights.source(network, cfg.oidn.weights)), f"OIDN {network}"
+        return oidn.weights_blob(network, oidn.weights_source(network, cfg.oidn.weights)), f"OIDN {network}"
     if base == "oidn_ft":
-        from .oidn_ft import export_blob, load_run
-        folder = runs.run_dir(cfg, "oidn_ft", variant=network)
+        from .baselines.oidn_ft import export_blob, load_run
+        folder = config_mod.run_dir(cfg, "oidn_ft", variant=network)
         return export_blob(load_run(folder, cfg)[0]), f"oidn_ft run {folder} (blend {cfg.oidn_ft.blend:g})"
-    return oidn_weights.load(network, base), str(base)
+    return oidn.weights_blob(network, base), str(base)
 
 
 def clean_aux(meta: dict) -> bool:
     """Whether a model (its model.json) feeds its base prefiltered albedo and normal."""
-    return oidn_weights.clean_aux(meta.get("base_network", NETWORK))
+    return oidn.clean_aux(meta.get("base_network", NETWORK))
 
 
 # ---- where models are --------------------------------------------------------------------------
@@ -174,7 +343,7 @@ def clean_aux(meta: dict) -> bool:
 def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_<variant>`` under ``cfg.runs``
     (``pipeline.runs.run_dir``)."""
-    return runs.run_dir(cfg, "diffusion", spp, variant)
+    return config_mod.run_dir(cfg, "diffusion", spp, variant)
 
 
 def oidn_ft_blob(folder: Path, network: str) -> Path:
@@ -189,10 +358,10 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError) if none."""
     named = variant if variant is not None else cfg.diffusion.name
     shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped else None
-    folder = runs.find_run(cfg, "diffusion", spp, "model.json", variant, fallback=shipped)
+    folder = config_mod.find_run(cfg, "diffusion", spp, "model.json", variant, fallback=shipped)
     if folder is not None:
         return folder
-    candidates = runs.run_candidates(cfg, "diffusion", spp, variant) + ([shipped] if shipped else [])
+    candidates = config_mod.run_candidates(cfg, "diffusion", spp, variant) + ([shipped] if shipped else [])
     raise CheckpointError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
                           f"`make train SPP={spp}` or `make train SPP=any`" +
                           (f" with diffusion.name={variant}" if variant else ""))
@@ -221,6 +390,6 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
     if meta["cond_channels"] != cond_names():
         raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
                               f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names())}); retrain")
-    model = ControlledOIDN(oidn_net.UNet.from_tza(tza.read(blob, str(folder / meta["base"]))), len(cond_names()))
+    model = ControlledOIDN(UNet.from_tza(read_tza(blob, str(folder / meta["base"]))), len(cond_names()))
     model.control.load_state_dict({k: v.float() for k, v in weights.load_tensors(folder / "control.safetensors").items()})
     return model.to(device).eval(), meta

@@ -29,23 +29,22 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from mcdenoise.pipeline import oidn_net, tza, weights
-from mcdenoise.pipeline.checkpoint import NanGuard, plot_curves
-from mcdenoise.pipeline.config import Config
+from mcdenoise.clean.fit import NanGuard, Task, apply_update, fit
+from mcdenoise.pipeline import weights
+from mcdenoise.pipeline.config import Config, pick_device
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json, read_json
-from mcdenoise.pipeline.fit import Task, apply_update, fit
+from mcdenoise.pipeline.figures import plot_curves
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
-from mcdenoise.pipeline.runs import pick_device
 from mcdenoise.pipeline.store import sha256
 from mcdenoise.pipeline.versions import machine
+from mcdenoise.pipeline.weights import read_tza
 
-from .data import Crops, StoreSource, cond_names
-from .formulation import Formulation, snr_weight
+from .data import Crops, StoreSource, cond_names, network_output
 from .infer import calibrate, load_denoiser
 from .loss import relative_loss
-from .model import FORMAT, NETWORK, ControlledOIDN, base_blob, load, run_dir, save
-from .sampler import sample
+from .model import FORMAT, NETWORK, ControlledOIDN, UNet, base_blob, load, run_dir, save
+from .sampler import Formulation, sample, snr_weight
 
 
 def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
@@ -121,7 +120,7 @@ class RefineTask(Task):
             self.base_blend = {"oidn": 0.0, "oidn_ft": cfg.oidn_ft.blend}.get(cfg.diffusion.base)
         self.form = form
         torch.manual_seed(cfg.seed)
-        base = oidn_net.UNet.from_tza(tza.read(self.blob, self.base_what))
+        base = UNet.from_tza(read_tza(self.blob, self.base_what))
         self.model = ControlledOIDN(base, len(cond_names())).to(self.device)
         if init is not None:
             self.model.control.load_state_dict(start.control.state_dict())
@@ -216,8 +215,8 @@ class RefineTask(Task):
             x, cond = it["x"].to(self.device), it["cond"].to(self.device)
             mean, _, est = sample(self.model, x, cond, self.form, seed=self.cfg.seed)
             H, W = it["ref"].shape[:2]
-            out = oidn_net.network_output(mean, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
-            stock = oidn_net.network_output(est, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            out = network_output(mean, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
+            stock = network_output(est, it["scale"], (H, W))[0].permute(1, 2, 0).cpu().numpy()
             rows.append((it["spp"], min(psnr(out, it["ref"]), PSNR_CEILING), min(psnr(stock, it["ref"]), PSNR_CEILING)))
         self.model.train()
         out = {"psnr": float(np.mean([r[1] for r in rows])), "estimate_psnr": float(np.mean([r[2] for r in rows])),

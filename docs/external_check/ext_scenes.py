@@ -6,9 +6,9 @@ Run from the repository root once the scenes are in the store's external split
 """
 import sys
 
-from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn
 from mcdenoise.train.infer import load_denoiser as load_refiner
 from mcdenoise.train.model import SHIPPED_MODEL
 

@@ -17,20 +17,21 @@ import sys
 import numpy as np
 
 from mcdenoise.evaluate.run import realization_stacks
-from mcdenoise.pipeline import oidn, oidn_weights, tza
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.weights import TZATensor, read_tza, write_tza
+from mcdenoise.train import oidn
+from mcdenoise.train.baselines.oidn_ft import blended
 from mcdenoise.train.model import SHIPPED_MODEL, oidn_ft_blob
-from mcdenoise.train.oidn_ft import blended
 
 
 def blob_at(network: str, weights: bytes, weights_blend: float, blend: float) -> bytes:
     """``weights`` (exported at ``weights_blend``) moved to ``blend`` (0: stock OIDN's ``network``)."""
-    stock = tza.read(oidn_weights.load(network), network)
-    given = tza.read(weights, f"{network} at blend {weights_blend}")
+    stock = read_tza(oidn.weights_blob(network), network)
+    given = read_tza(weights, f"{network} at blend {weights_blend}")
     f64 = lambda ts: {k: t.array.astype(np.float64) for k, t in ts.items()}  # noqa: E731
     moved = blended(f64(stock), f64(given), blend / weights_blend)
-    return tza.write({k: tza.Tensor(moved[k].astype(t.array.dtype), t.layout) for k, t in stock.items()})
+    return write_tza({k: TZATensor(moved[k].astype(t.array.dtype), t.layout) for k, t in stock.items()})
 
 
 def gains(store: Store, key, spp: int, network: str, blobs: dict) -> dict:
@@ -40,7 +41,7 @@ def gains(store: Store, key, spp: int, network: str, blobs: dict) -> dict:
     out = {b: [] for b in blobs}
     for stacks in realization_stacks(store, key, spp, n=1 << 30):
         read = store.read(key.scene, key.frame, spp, stacks=stacks)
-        buffers = {k: read[k] for k in ("color", *oidn_weights.network_aux(network))}
+        buffers = {k: read[k] for k in ("color", *oidn.network_aux(network))}
         stock = psnr(oidn.denoise(buffers), ref)
         for b, blob in blobs.items():
             out[b].append(psnr(oidn.denoise(buffers, weights=blob), ref) - stock)

@@ -1,5 +1,5 @@
 """Probe: oidn_ft on OIDN's large clean-aux network, the aux prefiltered (per 4-spp stack for training, as
-pooled for validation), through the shipped training loop (train.oidn_ft) with the demo's recipe; the
+pooled for validation), through the shipped training loop (train.baselines.oidn_ft) with the demo's recipe; the
 config's check of oidn_ft.network (which does not know the large network yet) is stepped past.
 
     python docs/oidn_guards/ft_large_probe.py store=<demo>/data/default runs=RUNS
@@ -9,10 +9,11 @@ import sys
 
 import numpy as np
 
-from mcdenoise.pipeline import oidn, oidn_net
+from mcdenoise.clean.fit import fit
 from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.fit import fit
-from mcdenoise.train import oidn_ft
+from mcdenoise.train import oidn
+from mcdenoise.train.baselines import oidn_ft
+from mcdenoise.train.model import unet_denoise
 
 _init = oidn_ft.Frame.__init__
 
@@ -31,7 +32,7 @@ def val_items(self):
         c, a, n = it["images"]
         a, n = oidn.prefilter_aux(np.clip(a, 0, 1), np.clip(n, -1, 1))
         it["images"] = [c, a, n]
-        it["stock"] = oidn_net.denoise(self.teacher, c, a, n, device=self.device)
+        it["stock"] = unet_denoise(self.teacher, c, a, n, device=self.device)
     return items
 
 

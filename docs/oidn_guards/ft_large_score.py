@@ -9,10 +9,10 @@ import sys
 import numpy as np
 from realizations import realization_psnrs
 
-from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.store import Store
-from mcdenoise.train import oidn_ft
+from mcdenoise.train import oidn
+from mcdenoise.train.baselines import oidn_ft
 
 
 class Clean:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from safetensors import safe_open
 
-from mcdenoise.pipeline.checkpoint import save_safetensors
+from mcdenoise.pipeline.weights import save_safetensors
 from mcdenoise.train import model as oidn_refine
 
 

@@ -8,13 +8,13 @@ import sys
 import numpy as np
 
 from mcdenoise.evaluate.run import realization_stacks
-from mcdenoise.pipeline import oidn, oidn_weights as w
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn
 
 
 def main(store_path, split, prefix=""):
-    regular = w.load("rt_hdr_calb_cnrm")
+    regular = oidn.weights_blob("rt_hdr_calb_cnrm")
     store = Store(store_path)
     keys = sorted((k for k in store.frames(split) if k.scene.startswith(prefix)), key=str)
     for spp in (4, 16):

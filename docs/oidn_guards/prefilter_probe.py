@@ -12,10 +12,10 @@ import numpy as np
 
 from mcdenoise.evaluate.methods import Loader
 from mcdenoise.evaluate.run import realization_stacks
-from mcdenoise.pipeline import oidn
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn
 
 COLUMNS = ("oidn_prefilter", "ours", "ours+pre")
 

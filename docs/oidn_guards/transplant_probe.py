@@ -10,14 +10,15 @@ import torch
 
 from mcdenoise.evaluate.methods import Loader
 from mcdenoise.evaluate.run import realization_stacks
-from mcdenoise.pipeline import oidn, oidn_net
 from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn
+from mcdenoise.train.data import autoexposure, from_pu, to_pu
 
 
 def pu(x, s):
-    return oidn_net.to_pu(torch.from_numpy(np.maximum(x, 0) * s))
+    return to_pu(torch.from_numpy(np.maximum(x, 0) * s))
 
 
 def gains(store, key, spp, ours, base):
@@ -27,13 +28,13 @@ def gains(store, key, spp, ours, base):
     out = []
     for stacks in realization_stacks(store, key, spp, n=1 << 30):
         b = store.read(key.scene, key.frame, spp, stacks=stacks)
-        s = oidn_net.autoexposure(b["color"])
+        s = autoexposure(b["color"])
         ours.set_frame(store, key)
         o = np.asarray(ours.denoise(b), np.float32)
         base.set_frame(store, key)
         bo = np.asarray(base.denoise(b), np.float32)
         pre = oidn.denoise(b, clean_aux=True)
-        t = (oidn_net.from_pu((pu(pre, s) + pu(o, s) - pu(bo, s)).clamp(min=0)) / s).numpy()
+        t = (from_pu((pu(pre, s) + pu(o, s) - pu(bo, s)).clamp(min=0)) / s).numpy()
         p0 = psnr(pre, ref)
         out.append([psnr(t, ref) - p0, psnr(o, ref) - p0, psnr(oidn.denoise(b), ref) - p0])
     return np.mean(out, 0)

@@ -4,9 +4,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from mcdenoise.pipeline import oidn_net
 from mcdenoise.pipeline.config import load_config
-from mcdenoise.train.oidn_ft import OIDNFineTune
+from mcdenoise.train.baselines.oidn_ft import OIDNFineTune
+from mcdenoise.train.model import LEVEL
 
 BATCHES = 16
 
@@ -25,5 +25,5 @@ print("| layer | level | RMS gradient | RMS weight |\n| --- | --- | --- | --- |"
 for n, p in task.net.named_parameters():
     if n.endswith(".weight"):
         layer = n.split(".")[0]
-        print(f"| {layer} | {oidn_net.LEVEL[layer]} | {np.sqrt(squares[n] / BATCHES):.1e} | "
+        print(f"| {layer} | {LEVEL[layer]} | {np.sqrt(squares[n] / BATCHES):.1e} | "
               f"{p.detach().pow(2).mean().sqrt().item():.2f} |")

@@ -35,18 +35,23 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, Dataset
 
-from mcdenoise.pipeline import oidn, oidn_net, oidn_weights, runs, tza, weights
-from mcdenoise.pipeline.checkpoint import plot_curves
+from mcdenoise.clean.fit import Task, apply_update, fit
+from mcdenoise.pipeline import config as config_mod, weights
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json
-from mcdenoise.pipeline.fit import Task, apply_update, fit
+from mcdenoise.pipeline.figures import plot_curves
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.store import FrameKey, Store, stack_name
+from mcdenoise.pipeline.weights import read_tza, write_tza
+from mcdenoise.train import oidn
+
+from ..data import autoexposure, network_input, to_pu
+from ..model import UNet, unet_denoise
 
 FORMAT = weights.FORMATS["oidn_ft"]
-AUX = oidn_weights.network_aux("rt_hdr_alb_nrm")
+AUX = oidn.network_aux("rt_hdr_alb_nrm")
 
 
 # ---- data --------------------------------------------------------------------------------------
@@ -147,15 +152,15 @@ class FrameCrops(Dataset):
             images["target"] = frame.target
             if rng.random() < self.diversify:
                 images = _unlike(images, rng, self.crop)
-        scale = oidn_net.autoexposure(images["color"])
+        scale = autoexposure(images["color"])
         H, W = images["color"].shape[:2]
         c = self.crop
         y, x = int(rng.integers(0, H - c + 1)), int(rng.integers(0, W - c + 1))
         images = {n: im[y:y + c, x:x + c] for n, im in images.items()}
         if self.augment:
             images = _augment(images, rng)
-        net_in = oidn_net.network_input(images["color"], *(images[a] for a in self.aux), scale=scale)[0]
-        target = oidn_net.to_pu(torch.from_numpy(images["target"]).permute(2, 0, 1) * scale)
+        net_in = network_input(images["color"], *(images[a] for a in self.aux), scale=scale)[0]
+        target = to_pu(torch.from_numpy(images["target"]).permute(2, 0, 1) * scale)
         return {"input": net_in, "target": target, "teacher": torch.tensor(teacher)}
 
 
@@ -203,7 +208,7 @@ def lr_at(step: int, total: int, lr: float, lr_end: float, warmup: int) -> float
     return lr_end + 0.5 * (lr - lr_end) * (1 + math.cos(math.pi * t))
 
 
-def trainable_parameters(net: oidn_net.UNet, which: str, fine_levels: int = 4) -> list[torch.nn.Parameter]:
+def trainable_parameters(net: UNet, which: str, fine_levels: int = 4) -> list[torch.nn.Parameter]:
     """Set ``requires_grad`` by ``oidn_ft.trainable`` (and ``fine_levels``) and return the trained parameters."""
     level = net.layout.level
     for name, p in net.named_parameters():
@@ -217,11 +222,11 @@ def trainable_parameters(net: oidn_net.UNet, which: str, fine_levels: int = 4) -
 # ---- the run -----------------------------------------------------------------------------------
 
 
-def prior(cfg: Config) -> tuple[oidn_net.UNet, str]:
+def prior(cfg: Config) -> tuple[UNet, str]:
     """OIDN's pretrained network for ``oidn_ft.network`` and the sha256 of its TZA bytes."""
     name = cfg.oidn_ft.network
-    blob = oidn_weights.load(name, oidn_weights.source(name, cfg.oidn.weights))
-    return oidn_net.UNet.from_tza(tza.read(blob, name)), hashlib.sha256(blob).hexdigest()
+    blob = oidn.weights_blob(name, oidn.weights_source(name, cfg.oidn.weights))
+    return UNet.from_tza(read_tza(blob, name)), hashlib.sha256(blob).hexdigest()
 
 
 class OIDNFineTune(Task):
@@ -235,11 +240,11 @@ class OIDNFineTune(Task):
         self.cfg, self.store = cfg, Store(cfg.store)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.spps = self.store.spp_choices(spp)
-        self.aux = oidn_weights.network_aux(o.network)
-        self.clean_aux = oidn_weights.clean_aux(o.network)    # OIDN's final-frame mode: prefiltered aux
-        self.folder = runs.run_dir(cfg, "oidn_ft")
+        self.aux = oidn.network_aux(o.network)
+        self.clean_aux = oidn.clean_aux(o.network)    # OIDN's final-frame mode: prefiltered aux
+        self.folder = config_mod.run_dir(cfg, "oidn_ft")
         self.name, self.epochs, self.time_budget_s, self.nan_limit = self.folder.name, o.epochs, o.time_budget_s, o.nan_limit
-        self.device = runs.pick_device(o.device)
+        self.device = config_mod.pick_device(o.device)
 
         # The model: OIDN's network, and a frozen copy of it (the teacher, and L2-SP's reference).
         torch.manual_seed(cfg.seed)
@@ -290,7 +295,7 @@ class OIDNFineTune(Task):
                 if self.clean_aux:
                     images[1:] = oidn.prefilter_aux(*images[1:])
                 items.append({"images": images, "ref": ref, "spp": spp,
-                              "stock": oidn_net.denoise(self.teacher, *images, device=self.device)})
+                              "stock": unet_denoise(self.teacher, *images, device=self.device)})
         return items
 
     def batches(self, epoch: int):
@@ -337,7 +342,7 @@ class OIDNFineTune(Task):
         if not self.val:
             return None
         self.net.eval()
-        rows = [(it["spp"], min(psnr(oidn_net.denoise(self.net, *it["images"], device=self.device), it["ref"]),
+        rows = [(it["spp"], min(psnr(unet_denoise(self.net, *it["images"], device=self.device), it["ref"]),
                                 PSNR_CEILING), min(psnr(it["stock"], it["ref"]), PSNR_CEILING)) for it in self.val]
         self.net.train()
         out = {"psnr": float(np.mean([r[1] for r in rows])), "oidn_psnr": float(np.mean([r[2] for r in rows])),
@@ -398,23 +403,23 @@ def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
 # ---- using a run -------------------------------------------------------------------------------
 
 
-def export_blob(net: oidn_net.UNet) -> bytes:
+def export_blob(net: UNet) -> bytes:
     """The float16 TZA blob OIDN runs (``pipeline.oidn.denoise(weights=...)``, a host's ``weights``)."""
-    return tza.write(net.to_tza())
+    return write_tza(net.to_tza())
 
 
-def load_run(folder: Path, cfg: Config, blend: float | None = None) -> tuple[oidn_net.UNet, dict]:
+def load_run(folder: Path, cfg: Config, blend: float | None = None) -> tuple[UNet, dict]:
     """The best weights of an oidn_ft run, blended with its prior (``blend``; default the config's
     ``oidn_ft.blend``), and its model.json with the blend used. The prior must be the one the run
     started from."""
     folder = Path(folder)
     record = weights.read_record(folder, "oidn_ft", "run `make train MODEL=oidn_ft SPP=any`")
     name = record["network"]
-    blob = oidn_weights.load(name, oidn_weights.source(name, cfg.oidn.weights))
+    blob = oidn.weights_blob(name, oidn.weights_source(name, cfg.oidn.weights))
     weights.check_sha256(blob, record["prior_sha256"], f"{folder}: the {name} prior "
                          f"({cfg.oidn.weights or 'pyoidn built-in'})", "set oidn.weights to the run's prior")
-    base = oidn_net.UNet.from_tza(tza.read(blob, name))
-    net = oidn_net.UNet(record["widths"])
+    base = UNet.from_tza(read_tza(blob, name))
+    net = UNet(record["widths"])
     net.load_state_dict(weights.load_tensors(folder / "model.safetensors"))
     a = cfg.oidn_ft.blend if blend is None else float(blend)
     net.load_state_dict(blended(base.state_dict(), net.state_dict(), a))

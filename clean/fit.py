@@ -30,9 +30,30 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checkpoint import NanGuard, load_last, save_last
-from .errors import TrainError
-from .progress import progress
+from mcdenoise.pipeline.checkpoint import load_last, save_last
+from mcdenoise.pipeline.errors import StoreError, TrainError
+from mcdenoise.pipeline.progress import progress
+
+
+class NanGuard:
+    """``ok(finite, epoch, step)``: True for a finite step; a non-finite one is counted (``skipped``)
+    and returns False, so the caller skips its update; ``limit`` of them in a row raise ``error``."""
+
+    def __init__(self, name: str, limit: int, error: type[Exception] = StoreError):
+        self.name, self.limit, self.error = name, int(limit), error
+        self.skipped = self.in_row = 0
+
+    def ok(self, finite: bool, epoch: int, step: int) -> bool:
+        if finite:
+            self.in_row = 0
+            return True
+        self.skipped += 1
+        self.in_row += 1
+        if self.in_row >= self.limit:
+            raise self.error(f"{self.name}: {self.in_row} steps in a row had a non-finite loss or gradient "
+                             f"(epoch {epoch + 1}, step {step}); check the data (python -m pipeline inspect) "
+                             "or lower the learning rate")
+        return False
 
 
 class Task:

@@ -47,7 +47,7 @@ authors' code: weight 5e-3, gradient penalty 10), the critic D with the WGAN-GP 
     L_D = E[D(G(x))] − E[D(y)] + λ_gp E[(‖∇D(x̂)‖₂ − 1)²],   x̂ = α y + (1 − α) G(x), α ~ U(0, 1)
     L_G = ‖G(x) − y‖₁ + w_adv (−E[D(G(x))])
 
-with y the target (``afgsa.target``: GT_clean, or GT1 for the experiment of ``train.afgsa_report``)
+with y the target (``afgsa.target``: GT_clean, or GT1 for the experiment of ``train.baselines.afgsa_report``)
 in log1p space; per batch one critic step, then one generator step (Adam, as the paper).
 w_adv = 0 is the L1-only ablation: the critic is not used.
 """
@@ -62,12 +62,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.clean.data import CHANNELS, IN_CHANNELS, INPUT_CLAMP, RADIANCE
+from mcdenoise.clean.fit import apply_update
 from mcdenoise.clean.model import load_model as load_network
 from mcdenoise.clean.train import Recipe, train_recipe
-from mcdenoise.pipeline import runs, schema
+from mcdenoise.pipeline import config as config_mod, schema
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.fit import apply_update
 
 # Output clamp in log1p space: expm1(25) ≈ 7e10 is far above any radiance we render (1e5 in the
 # stability suite) and keeps the HDR output finite whatever the weights predict.
@@ -321,7 +321,7 @@ def afgsa_recipe(cfg: Config, spp) -> Recipe:
     L1 (log space) + adv_weight x the adversarial term (the authors' order); adv_weight 0 trains the
     generator on L1 alone and never touches the critic."""
     a = cfg.afgsa
-    device = runs.pick_device(a.device)
+    device = config_mod.pick_device(a.device)
     torch.manual_seed(cfg.seed)
     generator = AFGSANet(**afgsa_hparams(cfg)).to(device)
     critic = PatchCritic(a.critic_channels, a.critic_levels).to(device)
@@ -346,7 +346,7 @@ def afgsa_recipe(cfg: Config, spp) -> Recipe:
     title = f"AFGSA, {spp} spp -> {a.target} (adv. weight {a.adv_weight:g})"
     state = torch.nn.ModuleDict({"generator": generator, "critic": critic})
     return Recipe("afgsa", spp, a, generator, state, opts, step, fp, "afgsa", title, "L1 (log1p)",
-                  runs.run_dir(cfg, "afgsa", spp), target=a.target,
+                  config_mod.run_dir(cfg, "afgsa", spp), target=a.target,
                   meta={"smape_eps": cfg.clean.smape_eps, "target": a.target, "afgsa": vars(a).copy()})
 
 
