@@ -18,10 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline import figures
-from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import Config, pick_device
 from mcdenoise.pipeline.exr import StoreError
-from mcdenoise.pipeline.metrics import all_metrics, mse
+from mcdenoise.pipeline.metrics import all_metrics, mse, reinhard
 from mcdenoise.pipeline.store import Store
 
 from .data import frame_inputs

@@ -343,3 +343,13 @@ def wall_seconds(history: list[dict]) -> float:
     invocation contributes its last value."""
     secs = [float(h["seconds"]) for h in history]
     return sum(t for t, nxt in zip(secs, secs[1:] + [0.0]) if nxt < t)
+
+
+def gt_clean(cfg: Config, quiet: bool = False) -> int:
+    """``gt-clean``: train the cleaner if needed (or resume it), then write GT_clean for every frame (frames made
+    by the current checkpoint are skipped, so a rerun is cheap); the exit status (1: no frame to clean)."""
+    from .apply import apply_cleaner
+
+    train(cfg, mode="cleaner", quiet=quiet)
+    stats = apply_cleaner(cfg, quiet=quiet)
+    return 0 if stats["written"] + stats["skipped"] > 0 else 1

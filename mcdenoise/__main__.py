@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from mcdenoise.pipeline.__main__ import main
+from mcdenoise.pipeline.cli import main
 
 
 def run(prog: str = "mcdenoise") -> int:

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .color import gamma_compress
 from .exr import atomic_write_bytes
+from .metrics import gamma_compress
 
 
 def detail_crop(img: np.ndarray, size: int) -> tuple[int, int]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcdenoise.pipeline.color import srgb_to_linear
+from mcdenoise.pipeline.metrics import srgb_to_linear
 
 KINDS = ("checker", "stripes", "noise", "cells", "dots", "gradient")
 DEFAULT_SIZE = 256

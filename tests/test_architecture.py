@@ -2,7 +2,7 @@
 
 - ``pipeline`` is the core (config, schema, store, executors, metrics, ...): none of its modules
   imports a stage (``render``, ``clean``, ``train``, ``evaluate``), except the command line
-  ``pipeline/__main__.py``, which only dispatches to them.
+  ``pipeline/cli.py``, which only dispatches to them.
 - No module uses another module's private (``_underscore``) name, by ``from m import _name`` or as
   ``m._name``: what a module shares is public.
 - Project modules are imported through the one installed name, ``mcdenoise.pipeline.config`` (or
@@ -13,8 +13,8 @@
 - Test modules share fixtures through ``tests/conftest.py`` and helpers through ``tests/helpers.py``,
   never by importing another test module (its module-scoped fixtures would run once more there).
 - Each package's docstring names every module of the package.
-- Each package declares its subcommands of ``python -m pipeline`` in its ``commands`` module; every
-  call builds every parser, so those modules load no torch, numpy or Mitsuba.
+- Every subcommand of ``python -m pipeline`` is declared in one module, ``pipeline/cli.py``; every call
+  builds every parser, so it loads no torch, numpy or Mitsuba.
 - No import cycle between project modules, counting the imports inside functions: a function-level
   import only defers the cycle to the first call, and two modules that need each other are one
   idea cut in two (move what both need to where it belongs). ``from package import module`` is an
@@ -30,7 +30,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 CORE = "pipeline"
 STAGES = ("render", "clean", "train", "evaluate")
-DISPATCH = {"pipeline.__main__"}
+DISPATCH = {"pipeline.cli"}
 PACKAGE = "mcdenoise"   # the installed name; pyproject.toml maps the folders above under it
 
 
@@ -119,7 +119,7 @@ def test_core_imports_no_stage(module):
 
 def test_every_stage_is_dispatched_by_the_command_line_only():
     """The command line is the one core module that may import stages (to dispatch)."""
-    stages = {src.split(".")[0] for src, _, _ in imports("pipeline.__main__", MODULES["pipeline.__main__"])}
+    stages = {src.split(".")[0] for src, _, _ in imports("pipeline.cli", MODULES["pipeline.cli"])}
     assert stages & set(STAGES)
 
 
@@ -234,12 +234,12 @@ def test_the_cycle_check_sees_imports_inside_functions(tmp_path):
 
 
 def test_the_command_line_builds_its_parser_without_torch():
-    """Each package's ``commands`` module declares its subcommands, and every call builds every parser:
-    none of them loads torch, numpy or Mitsuba (a handler imports what its command runs)."""
+    """``pipeline.cli`` declares every subcommand, and every call builds every parser: it loads no torch,
+    numpy or Mitsuba (a handler imports what its command runs)."""
     import subprocess
     import sys
 
-    code = ("import sys; from mcdenoise.pipeline.__main__ import build_parser; build_parser(); "
+    code = ("import sys; from mcdenoise.pipeline.cli import build_parser; build_parser(); "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'numpy', 'mitsuba', 'drjit'}))")
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert proc.stdout.strip() == "[]"

@@ -12,10 +12,16 @@ import pytest
 import torch
 
 from mcdenoise.clean import apply as clean_apply
-from mcdenoise.clean.cli import cmd_gt_clean, cmd_train_isik
 from mcdenoise.clean.data import IN_CHANNELS, BaselinePairs, CleanerPairs, crop_and_flip, frame_inputs
 from mcdenoise.clean.model import load_model
-from mcdenoise.clean.train import baseline_checkpoint, run_dir, save_best, train
+from mcdenoise.clean.train import (
+    baseline_checkpoint,
+    gt_clean as cmd_gt_clean,
+    run_dir,
+    save_best,
+    train,
+    train as train_clean,
+)
 from mcdenoise.pipeline.store import Store
 from tests.helpers import FRAMES, SCENES, SIZE, make_clean_store, tiny_cfg
 
@@ -169,7 +175,7 @@ def test_baseline_trains_from_low_spp(cfg_dir):
     ds = BaselinePairs(store, store.frames("train"), spp=4, crop=8, crops_per_frame=1, seed=0)
     item = ds[0]
     assert item["inputs"].shape == (IN_CHANNELS, 8, 8)
-    assert cmd_train_isik(cfg, 4, quiet=True) == 0
+    assert train_clean(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
     folder = run_dir(cfg, "baseline", 4)
     assert folder.name == "isik_spp4" and (folder / "model.safetensors").exists()
     meta = json.loads((folder / "model.json").read_text())
@@ -191,7 +197,7 @@ def test_baseline_sppany_draws_every_spp_and_serves_them(cfg_dir):
     for i in range(len(ds)):
         ds[i]
     assert sorted(set(seen)) == [4, 8]
-    assert cmd_train_isik(cfg, "any", quiet=True) == 0
+    assert train_clean(cfg, mode="baseline", spp="any", quiet=True)["epochs"] > 0
     folder = run_dir(cfg, "baseline", "any")
     meta = json.loads((folder / "model.json").read_text())
     assert folder.name == "isik_sppany" and meta["spp"] == "any" and meta["spp_choices"] == [4, 8]
@@ -207,7 +213,7 @@ def test_clean_report_scores_and_draws(cfg_dir):
     from mcdenoise.pipeline.metrics import all_metrics, mse
 
     cfg = tiny_cfg(cfg_dir, epochs=2)
-    assert cmd_gt_clean(cfg, quiet=True) == 0 and cmd_train_isik(cfg, 4, quiet=True) == 0
+    assert cmd_gt_clean(cfg, quiet=True) == 0 and train_clean(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
     out = cfg_dir / "report"
     r = run_report(cfg, out=str(out), spp=4)
     store = Store(cfg.store)

@@ -94,7 +94,7 @@ def test_overrides_may_follow_options(capsys):
     stray options and non-override words are still refused."""
     import yaml
 
-    from mcdenoise.pipeline.__main__ import main
+    from mcdenoise.pipeline.cli import main
 
     assert main(["config", "clean.lr=0.5", "--config", "configs/tiny.yaml", "clean.epochs=7", "clean.lr=0.25"]) == 0
     printed = yaml.safe_load(capsys.readouterr().out)
@@ -110,7 +110,7 @@ def test_overrides_may_follow_options(capsys):
 def test_a_scene_file_may_stand_anywhere_among_the_overrides(capsys):
     """`render-scene X.xml --store S key=value` and `render-scene --store S X.xml key=value` say the same;
     no scene file or two of them is one line and status 2."""
-    from mcdenoise.pipeline.__main__ import build_parser, parse_args
+    from mcdenoise.pipeline.cli import build_parser, parse_args
 
     parser = build_parser()
     orders = (["render-scene", "a/x.xml", "--store", "st", "dataset.gt_spp=64", "seed=3"],

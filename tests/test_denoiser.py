@@ -13,8 +13,7 @@ from mcdenoise.pipeline.errors import CheckpointError, ConfigError
 from mcdenoise.pipeline.store import Store, sha256
 from mcdenoise.pipeline.weights import save_safetensors
 from mcdenoise.train import data, infer, model as tmodel, sampler
-from mcdenoise.train.data import network_input
-from mcdenoise.train.model import ControlledOIDN, load_unet
+from mcdenoise.train.model import ControlledOIDN, load_unet, network_input
 from mcdenoise.train.sampler import Formulation
 from tests.helpers import TINY, cli, train_tiny
 
@@ -39,13 +38,13 @@ def any_base(request):
 def _random_inputs(n=2, side=32, seed=0):
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(n, 9, side, side, generator=g) * 0.3
-    cond = torch.rand(n, len(data.cond_names()), side, side, generator=g)
+    cond = torch.rand(n, len(tmodel.cond_names()), side, side, generator=g)
     return x, cond
 
 
 def test_the_untrained_controlled_model_is_oidn_exactly(any_base):
     base = any_base
-    model = ControlledOIDN(base, len(data.cond_names()))
+    model = ControlledOIDN(base, len(tmodel.cond_names()))
     x, cond = _random_inputs()
     z = torch.randn(2, 3, 32, 32)
     out, est = model(x, cond, z, torch.tensor([999, 10]))
@@ -58,7 +57,7 @@ def test_the_untrained_controlled_model_is_oidn_exactly(any_base):
 
 
 def test_the_control_module_gets_a_gradient_and_the_base_none(any_base):
-    model = ControlledOIDN(any_base, len(data.cond_names()))
+    model = ControlledOIDN(any_base, len(tmodel.cond_names()))
     x, cond = _random_inputs()
     out, est = model(x, cond, torch.randn(2, 3, 32, 32), torch.tensor([999, 999]))
     (out - est - 0.01).abs().mean().backward()
@@ -80,19 +79,19 @@ def test_inputs_pad_like_oidn_and_mark_missing_groups():
     rng = np.random.default_rng(0)
     buffers = {"color": rng.random((21, 35, 3), dtype=np.float32), "albedo": rng.random((21, 35, 3), dtype=np.float32),
                "normal": rng.random((21, 35, 3), dtype=np.float32)}
-    x, cond, scale = data.inputs(buffers, 4)
-    assert x.shape == (9, 32, 48) and cond.shape == (len(data.cond_names()), 32, 48)
+    x, cond, scale = tmodel.inputs(buffers, 4)
+    assert x.shape == (9, 32, 48) and cond.shape == (len(tmodel.cond_names()), 32, 48)
     ref = network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
     np.testing.assert_array_equal(x, ref)
-    names = data.cond_names()
-    for g in data.GROUPS:
+    names = tmodel.cond_names()
+    for g in tmodel.GROUPS:
         assert float(cond[names.index(f"has.{g}")].max()) == 0.0
     assert float(cond[names.index("spp"), 0, 0]) == pytest.approx(2 / 6)
     buffers["color.variance"] = np.ones((21, 35, 3), np.float32)   # a partial group counts as missing
-    _, cond2, _ = data.inputs(buffers, 4)
+    _, cond2, _ = tmodel.inputs(buffers, 4)
     np.testing.assert_array_equal(cond, cond2)
     with pytest.raises(Exception, match="needs normal"):
-        data.inputs({"color": buffers["color"], "albedo": buffers["albedo"]}, 4)
+        tmodel.inputs({"color": buffers["color"], "albedo": buffers["albedo"]}, 4)
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +198,7 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
     pack = data.load_pack(data.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
     plain = data.Crops(pack, 16, 4, 0, augment=False, dropout=0.0)
     aug = data.Crops(pack, 16, 4, 0, augment=True, dropout=0.0)
-    names = ["x.%d" % i for i in range(9)] + data.cond_names()
+    names = ["x.%d" % i for i in range(9)] + tmodel.cond_names()
     for i in range(4):
         a, b = plain[i], aug[i]
         full_a, full_b = torch.cat([a["x"], a["cond"]]), torch.cat([b["x"], b["cond"]])
@@ -213,8 +212,8 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
             rgb = [names.index(f"{key}.{c}") for c in "RGB"]
             assert torch.allclose(full_a[rgb].double().sum((1, 2))[perm], full_b[rgb].double().sum((1, 2)), rtol=1e-5)
     dropped = data.Crops(pack, 16, 4, 0, augment=False, dropout=1.0)[0]
-    names_c = data.cond_names()
-    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in data.GROUPS)
+    names_c = tmodel.cond_names()
+    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in tmodel.GROUPS)
     assert float(dropped["cond"][names_c.index("color.variance")].abs().max()) == 0
     assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0
 
@@ -225,7 +224,7 @@ def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base, streng
     (the evaluator's ours_s3_k4 row) covers the median error exactly; strength scales the samples' spread
     and the mean's change, not the error, so the fit is made at that strength."""
     torch.manual_seed(0)
-    model = ControlledOIDN(base, len(data.cond_names()))
+    model = ControlledOIDN(base, len(tmodel.cond_names()))
     with torch.no_grad():
         for p in model.control.parameters():
             p.add_(0.02 * torch.randn_like(p))
@@ -238,7 +237,7 @@ def test_sigma_calibration_puts_half_the_errors_within_0_6745_sigma(base, streng
         buf = {"color": rng.gamma(1.0, 0.4, (32, 32, 3)).astype(np.float32),
                "albedo": rng.random((32, 32, 3)).astype(np.float32),
                "normal": (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(np.float32)}
-        x, cond, scale = data.inputs(buf, 4)
+        x, cond, scale = tmodel.inputs(buf, 4)
         items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                       "ref": buf["color"] * 0.5 + 0.1})
         buffers.append(buf)
@@ -431,7 +430,7 @@ def test_precision_changes_the_networks_arithmetic_only():
 def test_channels_last_tensors_give_the_same_output(base):
     """bench-denoise times the networks on NHWC tensors too: the same computation in another memory layout
     (convolutions sum in another order: equal to float32 rounding, not bit for bit)."""
-    model = ControlledOIDN(base, len(data.cond_names()))
+    model = ControlledOIDN(base, len(tmodel.cond_names()))
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
         for p in model.control.parameters():      # a trained-like Control Module: its zero convolutions not zero
@@ -452,7 +451,7 @@ def test_the_sampler_does_no_work_twice(base):
 
     from mcdenoise.train.bench import network_gflops
 
-    model = ControlledOIDN(base, len(data.cond_names()))
+    model = ControlledOIDN(base, len(tmodel.cond_names()))
     x, cond = _random_inputs(n=1)
     z, t = torch.zeros(1, 3, 32, 32), torch.tensor([999])
 

@@ -2,8 +2,7 @@
 built-in exception that fits it, and the command line turns any of them into one line on stderr and exit status 2."""
 import pytest
 
-import mcdenoise.pipeline.__main__ as cli_main
-import mcdenoise.pipeline.commands as core_commands
+import mcdenoise.pipeline.cli as cli_main
 from mcdenoise.evaluate.methods import MethodUnavailable
 from mcdenoise.pipeline.errors import (
     CheckpointError,
@@ -45,7 +44,7 @@ def test_train_error_is_one_class():
 def test_the_command_line_prints_one_line_and_exits_2(cls, monkeypatch, capsys):
     def fail():
         raise cls("the culprit: what to do")
-    monkeypatch.setattr(core_commands, "documentation_markdown", fail)
+    monkeypatch.setattr(cli_main, "documentation_markdown", fail)
     assert cli_main.main(["config", "--doc"]) == 2
     err = capsys.readouterr().err
     assert err == "error: the culprit: what to do\n"
@@ -54,6 +53,6 @@ def test_the_command_line_prints_one_line_and_exits_2(cls, monkeypatch, capsys):
 def test_other_exceptions_are_not_swallowed(monkeypatch):
     def fail():
         raise ZeroDivisionError("a bug")
-    monkeypatch.setattr(core_commands, "documentation_markdown", fail)
+    monkeypatch.setattr(cli_main, "documentation_markdown", fail)
     with pytest.raises(ZeroDivisionError):
         cli_main.main(["config", "--doc"])

@@ -685,8 +685,7 @@ def test_history_is_complete_after_a_kill_right_after_the_last_checkpoint(tmp_pa
 
 def test_stale_temporary_files_of_a_killed_clean_run_are_removed(tmp_path):
     """A kill mid-write leaves ``.<name>.*.tmp``; the next run of the stage removes its own."""
-    from mcdenoise.clean.cli import cmd_gt_clean
-    from mcdenoise.clean.train import run_dir
+    from mcdenoise.clean.train import gt_clean as cmd_gt_clean, run_dir
     from mcdenoise.pipeline.store import Store
     from tests.helpers import make_clean_store, tiny_cfg
 

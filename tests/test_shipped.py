@@ -63,7 +63,7 @@ def test_shipped_model_samples_give_a_mean_and_a_spread(shipped):
 def test_output_beyond_oidns_range_is_clamped_and_counted_not_inf(shipped, monkeypatch):
     """A model output past the end of OIDN's output space (where the inverse transfer overflows) ends at the
     range's top (65504 after exposure), counted; an ordinary frame touches none."""
-    from mcdenoise.train.data import autoexposure
+    from mcdenoise.train.model import autoexposure
 
     frame = synthetic_buffers(32, 32, seed=5, noise=0.7)
     shipped.denoise(frame, spp=4)

@@ -1,23 +1,23 @@
-"""Stage 3: the diffusion denoiser, a Control Module on OIDN's frozen network (paper Fig. 1), and the
-other trained competitors: ``oidn_ft``, OIDN's own network fine-tuned on the store, and AFGSA.
+"""Stage 3: the denoiser, a Control Module on OIDN's frozen network (paper Fig. 1), read like OIDN's training
+kit: one flat module per concern.
 
-The diffusion denoiser, by role (``make train SPP=N`` → ``commands._train`` → ``train.train``):
-
-- ``train.model``: the network (OIDN's frozen base + the Control Module, ``ControlledOIDN``), where
-  models are (``run_dir``, ``find_run``, ``SHIPPED_MODEL``), save and load.
-- ``train.formulation``: what is diffused and predicted (the residual around OIDN's output, x0, the
-  schedule), the timesteps training draws, the min-SNR weight.
+- ``train.model``: the network: OIDN's UNet and its HDR processing in PyTorch, its aux prefilter, the network's
+  input (OIDN's, and the condition of every other buffer), the Control Module on the frozen base
+  (``ControlledOIDN``), where models are (``find_run``, ``SHIPPED_MODEL``), save and load.
+- ``train.oidn``: OIDN, the library (``pyoidn``): the call every stage uses, and its built-in weights.
+- ``train.data``: training packs (the store decoded once) and augmented crops, the run's frames
+  (``StoreSource``), ``pack``.
 - ``train.loss``: each crop's error relative to OIDN's.
-- ``train.sampler``: the reverse diffusion and the strength knob.
-- ``train.data``: the inputs in OIDN's space, training packs and crops, the run's frame sources.
-- ``train.train``: the training task (``train``, ``RefineTask``: model, data, optimiser; the step;
-  validation) and its learning-rate schedule, EMA and DDP helpers.
-- ``train.infer``: denoise a frame with a model folder (``load_denoiser``), σ's calibration.
-- ``train.export``: a self-contained model folder (``train/shipped``) and changes to one after training.
-
-The others: ``train.baselines.oidn_ft`` (OIDN's network fine-tuned from its pretrained weights: augmentation,
-L2-SP, distillation, trainable subsets, WiSE-FT blend, exported for OIDN itself); ``train.baselines.afgsa``
-(AFGSA, Yu et al. 2021) and ``train.baselines.afgsa_report``. ``train.cli`` (``denoise``, ``pack``),
-``train.bench``, ``train.gpu_recipe`` and ``train.commands`` (the subcommands ``train``, ``export``,
-``gpu-prepare``, ``gpu-recipe``, ``pack``, ``denoise``, ``afgsa-report``, ``bench-denoise``).
+- ``train.sampler``: what is diffused and predicted (``Formulation``: the residual around OIDN's output, x0,
+  the schedule), the timesteps training draws, the min-SNR weight; the reverse diffusion and the strength knob.
+- ``train.train``: ``make train``: the training script, its loop written out (data, model, loss, optimiser
+  step, EMA, validation, checkpoint); DDP under torchrun.
+- ``train.infer``: inference: ``denoise`` (a store frame or an EXR, with ours or OIDN itself), the
+  self-ensemble, σ's calibration.
+- ``train.export``: a self-contained model folder (``train/shipped``) and changes to one after training;
+  an oidn_ft run as a ``.tza`` OIDN loads.
+- ``train.bench``: ``bench-denoise``: seconds per frame of ours, its base and OIDN.
+- ``train.baselines``: the trained competitors, apart from the denoiser: ``train.baselines.oidn_ft`` (OIDN's
+  network fine-tuned from its weights, exported for OIDN itself), ``train.baselines.afgsa`` (AFGSA, Yu et al. 2021)
+  and ``train.baselines.afgsa_report`` (AFGSA against GT_clean vs against GT1).
 """

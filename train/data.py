@@ -20,14 +20,12 @@ the group dropout; the target is PU(GT_clean × the item's exposure), the space 
 """
 from __future__ import annotations
 
-import functools
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from mcdenoise.pipeline import schema
@@ -36,108 +34,17 @@ from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.weights import save_safetensors
 
+from .model import ALIGNMENT, GROUPS, cond_names, inputs, to_pu
+
 # The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
 if TYPE_CHECKING:
     from mcdenoise.pipeline.store import FrameKey, Store
 
 FORMAT = "mcdenoise-oidn-pack"
-# Buffer groups an input may lack, each with a presence map in the condition.
-GROUPS = {
-    "variance": tuple(schema.variance_name(b.name) for b in schema.BUFFERS),
-    "components": schema.RADIANCE_COMPONENTS,
-    "materials": ("depth", "roughness", "metallic", "transmission"),
-}
 DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
 _COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
 # Noise realizations per frame in a pack, by spp: disjoint subsets of the store's stacks
 PACK_VARIANTS = {4: 2, 16: 1, 64: 1}
-
-
-# ---- OIDN's HDR processing (its core's input_process / output_process / autoexposure) ---------------
-# input: colour × scale, NaN → 0, clamped ≥ 0, then the PU transfer normalised so that 65504 maps to 1
-# (``to_pu``); albedo NaN → 0 and clamped to [0, 1]; normal NaN → 0, clamped to [−1, 1], then n·0.5 + 0.5;
-# zero padding at the bottom and right to a multiple of 16. Output: NaN → 0, clamped ≥ 0, the inverse PU
-# transfer (``from_pu``), divided by the scale. ``autoexposure``: 0.18 / 2^(mean log2 of the mean luminance
-# of ~16×16 bins whose mean is above 1e-8); 1 if none is. The network's output space (PU of the exposed
-# radiance) is where OIDN's training kit puts its loss, and where ours is.
-ALIGNMENT = 16            # input sides are padded to a multiple of this (four 2×2 poolings)
-HDR_MAX = 65504.0         # float16's largest value: PU(HDR_MAX) is normalised to 1
-
-# PU2 fit normalised at 100 cd/m² (Aydin et al. 2008), OIDN's core/color.h.
-PU_A, PU_B, PU_C, PU_D = 1.41283765e+03, 1.64593172e+00, 4.31384981e-01, -2.94139609e-03
-PU_E, PU_F, PU_G = 1.92653254e-01, 6.26026094e-03, 9.98620152e-01
-PU_Y0, PU_Y1 = 1.57945760e-06, 3.22087631e-02
-PU_X0, PU_X1 = 2.23151711e-03, 3.70974749e-01
-
-LUMINANCE = (0.212671, 0.715160, 0.072169)
-AUTOEXPOSURE_BIN, AUTOEXPOSURE_KEY, AUTOEXPOSURE_EPS = 16, 0.18, 1e-8
-
-
-def _pu_curve(y: torch.Tensor) -> torch.Tensor:
-    return torch.where(y <= PU_Y0, PU_A * y,
-                       torch.where(y <= PU_Y1, PU_B * y.clamp(min=PU_Y0) ** PU_C + PU_D,
-                                   PU_E * torch.log(y.clamp(min=PU_Y1) + PU_F) + PU_G))
-
-
-def _pu_curve_inverse(x: torch.Tensor) -> torch.Tensor:
-    return torch.where(x <= PU_X0, x / PU_A,
-                       torch.where(x <= PU_X1, ((x.clamp(min=PU_X0) - PU_D) / PU_B) ** (1.0 / PU_C),
-                                   torch.exp((x.clamp(min=PU_X1) - PU_G) / PU_E) - PU_F))
-
-
-PU_NORM = 1.0 / float(_pu_curve(torch.tensor(HDR_MAX, dtype=torch.float64)))
-
-
-def to_pu(y: torch.Tensor) -> torch.Tensor:
-    """OIDN's HDR transfer: PU(y) / PU(65504), for exposed radiance y ≥ 0 (0 → 0, 65504 → 1)."""
-    return _pu_curve(y) * PU_NORM
-
-
-def from_pu(x: torch.Tensor) -> torch.Tensor:
-    """The inverse of ``to_pu`` (for x ≥ 0)."""
-    return _pu_curve_inverse(x / PU_NORM)
-
-
-def autoexposure(color: np.ndarray) -> float:
-    """OIDN's exposure of an (H, W, 3) HDR image: 0.18 over the geometric mean of its bins' mean luminance."""
-    c = np.nan_to_num(np.asarray(color, np.float32)[..., :3], nan=0.0, posinf=np.finfo(np.float32).max)
-    lum = np.maximum(c, 0.0) @ np.asarray(LUMINANCE, np.float32)
-    H, W = lum.shape
-    nh, nw = -(-H // AUTOEXPOSURE_BIN), -(-W // AUTOEXPOSURE_BIN)
-    hs = [i * H // nh for i in range(nh + 1)]
-    ws = [j * W // nw for j in range(nw + 1)]
-    bins = np.array([[lum[hs[i]:hs[i + 1], ws[j]:ws[j + 1]].mean() for j in range(nw)] for i in range(nh)])
-    bins = bins[bins > AUTOEXPOSURE_EPS]
-    if bins.size == 0:
-        return 1.0
-    return float(np.float32(AUTOEXPOSURE_KEY) / np.exp2(np.log2(bins.astype(np.float32)).mean(dtype=np.float32)))
-
-
-def _chw(image: np.ndarray | torch.Tensor) -> torch.Tensor:
-    t = torch.as_tensor(np.ascontiguousarray(image, dtype=np.float32)) if isinstance(image, np.ndarray) else image
-    return torch.nan_to_num(t.float(), nan=0.0).permute(2, 0, 1)
-
-
-def network_input(color, albedo=None, normal=None, scale: float = 1.0) -> torch.Tensor:
-    """(1, C, H', W') input of OIDN's network from (H, W, 3) images (albedo and normal optional),
-    padded with zeros at the bottom and right to a multiple of ``ALIGNMENT``."""
-    parts = [to_pu(torch.nan_to_num(_chw(color) * scale, nan=0.0).clamp(min=0.0))]
-    if albedo is not None:
-        parts.append(_chw(albedo).clamp(0.0, 1.0))
-    if normal is not None:
-        parts.append(_chw(normal).clamp(-1.0, 1.0) * 0.5 + 0.5)
-    x = torch.cat(parts, 0)[None]
-    H, W = x.shape[-2:]
-    return F.pad(x, (0, -W % ALIGNMENT, 0, -H % ALIGNMENT))
-
-
-def network_output(y: torch.Tensor, scale: float, size: tuple[int, int] | None = None) -> torch.Tensor:
-    """HDR radiance from the network's output (B, 3, H', W'): sanitised, inverse PU, divided by
-    ``scale``; cropped to ``size`` = (H, W) when given."""
-    if size is not None:
-        y = y[..., :size[0], :size[1]]
-    out = from_pu(torch.nan_to_num(y, nan=0.0).clamp(min=0.0))
-    return out * (1.0 / scale if scale != 0 else 0.0)
 
 
 def variant_stacks(spp: int, stack_spp: int, variant: int, stacks: int) -> list[int]:
@@ -160,52 +67,6 @@ def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[
             if n > 0:
                 out[int(spp)] = n
     return out
-
-
-def _pu(x: np.ndarray, scale: float) -> np.ndarray:
-    return to_pu(torch.from_numpy(np.maximum(np.nan_to_num(x, nan=0.0), 0.0) * scale)).numpy()
-
-
-def _encoding(scale: float) -> schema.Encoding:
-    return schema.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
-
-
-def cond_names() -> list[str]:
-    """One name per condition channel: the feature table, ``spp``, then ``has.<group>``."""
-    return schema.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
-
-
-def present(buffers: dict) -> dict[str, bool]:
-    """Which of ``GROUPS`` an input has (all of a group's buffers)."""
-    return {g: all(k in buffers for k in keys) for g, keys in GROUPS.items()}
-
-
-def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal"),
-           clean_aux: bool = False, aux_device: str | None = None) -> tuple[np.ndarray, np.ndarray, float]:
-    """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
-    at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole.
-    ``clean_aux``: OIDN's input has albedo and normal prefiltered by OIDN's aux networks (the base is a
-    ``_calb_cnrm`` network), on the torch device ``aux_device`` if given (else pyoidn's); the condition keeps
-    them as rendered."""
-    have = present(buffers)
-    keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
-    scale = autoexposure(keep["color"])
-    missing = [a for a in aux if a not in keep]
-    if missing:
-        raise StoreError(f"the OIDN-based denoiser needs {', '.join(missing)} (OIDN's network for these inputs "
-                         "reads them)")
-    net_aux = [keep[a] for a in aux]
-    if clean_aux:
-        from . import oidn
-        net_aux = list(oidn.prefilter_aux(keep["albedo"], keep["normal"], device=aux_device))
-    x = network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
-    cond = schema.encode(keep, _encoding(scale), spp)
-    flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
-                            (len(GROUPS), *cond.shape[1:]))
-    cond = np.concatenate([cond, flags], 0)
-    H, W = cond.shape[1:]
-    cond = np.pad(cond, ((0, 0), (0, -H % ALIGNMENT), (0, -W % ALIGNMENT)))
-    return x, cond.astype(np.float32), scale
 
 
 # ---- the pack ----------------------------------------------------------------------------------

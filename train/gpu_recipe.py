@@ -459,7 +459,7 @@ def prepare(out: Path = Path(".gpu"), python: str = "3.12", model: Path | None =
     aux networks) and ``carried.json`` (names, versions, sizes). Returns carried.json's content."""
     from mcdenoise.train import oidn
 
-    from .oidn import AUX_NETWORKS
+    from .model import AUX_NETWORKS
 
     out.mkdir(parents=True, exist_ok=True)
     pins = check_carried()

@@ -26,8 +26,7 @@ from mcdenoise.pipeline.exr import StoreError, write_output
 from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 
 from . import oidn
-from .data import inputs, network_output, present
-from .model import ControlledOIDN, clean_aux, find_run, load, oidn_ft_blob
+from .model import ControlledOIDN, clean_aux, find_run, inputs, load, network_output, oidn_ft_blob, present
 from .sampler import Formulation, check_strength, sample, with_strength
 
 if TYPE_CHECKING:   # the store is imported where a store frame is read: ``denoise --exr`` needs none

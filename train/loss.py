@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import torch
 
-from mcdenoise.pipeline.color import reinhard
+from mcdenoise.pipeline.metrics import reinhard
 
-from .data import from_pu
+from .model import from_pu
 
 FLOOR_R, FLOOR_PU = 1e-7, 1e-5  # floors of the per-crop ratios (MSE on the tonemap, L1 in PU)
 

@@ -45,8 +45,6 @@ import threading
 from pathlib import Path
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
 from mcdenoise.pipeline.errors import OIDNUnavailable, PipelineError, WeightsError
 
@@ -92,45 +90,20 @@ def denoise(buffers: dict[str, np.ndarray], aux: bool = True, quality: str = "hi
                       dtype=np.float32)
 
 
-def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high", device: str | None = None
+def prefilter_aux(albedo: np.ndarray, normal: np.ndarray | None, quality: str = "high"
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Albedo and normal denoised by OIDN's own aux networks (an RT filter given only that image),
     read and returned in [0, 1] and [−1, 1] (NaN as 0): the noise-free aux that ``cleanAux`` expects.
-    ``device``: a torch device to run OIDN's aux networks on in PyTorch (``prefilter`` below,
-    quality high only); also the way when pyoidn is not installed (then on the CPU)."""
+    ``train.model.prefilter_aux_twin`` runs the same networks in PyTorch (on a GPU, or where pyoidn is not
+    installed)."""
     albedo = np.ascontiguousarray(np.clip(np.nan_to_num(albedo), 0, 1), dtype=np.float32)
     if normal is not None:
         normal = np.ascontiguousarray(np.clip(np.nan_to_num(normal), -1, 1), dtype=np.float32)
-    if device is not None or available() is not None:
-        if quality != "high":
-            raise PipelineError(f"the PyTorch aux prefilter runs quality high only, not {quality!r}")
-        device = device or _torch_device()
-        return _twin_prefilter(albedo, device), None if normal is None else _twin_prefilter(normal, device, "normal")
     filt = _aux_filter()
     albedo = np.ascontiguousarray(np.clip(filt.run("albedo", albedo, quality), 0, 1), dtype=np.float32)
     if normal is not None:
         normal = np.ascontiguousarray(np.clip(filt.run("normal", normal, quality), -1, 1), dtype=np.float32)
     return albedo, normal
-
-
-def _torch_device() -> str:
-    import torch
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def _twin_prefilter(image: np.ndarray, device: str, kind: str = "albedo") -> np.ndarray:
-    import torch
-
-    net = _aux_net(kind, str(device))
-    x = torch.from_numpy(image).permute(2, 0, 1)[None].to(device)
-    return prefilter(net, x, kind)[0].permute(1, 2, 0).cpu().numpy()
-
-
-@functools.cache
-def _aux_net(kind: str, device: str):
-    from .model import load_unet
-    name = AUX_NETWORKS[kind]
-    return load_unet(name, weights_source(name, default_folder())).to(device).eval()
 
 
 _QUALITY = {"high": "OIDN_QUALITY_HIGH", "balanced": "OIDN_QUALITY_BALANCED", "fast": "OIDN_QUALITY_FAST",
@@ -361,31 +334,3 @@ def weights_blob(name: str, tza: str | Path | None = None) -> bytes:
     return data
 
 
-# ---- the aux prefilter (OIDN's final-frame mode) ------------------------------------------------
-# OIDN denoises a noisy albedo or normal with an RT filter given only that image. At quality high it
-# runs ``rt_alb_large`` / ``rt_nrm_large``; the albedo goes through the sRGB transfer (it is an LDR
-# image) and the normal through n·0.5 + 0.5, both inverted on the way out. Measured against pyoidn
-# 2.5.1: 132 dB (albedo) and 131 dB (normal) PSNR (tests/test_oidn_net.py).
-AUX_NETWORKS = {"albedo": "rt_alb_large", "normal": "rt_nrm_large"}
-
-
-def srgb(x: torch.Tensor) -> torch.Tensor:
-    """The sRGB transfer (linear → encoded), for x in [0, 1]."""
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
-
-
-def srgb_inverse(x: torch.Tensor) -> torch.Tensor:
-    """The inverse of ``srgb`` (encoded → linear), for x in [0, 1]."""
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
-
-
-@torch.no_grad()
-def prefilter(net, image: torch.Tensor, kind: str) -> torch.Tensor:
-    """An aux image (B, 3, H, W) on any device, denoised by OIDN's aux network ``net`` for ``kind``
-    ('albedo' in [0, 1], 'normal' in [−1, 1]; NaN as 0) as OIDN's filter does; same shape and range."""
-    from .data import ALIGNMENT
-    H, W = image.shape[-2:]
-    image = torch.nan_to_num(image.float(), nan=0.0)
-    x = srgb(image.clamp(0.0, 1.0)) if kind == "albedo" else image.clamp(-1.0, 1.0) * 0.5 + 0.5
-    y = net(F.pad(x, (0, -W % ALIGNMENT, 0, -H % ALIGNMENT)))[..., :H, :W].float().clamp(0.0, 1.0)
-    return srgb_inverse(y) if kind == "albedo" else y * 2.0 - 1.0

@@ -30,7 +30,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from mcdenoise.clean.fit import NanGuard, Task, apply_update, fit
-from mcdenoise.pipeline import weights
+from mcdenoise.pipeline import config as config_mod, weights
 from mcdenoise.pipeline.config import Config, pick_device
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import atomic_write_json, read_json
@@ -40,10 +40,11 @@ from mcdenoise.pipeline.store import sha256
 from mcdenoise.pipeline.versions import machine
 from mcdenoise.pipeline.weights import read_tza
 
-from .data import Crops, StoreSource, cond_names, network_output
+from . import oidn
+from .data import Crops, StoreSource
 from .infer import calibrate, load_denoiser
 from .loss import relative_loss
-from .model import FORMAT, NETWORK, ControlledOIDN, UNet, base_blob, load, run_dir, save
+from .model import FORMAT, NETWORK, ControlledOIDN, UNet, cond_names, load, network_output, run_dir, save
 from .sampler import Formulation, sample, snr_weight
 
 
@@ -73,6 +74,24 @@ def warm_start_recipe(d, meta: dict) -> tuple[Formulation, list[int], list[str]]
     if list(d.train_steps) != steps:
         differ.append(f"diffusion.train_steps={list(d.train_steps)} (the model's: {steps})")
     return form, steps, differ
+
+
+# ---- the base of a new run --------------------------------------------------------------------
+
+
+def base_blob(cfg: Config) -> tuple[bytes, str]:
+    """(the base's float16 TZA blob, what it is): ``diffusion.base`` 'oidn' (OIDN's ``diffusion.base_network``,
+    from ``oidn.weights`` or pyoidn), 'oidn_ft' (this config's oidn_ft run of that network, as exported) or a
+    .tza file of it."""
+    base, network = cfg.diffusion.base, cfg.diffusion.base_network
+    if base == "oidn":
+        return oidn.weights_blob(network, oidn.weights_source(network, cfg.oidn.weights)), f"OIDN {network}"
+    if base == "oidn_ft":
+        from .baselines.oidn_ft import export_blob, load_run
+        folder = config_mod.run_dir(cfg, "oidn_ft", variant=network)
+        return export_blob(load_run(folder, cfg)[0]), f"oidn_ft run {folder} (blend {cfg.oidn_ft.blend:g})"
+    return oidn.weights_blob(network, base), str(base)
+
 
 
 # ---- the training run --------------------------------------------------------------------------

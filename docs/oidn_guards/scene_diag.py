@@ -16,9 +16,8 @@ from PIL import Image
 
 from mcdenoise.evaluate.methods import Loader
 from mcdenoise.evaluate.run import realization_stacks
-from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import load_config
-from mcdenoise.pipeline.metrics import psnr
+from mcdenoise.pipeline.metrics import psnr, reinhard
 from mcdenoise.pipeline.store import Store
 
 GROUPS = {"variances": lambda k: "variance" in k,

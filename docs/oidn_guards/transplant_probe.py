@@ -14,7 +14,7 @@ from mcdenoise.pipeline.config import load_config
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
-from mcdenoise.train.data import autoexposure, from_pu, to_pu
+from mcdenoise.train.model import autoexposure, from_pu, to_pu
 
 
 def pu(x, s):

@@ -27,10 +27,9 @@ from mcdenoise.clean.apply import denoise
 from mcdenoise.clean.data import frame_inputs
 from mcdenoise.clean.train import wall_seconds
 from mcdenoise.pipeline import figures
-from mcdenoise.pipeline.color import reinhard
 from mcdenoise.pipeline.config import Config, pick_device, run_dir
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.metrics import all_metrics
+from mcdenoise.pipeline.metrics import all_metrics, reinhard
 from mcdenoise.pipeline.store import Store
 
 from .afgsa import load_model

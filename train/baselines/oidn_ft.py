@@ -47,8 +47,7 @@ from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 from mcdenoise.pipeline.weights import read_tza, write_tza
 from mcdenoise.train import oidn
 
-from ..data import autoexposure, network_input, to_pu
-from ..model import UNet, unet_denoise
+from ..model import UNet, autoexposure, network_input, to_pu, unet_denoise
 
 FORMAT = weights.FORMATS["oidn_ft"]
 AUX = oidn.network_aux("rt_hdr_alb_nrm")
