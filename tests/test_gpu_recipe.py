@@ -1,4 +1,6 @@
-"""The GPU recipe (train/gpu_recipe.py): what it carries, and the whole recipe on the CPU in seconds."""
+"""The GPU recipe (tools/gpu/recipe.py, a tool of the checkout, not of the installed package): what it carries,
+its command line, and the whole recipe on the CPU in seconds."""
+import importlib.util
 import json
 import os
 import subprocess
@@ -9,9 +11,27 @@ import pytest
 import torch
 
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.train import gpu_recipe
 
 ROOT = Path(__file__).resolve().parent.parent
+RECIPE = ROOT / "tools" / "gpu" / "recipe.py"
+
+
+def _load_recipe():
+    """tools/gpu/recipe.py as a module (tools/ is no package); registered first, as its dataclass needs."""
+    spec = importlib.util.spec_from_file_location("gpu_recipe", RECIPE)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+gpu_recipe = _load_recipe()
+
+
+def recipe(*args, **kw) -> subprocess.CompletedProcess:
+    """``python tools/gpu/recipe.py ARGS`` from the repository root."""
+    return subprocess.run([sys.executable, str(RECIPE.relative_to(ROOT)), *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, **kw)
 
 
 def test_the_carried_packages_are_what_the_gpu_image_lacks():
@@ -45,7 +65,7 @@ def test_mitsuba_is_cut_to_the_variants_and_plugins_the_renderer_uses():
 
 
 def test_the_aux_networks_travel_as_tza_files(tmp_path):
-    """gpu-prepare --no-wheels writes OIDN's aux networks (pyoidn does not travel) and carried.json."""
+    """prepare --no-wheels writes OIDN's aux networks (pyoidn does not travel) and carried.json."""
     record = gpu_recipe.prepare(tmp_path / "gpu", wheels=False)
     assert set(record["files"]) == {"oidn/rt_alb_large.tza", "oidn/rt_nrm_large.tza"}
     assert json.loads((tmp_path / "gpu" / "carried.json").read_text())["packages"] == gpu_recipe.check_carried()
@@ -54,13 +74,13 @@ def test_the_aux_networks_travel_as_tza_files(tmp_path):
 
 @pytest.mark.slow
 def test_the_whole_recipe_runs_on_the_cpu(tmp_path):
-    """``DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash train/gpu_recipe.sh``: every phase runs, the files
+    """``DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash tools/gpu/recipe.sh``: every phase runs, the files
     that come back are there (a model folder denoise loads, at most 8 files), the curve starts at the model it
     trained on."""
     out, work = tmp_path / "out", tmp_path / "work"
     env = {**os.environ, "DEVICE": "cpu", "CONFIG": "configs/tiny.yaml", "MINUTES": "0.2", "OUT": str(out),
            "WORK": str(work), "PYTHON": sys.executable}
-    proc = subprocess.run(["bash", "train/gpu_recipe.sh", "--batch", "2", "--loader-workers", "1", "--workers", "1"],
+    proc = subprocess.run(["bash", "tools/gpu/recipe.sh", "--batch", "2", "--loader-workers", "1", "--workers", "1"],
                           cwd=ROOT, env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     files = {p.name for p in out.iterdir()}
@@ -84,8 +104,7 @@ def test_the_whole_recipe_runs_on_the_cpu(tmp_path):
     # the kept epochs come back too (here the one epoch the dry run trains), and unpack as model folders that load
     assert r["phases"]["train"]["snapshots"] == [{"epoch": 1, "mpix": curve[1]["mpix"], "val_psnr": curve[1]["val_psnr"]}]
     dest = tmp_path / "candidate"
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "gpu-unpack", str(out), str(dest)], cwd=ROOT,
-                          capture_output=True, text=True)
+    proc = recipe("unpack", out, dest)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.split() == [str(dest), str(dest / "epoch1")]
     kept, kept_meta = load(work / "runs" / "diffusion_sppany_gpu" / "epoch1")
@@ -103,3 +122,42 @@ def test_snapshots_spread_over_the_kept_epochs():
     assert gpu_recipe.spread(kept, 6) == [1, 2, 8, 16, 64, 128]
     assert all(gpu_recipe.spread(kept[:n], 6)[-1] == kept[n - 1] for n in range(1, 9))
     assert set(gpu_recipe.KEEP_EPOCHS[:8]) == set(kept)
+
+
+def test_the_command_line_and_its_help(tmp_path):
+    """``--help`` of the tool and of each command exits 0, every option has help text; a PipelineError is one line
+    on stderr and exit status 2, as in ``python -m pipeline``."""
+    proc = recipe("--help")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("usage: python tools/gpu/recipe.py") and all(
+        c in proc.stdout for c in ("prepare", "run", "unpack"))
+    for command in ("prepare", "run", "unpack"):
+        proc = recipe(command, "--help")
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.startswith(f"usage: python tools/gpu/recipe.py {command}")
+    parser = gpu_recipe.build_parser()
+    (sub,) = [a for a in parser._actions if a.dest == "command"]
+    assert set(sub.choices) == {"prepare", "run", "unpack"}
+    for name, p in sub.choices.items():
+        assert p.description and "\n" not in p.description, name
+        for action in p._actions:
+            assert action.help, f"{name} {action.dest}"
+    args = parser.parse_args(["run", "--out", "o"])
+    assert (args.config, args.minutes, args.device, args.batch, args.crop, args.work) == (
+        "configs/ship.yaml", 9.0, "auto", 64, 128, "/tmp/mcdenoise_gpu")
+    proc = recipe("unpack", tmp_path / "no such run", tmp_path / "dest")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1, proc.stderr
+
+
+def test_the_installed_package_has_no_gpu_files():
+    """The recipe lives in tools/gpu/, outside every folder pyproject.toml installs, and nothing of it is package
+    data."""
+    tomllib = pytest.importorskip("tomllib")
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert not any("gpu" in pattern for patterns in setup.get("package-data", {}).values() for pattern in patterns)
+    assert not any(d.split("/")[0] == "tools" for d in setup["package-dir"].values())
+    assert not any(p.startswith("tools") for p in setup["packages"])
+    for folder in setup["package-dir"].values():
+        assert not [p for p in (ROOT / folder).rglob("*gpu*") if "__pycache__" not in p.parts], folder
+    assert not list((ROOT / "train").glob("gpu_*"))
+    assert {p.name for p in RECIPE.parent.iterdir() if p.is_file()} >= {"recipe.py", "recipe.sh", "image.txt"}

@@ -1,17 +1,17 @@
 """The GPU recipe: render, clean, train and time the shipped kind of model on one lent GPU machine, in one run.
 
 A lent machine (an H200 here) lives minutes and starts bare: nothing can be fetched there and at most
-64 MiB travel with the source tree. Prepared here (``python -m pipeline gpu-prepare``, CPU), ``.gpu/``
-holds what the machine's image lacks (``gpu_image.txt`` lists what it has): the packages as one
+64 MiB travel with the source tree. Prepared here (``python tools/gpu/recipe.py prepare``, CPU), ``.gpu/``
+holds what the machine's image lacks (``tools/gpu/image.txt`` lists what it has): the packages as one
 ``site.tar.xz`` (Mitsuba cut to the variants and plugins the renderer uses) and OIDN's aux networks
 (``oidn/*.tza``: pyoidn does not travel; ``pipeline.oidn`` runs them in PyTorch). There, as one
 command of the device tool (``carry: [".gpu"]``)::
 
-    bash train/gpu_recipe.sh                      # CONFIG=configs/ship.yaml MINUTES=9 OUT=$OUT
+    bash tools/gpu/recipe.sh                      # CONFIG=configs/ship.yaml MINUTES=9 OUT=$OUT
 
 and on the CPU, the same phases in seconds (the test suite runs this)::
 
-    DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash train/gpu_recipe.sh
+    DEVICE=cpu CONFIG=configs/tiny.yaml MINUTES=0.2 bash tools/gpu/recipe.sh
 
 The phases, each a command a user runs too, each timed; ``report.md`` and ``result.json`` are rewritten
 after every phase, so a run cut short still says how far it got:
@@ -29,11 +29,16 @@ Back in ``--out`` (8 files under 16 MiB): a model folder (``control.safetensors`
 ``base.tza``: the best epoch on the new store's val frames), ``snapshots.safetensors`` (the Control Modules of up to
 six epochs 1, 2, 4, 8, … spread over the run: on the ship data the val frames' best is not the best on scenes unlike
 them, docs/diffusion.md), ``report.md``, ``result.json`` (every timing, the validation curve against megapixels
-trained), ``loss.png`` and ``logs.txt``. ``python -m pipeline gpu-unpack FILES train/candidates/<name>`` turns them
-into model folders to score.
+trained), ``loss.png`` and ``logs.txt``. ``python tools/gpu/recipe.py unpack FILES train/candidates/<name>`` turns
+them into model folders to score.
+
+This is a tool of the checkout, not of the installed package: run as a script from anywhere, it puts the
+repository root first on ``sys.path`` and runs the phases (``python -m pipeline ...``) from there. Its commands:
+``prepare``, ``run`` (what ``recipe.sh`` starts) and ``unpack`` (``--help`` for each).
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import io
 import json
@@ -48,17 +53,21 @@ import time
 import zipfile
 from pathlib import Path
 
-from mcdenoise.pipeline.errors import TrainError
+# The repository root (a checkout has mcdenoise/ there): first on the path, so that the script imports the
+# checkout it belongs to; the phases run from there too.
+ROOT = Path(__file__).resolve().parents[2]
+if sys.path[:1] != [str(ROOT)]:
+    sys.path.insert(0, str(ROOT))
 
-from .model import SHIPPED_MODEL
+from mcdenoise.pipeline.errors import PipelineError, TrainError  # noqa: E402
+from mcdenoise.train.model import SHIPPED_MODEL  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-IMAGE = Path(__file__).with_name("gpu_image.txt")
+IMAGE = Path(__file__).with_name("image.txt")
 
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """One run of the recipe: the flags of ``python -m pipeline gpu-recipe`` (defaults and help there)."""
+    """One run of the recipe: the flags of ``python tools/gpu/recipe.py run`` (defaults and help there)."""
     config: str
     out: str
     model: str | None        # the model to train on (default: the shipped one)
@@ -127,7 +136,7 @@ class Recipe:
         self.result["phases"][name] = entry
         self.write()
         if rc not in (0, -signal.SIGTERM):
-            raise TrainError(f"gpu-recipe: {name} failed (exit {rc}): {last}; the whole output is in {self.log}")
+            raise TrainError(f"gpu recipe: {name} failed (exit {rc}): {last}; the whole output is in {self.log}")
         return entry
 
     def render(self) -> None:
@@ -152,7 +161,7 @@ class Recipe:
         entry["msamples_per_s"] = round(entry["samples"] / entry["seconds"] / 1e6, 2)
         entry["compile_s_per_frame"], entry["render_s_per_frame"] = frame_shares(records)
         if not entry["splits"]["train"] or not entry["splits"]["val"]:
-            raise TrainError(f"gpu-recipe: {entry['frames']} frames rendered in {limit:.0f} s, too few for a train and "
+            raise TrainError(f"gpu recipe: {entry['frames']} frames rendered in {limit:.0f} s, too few for a train and "
                              "a val split; give the recipe more minutes")
         self.write()
 
@@ -214,8 +223,7 @@ class Recipe:
         from safetensors.torch import load_file
 
         from mcdenoise.pipeline.weights import save_safetensors
-
-        from .model import FORMAT
+        from mcdenoise.train.model import FORMAT
         control = load_file(str(run / "control.safetensors"))
         save_safetensors(self.out / "control.safetensors",
                          {k: v.to(torch.float16).contiguous() for k, v in control.items()}, {"format": FORMAT})
@@ -228,13 +236,12 @@ class Recipe:
         """``snapshots.safetensors``: the Control Modules of up to SNAPSHOTS kept epochs (``keep_epochs``, spread
         over the run) in float16, keys ``epoch<N>.<name>``, each epoch's model.json in the metadata. The best epoch
         is chosen on the new store's val frames alone; these let the CPU score the run at several lengths on the
-        ``val_*`` scenes too (``gpu-unpack``)."""
+        ``val_*`` scenes too (``unpack``)."""
         import torch
         from safetensors.torch import load_file
 
         from mcdenoise.pipeline.weights import save_safetensors
-
-        from .model import FORMAT
+        from mcdenoise.train.model import FORMAT
         kept = sorted(int(d.name[5:]) for d in run.glob("epoch*") if (d / "control.safetensors").exists())
         chosen = spread(kept, SNAPSHOTS)
         if not chosen:
@@ -250,7 +257,7 @@ class Recipe:
 
     def bench(self) -> None:
         """``bench-denoise``'s timings (train.bench) of the model it started from, on this machine."""
-        from .bench import GPU_SIZES, measure, parse_sizes
+        from mcdenoise.train.bench import GPU_SIZES, measure, parse_sizes
         t = time.perf_counter()
         sizes = parse_sizes(GPU_SIZES) if self.cuda else [(64, 64)]
         try:
@@ -280,8 +287,7 @@ def unpack(files: Path, dest: Path) -> list[Path]:
 
     from mcdenoise.pipeline.exr import atomic_write_bytes
     from mcdenoise.pipeline.weights import save_safetensors
-
-    from .model import FORMAT, load
+    from mcdenoise.train.model import FORMAT, load
     folders = [dest]
     dest.mkdir(parents=True, exist_ok=True)
     for name in ("control.safetensors", "model.json", "base.tza"):
@@ -324,8 +330,8 @@ def check_packages() -> None:
                            "diffusers", "scipy", "matplotlib")
                if importlib.util.find_spec(m) is None]
     if missing:
-        raise TrainError(f"gpu-recipe: this machine lacks the Python module(s) {', '.join(missing)}: carry them in "
-                         ".gpu/site.tar.xz (python -m pipeline gpu-prepare)")
+        raise TrainError(f"gpu recipe: this machine lacks the Python module(s) {', '.join(missing)}: carry them in "
+                         ".gpu/site.tar.xz (python tools/gpu/recipe.py prepare)")
 
 
 def machine_text(torch) -> str:
@@ -373,7 +379,7 @@ def report(r: dict) -> str:
                          f"{c['gain_over_base']:+.3f} | " + " | ".join(f"{v:+.3f}" for k, v in c.items()
                                                                       if k.startswith("gain_spp")) + " |")
     if r.get("bench", {}).get("rows"):
-        from .bench import markdown
+        from mcdenoise.train.bench import markdown
         lines += ["", markdown(r["bench"])]
     elif r.get("bench"):
         lines += ["", f"bench: {r['bench']['error']}"]
@@ -388,7 +394,7 @@ SNAPSHOTS = 6
 
 # ---- preparation, on this machine ------------------------------------------------------------------
 
-# What the GPU image lacks, as pinned in requirements.lock (the image's own list: gpu_image.txt).
+# What the GPU image lacks, as pinned in requirements.lock (the image's own list: image.txt).
 CARRIED = ("mitsuba", "drjit", "OpenEXR", "trimesh", "diffusers")
 # Mitsuba's variants and plugins the renderer uses; the rest (other variants, volumes, curves,
 # polarisation, sun/sky data, spectral tables) stays behind: a 62.6 MB wheel becomes about 13 MB of xz.
@@ -402,7 +408,7 @@ MITSUBA_DROP_PLUGINS = (
 
 
 def image_packages() -> set[str]:
-    """The normalised names of the Python packages the GPU image has (gpu_image.txt)."""
+    """The normalised names of the Python packages the GPU image has (image.txt)."""
     names = set()
     for line in IMAGE.read_text().splitlines():
         line = line.split("#")[0].strip()
@@ -458,8 +464,7 @@ def prepare(out: Path = Path(".gpu"), python: str = "3.12", model: Path | None =
     """Write ``out``: ``site.tar.xz`` (the carried packages for the machine's Python, trimmed), ``oidn/`` (OIDN's
     aux networks) and ``carried.json`` (names, versions, sizes). Returns carried.json's content."""
     from mcdenoise.train import oidn
-
-    from .model import AUX_NETWORKS
+    from mcdenoise.train.model import AUX_NETWORKS
 
     out.mkdir(parents=True, exist_ok=True)
     pins = check_carried()
@@ -497,3 +502,87 @@ def download(pins: list[str], dest: Path, python: str) -> None:
     for tag in ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"):
         cmd += ["--platform", tag]
     subprocess.run(cmd + pins, check=True)
+
+
+# ---- command line ------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``prepare`` (here), ``run`` (on the machine: ``bash tools/gpu/recipe.sh``) and ``unpack`` (here again)."""
+    parser = argparse.ArgumentParser(prog="python tools/gpu/recipe.py",
+                                     description="The GPU recipe: prepare .gpu/ here, run on a lent GPU machine, "
+                                                 "unpack what comes back.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    text = "write .gpu/ for the GPU recipe: the packages a lent GPU machine's image lacks (tools/gpu/image.txt) " \
+           "and OIDN's aux networks"
+    p = sub.add_parser("prepare", help=text, description=text[0].upper() + text[1:] + ".")
+    p.add_argument("--out", default=".gpu", help="the folder to write (carried to the machine as .gpu)")
+    p.add_argument("--python", default="3.12", help="the machine's Python version (the wheels' ABI)")
+    p.add_argument("--no-wheels", action="store_true", help="OIDN's aux networks only")
+    p.set_defaults(fn=_prepare)
+
+    text = "on a lent GPU machine (bash tools/gpu/recipe.sh): render a store, clean it, train the shipped model on " \
+           "it and time denoising, in one run"
+    p = sub.add_parser("run", help=text, description=text[0].upper() + text[1:] + ".")
+    p.add_argument("--config", default="configs/ship.yaml", help="the config whose dataset is rendered")
+    p.add_argument("--out", required=True, help="the folder of the files that come back (at most 8)")
+    p.add_argument("--model", default=None, help="the model to train on (default: train/shipped)")
+    p.add_argument("--minutes", type=float, default=9.0, help="the whole run's wall-clock budget")
+    p.add_argument("--render-share", type=float, default=0.35, help="of the budget, for rendering")
+    p.add_argument("--clean-share", type=float, default=0.08, help="of the budget, for the cleaner's training")
+    p.add_argument("--seed", type=int, default=2000, help="the store's seed (other scenes than the shipped model saw)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if there is one), cuda or cpu")
+    p.add_argument("--workers", type=int, default=12, help="render processes")
+    p.add_argument("--batch", type=int, default=64, help="training crops per step")
+    p.add_argument("--crop", type=int, default=128, help="crop side (at most the frames' side, a multiple of 16)")
+    p.add_argument("--lr", type=float, default=2e-4, help="the Control Module's learning rate")
+    p.add_argument("--loader-workers", type=int, default=8, help="processes cutting training crops")
+    p.add_argument("--work", default="/tmp/mcdenoise_gpu", help="where the store and the runs go (emptied first)")
+    p.add_argument("overrides", nargs="*", default=[], help="key=value config overrides for every phase")
+    p.set_defaults(fn=_run)
+
+    text = "the GPU recipe's files as model folders to score: DEST (the best epoch) and DEST/epoch<N> for each of " \
+           "snapshots.safetensors"
+    p = sub.add_parser("unpack", help=text, description=text[0].upper() + text[1:] + ".")
+    p.add_argument("files", help="what the recipe's --out brought back")
+    p.add_argument("dest", help="e.g. train/candidates/gpu")
+    p.set_defaults(fn=_unpack)
+    return parser
+
+
+def _prepare(args) -> int:
+    print(json.dumps(prepare(Path(args.out), args.python, wheels=not args.no_wheels), indent=1))
+    return 0
+
+
+def _run(args) -> int:
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Settings) if f.name != "overrides"}
+    return run(Settings(**values, overrides=tuple(args.overrides)))
+
+
+def _unpack(args) -> int:
+    for folder in unpack(Path(args.files), Path(args.dest)):
+        print(folder)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """One command; a PipelineError prints one line (``error: ...``) and exits 2, as ``python -m pipeline`` does."""
+    parser = build_parser()
+    # key=value overrides may follow options too (`run --batch 2 seed=3`), as in python -m pipeline
+    args, extra = parser.parse_known_args(argv)
+    stray = [a for a in extra if a.startswith("-") or "=" not in a or args.command != "run"]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
+    try:
+        return args.fn(args)
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
