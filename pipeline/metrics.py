@@ -68,7 +68,7 @@ def _asarray(x):
     return x if is_torch(x) or isinstance(x, np.ndarray) else np.asarray(x, dtype=np.float64)
 
 
-def clamp(x, lo=None, hi=None):
+def clamp_values(x, lo=None, hi=None):
     """``x`` limited to [lo, hi] (either bound may be None), a numpy array or a torch tensor alike."""
     if is_torch(x):
         return x.clamp(min=lo, max=hi)
@@ -77,7 +77,7 @@ def clamp(x, lo=None, hi=None):
 
 def reinhard(x):
     """``max(x, 0) / (1 + max(x, 0))`` (paper eq. 7)."""
-    x = clamp(_asarray(x), 0.0)
+    x = clamp_values(_asarray(x), 0.0)
     return x / (1.0 + x)
 
 
@@ -87,31 +87,31 @@ def inverse_reinhard(y):
     No stage calls it: Reinhard is a tonemap of the losses and metrics, and every such transform has
     its inverse here with the round trip tested (tests/test_color_metrics.py); the metric tests build
     HDR inputs of a chosen tonemapped value with it."""
-    y = clamp(_asarray(y), 0.0, _REINHARD_MAX)
+    y = clamp_values(_asarray(y), 0.0, _REINHARD_MAX)
     return y / (1.0 - y)
 
 
 def log_compress(x, a: float = LOG_A):
     """``a·log(1 + max(x, 0))`` (paper eq. 5, a = 0.51)."""
-    x = clamp(_asarray(x), 0.0)
+    x = clamp_values(_asarray(x), 0.0)
     return a * _lib(x).log1p(x)
 
 
 def inverse_log_compress(y, a: float = LOG_A):
     """``exp(y / a) - 1`` for y >= 0 (expm1 keeps small values exact)."""
-    y = clamp(_asarray(y), 0.0)
+    y = clamp_values(_asarray(y), 0.0)
     return _lib(y).expm1(y / a)
 
 
 def gamma_compress(x, a: float = GAMMA_A, gamma: float = GAMMA):
     """``a·max(x, 0)^gamma`` (paper eq. 4, a = 0.47, gamma = 1/2.4)."""
-    x = clamp(_asarray(x), 0.0)
+    x = clamp_values(_asarray(x), 0.0)
     return a * x ** gamma
 
 
 def inverse_gamma_compress(y, a: float = GAMMA_A, gamma: float = GAMMA):
     """``(max(y, 0) / a)^(1/gamma)``."""
-    y = clamp(_asarray(y), 0.0)
+    y = clamp_values(_asarray(y), 0.0)
     return (y / a) ** (1.0 / gamma)
 
 
@@ -138,7 +138,7 @@ def _mean(x):
 def l1(pred, ref, clamp: tuple[float, float] | None = None):
     """Mean absolute error in HDR; ``clamp=(0, 6)`` clamps both images first (paper's L1)."""
     if clamp is not None:
-        pred, ref = clamp(pred, *clamp), clamp(ref, *clamp)
+        pred, ref = clamp_values(pred, *clamp), clamp_values(ref, *clamp)
     return _mean(abs(pred - ref))
 
 
