@@ -557,7 +557,7 @@ def test_fuzz_tza_blobs(capsys):
     from mcdenoise.pipeline.weights import TZA_VERSION, read_tza, write_tza
     original = _tza_original()
     assert write_tza(read_tza(original)) == original
-    out = Outcomes("TZA blobs (pipeline/tza.py)")
+    out = Outcomes("TZA blobs (pipeline/weights.py)")
     table = int.from_bytes(original[4:12], "little")
 
     def faithful(blob):
