@@ -1,6 +1,6 @@
 """Network inputs from store buffers, and the training pairs of the cleaner and the Isik baseline.
 
-Input channels: ``pipeline.features``' table with its default encoding (``ENCODING``): the
+Input channels: ``pipeline.schema``' table with its default encoding (``ENCODING``): the
 radiance buffers as ``log1p(max(x, 0))``, normals as stored (world space: image flips permute
 pixels but do not change world-space directions, so augmentation never touches the normal
 values), depth relative to the frame's largest, the other features as stored, one

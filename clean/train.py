@@ -11,7 +11,7 @@ cleaner and the Isik baseline: SMAPE (``clean.losses.smape``, ε = ``clean.smape
 ``train_recipe`` trains any recipe, so a network of another package on the same inputs (a
 competitor baseline) brings its own recipe and reuses the loop.
 
-``train_recipe`` runs a recipe through the loop every trainer shares (``pipeline.fit``; ``RecipeTask``
+``train_recipe`` runs a recipe through the loop every trainer shares (``clean.fit``; ``RecipeTask``
 says what is particular here): random crops and flips from the train split; a NaN guard (a step
 whose loss or gradient norm is not finite is skipped and counted, ``nan_limit`` in a row within
 an epoch stop the run with an error); after every epoch a validation pass over the whole frames
@@ -66,7 +66,7 @@ from .model import AffinityDenoiser
 
 
 def run_dir(cfg: Config, mode: str = "cleaner", spp: int | str | None = None) -> Path:
-    """``pipeline.runs.run_dir`` by this module's mode names (``baseline``: the Isik baseline)."""
+    """``pipeline.config.run_dir`` by this module's mode names (``baseline``: the Isik baseline)."""
     _check_mode(mode)
     return config_mod.run_dir(cfg, "isik" if mode == "baseline" else mode, spp)
 
@@ -230,7 +230,7 @@ def _step_generator(seed: int, epoch: int, step: int) -> torch.Generator:
 
 
 class RecipeTask(Task):
-    """A ``Recipe`` as ``pipeline.fit`` trains it: crops of the train split, whole val frames, the best
+    """A ``Recipe`` as ``clean.fit`` trains it: crops of the train split, whole val frames, the best
     by validation SMAPE (the training loss where the val split is empty)."""
 
     minimize = True

@@ -19,7 +19,6 @@
 - ``evaluate.run``: the evaluation loop (``make eval``).
 - ``evaluate.report``: tables (Markdown, CSV, JSON), the error-vs-time plot, the crop grids.
 - ``evaluate.stability``: every method on synthetic inputs that break denoisers (``make stability``).
-- ``evaluate.commands``: the subcommands ``eval`` and ``stability`` of ``python -m pipeline``.
 
 See docs/evaluation.md.
 """

@@ -10,14 +10,14 @@ method.
 Names (``eval.methods``):
 
 - ``noisy``: the input colour itself.
-- ``oidn``: Intel Open Image Denoise 2.5 (``pipeline.oidn``: filter RT, HDR, quality high) with
+- ``oidn``: Intel Open Image Denoise 2.5 (``train.oidn``: filter RT, HDR, quality high) with
   albedo and normal; ``oidn_albedo``: colour and albedo; ``oidn_color``: colour only;
   ``oidn_prefilter``: OIDN's mode for final frames with noisy aux (albedo and normal denoised by its
   aux networks first, then ``cleanAux``: its ``rt_hdr_calb_cnrm_large`` network at quality high),
   three filter runs.
 - ``oidn_ft``: OIDN's network fine-tuned on the store (``train.baselines.oidn_ft``, run
   ``runs/<...>/oidn_ft_rt_hdr_alb_nrm``, ``make train MODEL=oidn_ft SPP=any``; one model for every
-  spp), run by OIDN itself with the exported float16 weights (``pipeline.oidn``'s ``weights``), at
+  spp), run by OIDN itself with the exported float16 weights (``train.oidn``'s ``weights``), at
   ``oidn_ft.blend``; ``oidn_ft_albedo`` and ``oidn_ft_color``: the colour + albedo and the colour-only
   networks' runs (``oidn_ft_rt_hdr_alb``, ``oidn_ft_rt_hdr``); ``oidn_ft_prefilter``: OIDN's final-frame
   network fine-tuned (``oidn_ft_rt_hdr_calb_cnrm_large``), run as ``oidn_prefilter`` runs. Each row without a run of its own runs the
@@ -40,7 +40,7 @@ Names (``eval.methods``):
   what the Control Module changes). E.g. ``ours_s1``, ``ours_s3_k4``, ``base_only_s1``,
   ``ours_strength50``.
 - ``_xN`` after any name (N in 2, 4, 8; last): that method's self-ensemble over N flipped and transposed
-  copies of the frame (``pipeline.ensemble``), at N times its cost, e.g. ``oidn_x8``, ``ours_x8``.
+  copies of the frame (``train.infer.self_ensemble``), at N times its cost, e.g. ``oidn_x8``, ``ours_x8``.
   These are looked up lazily, as
 
       from mcdenoise.train.infer import load_denoiser
@@ -201,7 +201,7 @@ class Noisy(Method):
 class OIDN(Method):
     """OIDN on colour and the aux layers of ``network`` (``oidn.network_aux``), with its built-in
     weights or, for the oidn_ft rows, ``weights`` (the float16 TZA blob of an oidn_ft run or shipped file);
-    a ``_calb_cnrm`` network gets its aux prefiltered by OIDN (``pipeline.oidn``'s ``clean_aux``)."""
+    a ``_calb_cnrm`` network gets its aux prefiltered by OIDN (``train.oidn``'s ``clean_aux``)."""
     name: str = "oidn"
     network: str = "rt_hdr_alb_nrm"
     weights: bytes | None = None
@@ -287,7 +287,7 @@ class Diffusion(Method):
 @dataclass
 class SelfEnsemble(Method):
     """``inner`` on ``n`` flipped and transposed copies of the frame, turned back and averaged
-    (``pipeline.ensemble``): ``n`` times its cost. No per-pixel uncertainty of its own."""
+    (``train.infer.self_ensemble``): ``n`` times its cost. No per-pixel uncertainty of its own."""
 
     inner: Method = None
     n: int = 8

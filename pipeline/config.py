@@ -9,7 +9,7 @@ Each section (a ``Section``) holds the value checks of its own keys in ``check``
 runs them all after loading. The trainer sections (clean, afgsa, diffusion, oidn_ft)
 share the settings of ``TrainingConfig``, declared, documented and checked there once. The rules
 of the diffusion formulation keys (``check_formulation``) live here too, for ``DiffusionConfig``
-and for ``train.formulation.Formulation``, which is also built from model.json records.
+and for ``train.sampler.Formulation``, which is also built from model.json records.
 """
 from __future__ import annotations
 
@@ -305,8 +305,8 @@ PRECISIONS = ("auto", "fp32", "bf16")   # diffusion.precision
 
 
 # ---- the diffusion formulation -------------------------------------------------------------------
-# What the diffusion model diffuses and how it samples (train/formulation.py). The choices of its keys
-# and their rules live here, where both the config and train.formulation.Formulation read them.
+# What the diffusion model diffuses and how it samples (train/sampler.py). The choices of its keys
+# and their rules live here, where both the config and train.sampler.Formulation read them.
 
 SCHEDULES = ("if", "zero_snr")
 STARTS = ("noise", "render", "estimate")
@@ -315,7 +315,7 @@ TRAIN_STEPS = 1000   # IF's training timesteps; the sampler spaces `steps` of th
 
 def check_formulation(f, bad: Bad) -> None:
     """Refuse formulation fields that cannot work: ``f`` is a ``DiffusionConfig`` or a
-    ``train.formulation.Formulation``, ``bad`` gets the key inside the ``diffusion`` section."""
+    ``train.sampler.Formulation``, ``bad`` gets the key inside the ``diffusion`` section."""
     for key, choices in (("schedule", SCHEDULES), ("start", STARTS)):
         if getattr(f, key) not in choices:
             bad(key, f"expected one of {', '.join(choices)}, got {getattr(f, key)!r}")

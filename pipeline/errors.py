@@ -14,13 +14,13 @@ those catches it too.
 - ``TrainError``: a training run cannot proceed (no data, bad arguments, diverged ranks); a
   ``StoreError`` too.
 - ``MitsubaSetupError``: Mitsuba or its LLVM backend cannot be used here (``pipeline.mitsuba_env``).
-- ``OIDNUnavailable``: ``pyoidn`` cannot be imported here (``pipeline.oidn``).
+- ``OIDNUnavailable``: ``pyoidn`` cannot be imported here (``train.oidn``).
 - ``WeightsError``: OIDN's weights cannot be found or read (a ``.tza`` file, the blobs inside
-  pyoidn's library: ``pipeline.tza``, ``pipeline.oidn_weights``).
+  pyoidn's library: ``pipeline.weights``, ``train.oidn``).
 - ``TaskFailed``: a task of the executor failed for good (``pipeline.executors``).
 
 Stage-specific errors derive from ``PipelineError`` where they are defined
-(``render.frame.ExternalSceneError``, ``train.formulation.FormulationError`` via
+(``render.frame.ExternalSceneError``, ``train.sampler.FormulationError`` via
 ``ConfigError``, ``evaluate.methods.MethodUnavailable``).
 """
 from __future__ import annotations

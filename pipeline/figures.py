@@ -4,7 +4,7 @@
 the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row shows the same
 ``size``² window of every image, picked where the row's reference image has the most gradient
 energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
-``pipeline.color.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
+``pipeline.metrics.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
 when every value is positive).
 """
 from __future__ import annotations

@@ -19,5 +19,4 @@
 - ``render.external``: a user's Mitsuba scene into the store's ``external`` split (``render-scene``).
 - ``render.plan``: what a config costs before anything runs (``plan``).
 - ``render.bench``: the dataset stage's performance claims, measured (``make bench``).
-- ``render.commands``: those four subcommands of ``python -m pipeline`` (flags, dispatch).
 """

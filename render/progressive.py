@@ -57,7 +57,7 @@ def pass_seed(seed: int, k: int) -> int:
 
 def estimated_mse(color: np.ndarray, variance: np.ndarray) -> float:
     """Expected squared error of the mean against the true image on the metric's tonemap
-    T(x) = max(x, 0)/(1 + max(x, 0)) (``pipeline.color.reinhard``), by the delta method:
+    T(x) = max(x, 0)/(1 + max(x, 0)) (``pipeline.metrics.reinhard``), by the delta method:
     mean over pixels and channels of T'(m)²·Var(m), with T'(m) = 1/(1 + max(m, 0))²."""
     m = np.maximum(color.astype(np.float64), 0.0)
     return float(np.mean(variance.astype(np.float64) / (1.0 + m) ** 4))

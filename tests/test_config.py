@@ -213,7 +213,7 @@ def test_section_checks_keep_their_messages():
             load_config(None, [override])
 
 
-# ---- the formulation keys: one set of rules for the config and train.formulation -----------------
+# ---- the formulation keys: one set of rules for the config and train.sampler -----------------
 
 def test_skip_counts_in_the_samplers_steps():
     d = load_config(None, ["diffusion.steps=50", "diffusion.skip=30"]).diffusion

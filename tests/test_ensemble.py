@@ -1,4 +1,4 @@
-"""The dihedral self-ensemble (pipeline/ensemble.py) and its evaluator rows (``<method>_xN``)."""
+"""The dihedral self-ensemble (train/infer.py) and its evaluator rows (``<method>_xN``)."""
 import numpy as np
 import pytest
 

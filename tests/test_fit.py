@@ -1,4 +1,4 @@
-"""The shared training loop (pipeline.fit) on a toy task, and the shared feature table (pipeline.features)
+"""The shared training loop (clean.fit) on a toy task, and the shared feature table (pipeline.schema)
 as the cleaner's and the diffusion model's encoders use it."""
 import json
 

@@ -1,4 +1,4 @@
-"""The formulation (train/formulation.py): the min-SNR weight, the training timesteps, the rules the
+"""The formulation (train/sampler.py): the min-SNR weight, the training timesteps, the rules the
 config and model.json records share, and records from before the per-crop loss."""
 import re
 

@@ -1,4 +1,4 @@
-"""pipeline/noise.py: telling pixel-independent noise (box filter) from spatially correlated noise
+"""train/infer.py: telling pixel-independent noise (box filter) from spatially correlated noise
 (a wide reconstruction filter, which OIDN does not remove)."""
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""oidn_ft (train/oidn_ft.py): OIDN's network fine-tuned on the store, used by the evaluator, exported
+"""oidn_ft (train/baselines/oidn_ft.py): OIDN's network fine-tuned on the store, used by the evaluator, exported
 as OIDN weights and run by OIDN itself."""
 import json
 import shutil

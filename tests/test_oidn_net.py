@@ -1,5 +1,5 @@
-"""OIDN's network in PyTorch (pipeline.oidn_net), its weights (pipeline.oidn_weights, pipeline.tza)
-and OIDN running weights we wrote (pipeline.oidn.denoise(weights=...)), against pyoidn itself."""
+"""OIDN's network in PyTorch (train.model), its weights (train.oidn, pipeline.weights)
+and OIDN running weights we wrote (train.oidn.denoise(weights=...)), against pyoidn itself."""
 import numpy as np
 import pytest
 import torch

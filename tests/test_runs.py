@@ -1,4 +1,4 @@
-"""Run folders (``pipeline.runs``): one naming rule for every trainer, and the per-stage spellings
+"""Run folders (``pipeline.config``): one naming rule for every trainer, and the per-stage spellings
 that delegate to it."""
 import pytest
 

@@ -1,15 +1,5 @@
-"""The data: what the denoiser reads (every buffer in OIDN's space), its training packs and crops, and
-where a training run's frames come from (``StoreSource``).
-
-**Inputs** (``inputs``, the one place every caller encodes a frame): OIDN's own network input
-``x`` (``pipeline.oidn_net.network_input``: colour × OIDN's autoexposure in PU, albedo, normal) and
-the condition ``cond``: ``pipeline.features``' table in OIDN's space (each radiance buffer as
-PU(radiance × the same exposure), normals as stored, depth relative, the material features, one
-relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer
-group saying whether the input had it (``GROUPS``). A group an input lacks (an EXR from another
-renderer has no variances, no radiance split, no material buffers) is its background value, 0,
-with its presence map 0: the network is trained with such inputs (``DROPOUT``), so it serves
-them rather than falling back.
+"""The data: training packs and crops, and where a training run's frames come from (``StoreSource``); the
+network's input encoding itself is ``train.model.inputs``.
 
 **Pack** (``ensure_pack``): the store decoded once: per frame and (spp, variant) of
 ``PACK_VARIANTS`` (disjoint stack subsets), ``x`` and

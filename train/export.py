@@ -117,7 +117,7 @@ def _gt_spp(d) -> str:
 def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, config: str | None = None,
                 overrides: list[str] | tuple = ()) -> Path:
     """The oidn_ft run of ``oidn_ft.network`` (blended by ``oidn_ft.blend``) as a float16 TZA file that
-    OIDN 2.x loads as custom weights (``pipeline.oidn``; a host's filter parameter ``weights``), with a
+    OIDN 2.x loads as custom weights (``train.oidn``; a host's filter parameter ``weights``), with a
     ``.json`` sidecar (network, blend, validation scores, sha256). ``out``: a ``.tza`` path, or a folder
     that gets ``<network>.tza``; default ``<runs>/oidn_ft_<network>.tza``."""
     from mcdenoise.pipeline.config import run_dir as runs_dir

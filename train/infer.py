@@ -194,7 +194,7 @@ def _exr_spp(path: Path) -> tuple[int, str]:
 
 
 def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
-    """A warning on stderr when the input's noise is spatially correlated (pipeline/noise.py)."""
+    """A warning on stderr when the input's noise is spatially correlated (train/infer.py)."""
     ratio = correlated_noise(color)
     if ratio is not None:
         print(f"warning: {exr}: its noise looks spatially correlated (neighbour ratio {ratio:.2f} < "
@@ -210,7 +210,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
                 device: str | None = None, precision: str = "auto") -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
     mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
-    both over that many flipped and transposed copies (``pipeline.ensemble``); ``strength``: the fraction of
+    both over that many flipped and transposed copies (``train.infer.self_ensemble``); ``strength``: the fraction of
     the Control Module's change applied (default: the model's)."""
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")

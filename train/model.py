@@ -1,8 +1,29 @@
-"""The network: OIDN's network, frozen, with a Control Module (paper Fig. 1); where models are, save and load.
+"""The network: OIDN's network in PyTorch, frozen, with a Control Module (paper Fig. 1); its input; where models
+are, save and load. Read top to bottom: OIDN's HDR processing, its aux prefilter, the network's input, OIDN's
+UNet, the Control Module on it, then model folders.
 
-The base is OIDN's UNet (``pipeline.oidn_net``) with OIDN's weights, or an ``oidn_ft`` run's;
-it never trains. It reads what OIDN reads (colour, albedo, normal in OIDN's input space) and its
-output, decoded without help, is OIDN's own output: the first estimate.
+**OIDN's network** (equal to pyoidn's output: ``tests/test_oidn_net.py``), built from a TZA archive's shapes
+(``pipeline.weights``, ``train.oidn``), so the colour, +albedo and +albedo+normal networks (3/6/9 input
+channels), their ``_small`` variants and the ``_large`` layout (``rt_hdr_calb_cnrm_large``, what OIDN runs at
+quality high on prefiltered aux) all load. The UNet (OIDN's ``training/model.py``, ``UNet`` and ``UNetLarge``;
+``Layout`` names the layers): 3×3 convolutions with padding 1, each followed by a ReLU except the last; five
+encoder levels with 2×2 max pooling after the first four (one or two convolutions each; the large layout always
+two, and wider); a decoder of nearest ×2 upsampling, concatenation ``[upsampled, skip]`` (the order matters)
+and two convolutions per level, the last level concatenating the network input itself, then the output
+convolution. Its HDR processing (OIDN's core: ``autoexposure``, ``network_input``, ``network_output``) is
+described where it is defined.
+
+**The network's input** (``inputs``, the one place every caller encodes a frame): OIDN's own input ``x``
+(colour × OIDN's autoexposure in PU, albedo, normal; prefiltered by OIDN's aux networks for a ``_calb_cnrm``
+base) and the condition ``cond``: ``pipeline.schema``'s feature table in OIDN's space (each radiance buffer as
+PU(radiance × the same exposure), normals as stored, depth relative, the material features, one
+relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer group saying
+whether the input had it (``GROUPS``). A group an input lacks (an EXR from another renderer has no variances,
+no radiance split, no material buffers) is its background value, 0, with its presence map 0: the network is
+trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back.
+
+**The base** is OIDN's UNet with OIDN's weights, or an ``oidn_ft`` run's; it never trains. It reads what OIDN
+reads and its output, decoded without help, is OIDN's own output: the first estimate.
 
 The Control Module is a trainable copy of the base's encoder (``enc_conv0`` … ``enc_conv5b``, or the
 large layout's ``enc_conv1a`` … ``enc_conv5b``,
@@ -527,7 +548,7 @@ def clean_aux(meta: dict) -> bool:
 
 def run_dir(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """``diffusion_spp4``, ``diffusion_sppany``, ``diffusion_sppany_<variant>`` under ``cfg.runs``
-    (``pipeline.runs.run_dir``)."""
+    (``pipeline.config.run_dir``)."""
     return config_mod.run_dir(cfg, "diffusion", spp, variant)
 
 

@@ -243,7 +243,7 @@ def network_aux(network: str) -> tuple[str, ...]:
 
 def clean_aux(network: str) -> bool:
     """Whether the network expects noise-free albedo and normal (``_calb_cnrm``: OIDN's final-frame mode,
-    noisy aux first denoised by its aux networks, ``pipeline.oidn.prefilter_aux``)."""
+    noisy aux first denoised by its aux networks, ``train.oidn.prefilter_aux``)."""
     return "_calb_cnrm" in network
 
 

@@ -3,13 +3,13 @@
     make train SPP=any      → python -m pipeline train --model diffusion --spp any → train(cfg, "any")
                             → runs/<config>/diffusion_sppany[_<name>]/
 
-``train`` runs ``RefineTask`` under ``pipeline.fit`` (epochs, the time budget, resuming, the best
+``train`` runs ``RefineTask`` under ``clean.fit`` (epochs, the time budget, resuming, the best
 checkpoint). The task reads top to bottom: the model (``train.model``: OIDN frozen, a new Control
 Module or a trained one to warm-start from), the data (``train.data``: the store's pack, crops with
 OIDN's augmentation and buffer-group dropout, the val frames), the optimiser (AdamW on the Control
 Module only, warm-up and cosine decay, an EMA of its weights); then the step, inline: the residual
 around the base's output is noised at a t drawn with ``t_focus`` on the sampler's steps
-(``train.formulation``), the network predicts x̂₀, the loss is each crop's error relative to OIDN's
+(``train.sampler``), the network predicts x̂₀, the loss is each crop's error relative to OIDN's
 (``train.loss``), weighted by min-SNR; then validation (``train.sampler``, PSNR against the base's)
 and the files. DDP under torchrun. The run folder: ``control.safetensors`` (the Control Module, EMA),
 ``base.tza`` (the frozen base's float16 weights, so the run is self-contained), ``model.json``,
@@ -49,7 +49,7 @@ from .sampler import Formulation, sample, snr_weight
 
 
 def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
-    """Train (or resume) the Control Module on OIDN; ``pipeline.fit``'s summary."""
+    """Train (or resume) the Control Module on OIDN; ``clean.fit``'s summary."""
     try:
         return fit(RefineTask(cfg, spp, quiet), quiet=quiet)
     finally:

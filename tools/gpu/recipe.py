@@ -4,7 +4,7 @@ A lent machine (an H200 here) lives minutes and starts bare: nothing can be fetc
 64 MiB travel with the source tree. Prepared here (``python tools/gpu/recipe.py prepare``, CPU), ``.gpu/``
 holds what the machine's image lacks (``tools/gpu/image.txt`` lists what it has): the packages as one
 ``site.tar.xz`` (Mitsuba cut to the variants and plugins the renderer uses) and OIDN's aux networks
-(``oidn/*.tza``: pyoidn does not travel; ``pipeline.oidn`` runs them in PyTorch). There, as one
+(``oidn/*.tza``: pyoidn does not travel; ``train.oidn`` runs them in PyTorch). There, as one
 command of the device tool (``carry: [".gpu"]``)::
 
     bash tools/gpu/recipe.sh                      # CONFIG=configs/ship.yaml MINUTES=9 OUT=$OUT

@@ -352,7 +352,7 @@ def afgsa_recipe(cfg: Config, spp) -> Recipe:
 
 def train(cfg: Config, spp, quiet: bool = False) -> dict:
     """Train (or resume) AFGSA from the ``spp`` (or 'any': 4/16/64) low-spp buffers to ``afgsa.target``;
-    a summary dict. The best weights end up in ``pipeline.runs.run_dir(cfg, "afgsa", spp)``."""
+    a summary dict. The best weights end up in ``pipeline.config.run_dir(cfg, "afgsa", spp)``."""
     started = time.perf_counter()
     if not spp:
         raise TrainError("the afgsa model needs an spp (make train MODEL=afgsa SPP=4)")

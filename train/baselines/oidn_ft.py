@@ -2,7 +2,7 @@
 
     make train MODEL=oidn_ft SPP=any     → runs/<...>/oidn_ft_<network>/   (one model for 4 … 64 spp)
 
-The run reads top to bottom in ``OIDNFineTune``: the network is OIDN's (``pipeline.oidn_net``,
+The run reads top to bottom in ``OIDNFineTune``: the network is OIDN's (``train.model``,
 weights from pyoidn's library or ``oidn.weights``), the data are random crops of the train
 split at a random sample count (``FrameCrops``), the step is one Adam update of L1 (or L1 + SSIM)
 in OIDN's output space, and validation scores whole val frames at every sample count, by PSNR
@@ -20,7 +20,7 @@ against GT_clean (the best epoch is kept). What keeps the prior's generality (me
 
 Files of the run folder: ``model.safetensors`` + ``model.json`` (the best epoch: float32 UNet
 weights, the network name, the prior's sha256, the validation scores beside stock OIDN's),
-``last.safetensors`` (resume; ``pipeline.fit``), ``train.json`` and ``loss.png``.
+``last.safetensors`` (resume; ``clean.fit``), ``train.json`` and ``loss.png``.
 """
 from __future__ import annotations
 
@@ -393,7 +393,7 @@ class OIDNFineTune(Task):
 
 
 def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
-    """Train (or resume) ``oidn_ft`` and return ``pipeline.fit``'s summary."""
+    """Train (or resume) ``oidn_ft`` and return ``clean.fit``'s summary."""
     if str(spp) != "any":
         raise TrainError("oidn_ft is one model for every sample count, as OIDN's own: use SPP=any")
     return fit(OIDNFineTune(cfg, spp), quiet=quiet)
@@ -403,7 +403,7 @@ def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
 
 
 def export_blob(net: UNet) -> bytes:
-    """The float16 TZA blob OIDN runs (``pipeline.oidn.denoise(weights=...)``, a host's ``weights``)."""
+    """The float16 TZA blob OIDN runs (``train.oidn.denoise(weights=...)``, a host's ``weights``)."""
     return write_tza(net.to_tza())
 
 
