@@ -153,7 +153,27 @@ def _channel_groups(aux: int) -> tuple[list[list[int]], list[list[int]]]:
     return colours, normals
 
 
-class Crops(Dataset):
+class EpochItems(Dataset):
+    """``per_frame`` items per frame of ``frames``, item ``index`` of an epoch drawn from
+    ``default_rng([seed, epoch, index])``: the same batches with any number of loader workers, and a resumed run
+    draws what an uninterrupted one would. The crop datasets of the denoiser and of the baselines share it."""
+
+    frames: list
+    per_frame: int
+    seed: int
+    epoch: int = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.frames) * self.per_frame
+
+    def item_rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, self.epoch, index])
+
+
+class Crops(EpochItems):
     """Random crops of a pack, augmented; item ``index`` of an epoch from ``default_rng([seed, epoch, index])``.
 
     Items: ``x`` (OIDN's input), ``cond``, ``target`` (PU of GT_clean at the item's exposure), ``scale``, ``spp``."""
@@ -177,14 +197,8 @@ class Crops(Dataset):
         if self.crop > min(H, W) or self.crop % ALIGNMENT:
             raise StoreError(f"crop {self.crop}: must be a multiple of {ALIGNMENT} up to the frames' {min(H, W)}")
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
-    def __len__(self) -> int:
-        return len(self.frames) * self.per_frame
-
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        rng = np.random.default_rng([self.seed, self.epoch, index])
+        rng = self.item_rng(index)
         options = self.by_frame[self.frames[index // self.per_frame]]
         i = options[int(rng.integers(len(options)))]
         p = self.pack

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
 from mcdenoise.clean.fit import Task, apply_update, fit
 from mcdenoise.pipeline import config as config_mod, weights
@@ -47,6 +47,7 @@ from mcdenoise.pipeline.store import FrameKey, Store, stack_name
 from mcdenoise.pipeline.weights import read_tza, write_tza
 from mcdenoise.train import oidn
 
+from ..data import EpochItems
 from ..model import UNet, autoexposure, network_input, to_pu, unet_denoise
 
 FORMAT = weights.FORMATS["oidn_ft"]
@@ -117,7 +118,7 @@ def _unlike(images: dict[str, np.ndarray], rng: np.random.Generator, min_side: i
     return out
 
 
-class FrameCrops(Dataset):
+class FrameCrops(EpochItems):
     """Training items: a crop of a train frame at a random sample count, as OIDN's network reads it.
 
     Item ``index`` of an epoch draws from ``default_rng([seed, epoch, index])`` (resumes exactly):
@@ -131,14 +132,8 @@ class FrameCrops(Dataset):
         self.seed, self.aux, self.augment, self.distill, self.epoch = seed, aux, augment, distill, 0
         self.diversify = diversify
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
-    def __len__(self) -> int:
-        return len(self.frames) * self.per_frame
-
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        rng = np.random.default_rng([self.seed, self.epoch, index])
+        rng = self.item_rng(index)
         frame = self.frames[index // self.per_frame]
         spp = self.spps[int(rng.integers(len(self.spps)))]
         k = spp // frame.stack_spp
