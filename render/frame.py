@@ -147,21 +147,61 @@ def render_frame(task: FrameTask) -> dict:
     t_start = time.perf_counter()
     store = Store(task.store)
     names = task.images or image_names(task.stacks)
-    existing = store.frame_record(task.scene, task.frame) if not task.images else None
-    if existing and all(n in existing.get("images", {}) and store.image_path(task.scene, task.frame, n).exists()
-                        for n in names):
-        return {**existing, "skipped": True}
-    # A SIGKILL during a write leaves its temporary file (never a partial image): drop them.
-    # Only the task of this frame writes into this folder, so nothing live is removed.
-    frame_dir = store.frame_dir(task.scene, task.frame)
-    for tmp in frame_dir.glob(".*.tmp") if frame_dir.exists() else ():
-        tmp.unlink(missing_ok=True)
+    done = _already_rendered(store, task, names)
+    if done is not None:
+        return done
+    _drop_temporary_files(store, task)
     mi = import_mitsuba(task.render["variant"], task.render["threads"])
     scene, features, build_s = frame_scene(mi, task)
     t0 = time.perf_counter()
     sensor = frame_sensor(mi, task, scene)
     build_s += time.perf_counter() - t0
+    records, gt_color, render_s, write_s, reused = _render_images(mi, scene, sensor, store, task, names, features)
+    w, h = (int(v) for v in sensor.film().size())
+    record = {
+        "scene": task.scene, "frame": task.frame, "width": w, "height": h,
+        "images": records, "features": sorted(features),
+        "samples": int(w * h * sum(r["spp"] for r in records.values())),
+        "nonfinite": sum(sum(r.get("nonfinite", {}).values()) for r in records.values()),
+        "bytes": sum(r["bytes"] for r in records.values()),
+        "timing": {"build": round(build_s, 4), "render": round(render_s, 4), "write": round(write_s, 4),
+                   "total": round(time.perf_counter() - t_start, 4)},
+        "reused_images": reused,
+        **gt_summary(store, task, records, gt_color),
+        # The camera frame (columns: left, up, forward, origin): lets consumers turn the
+        # world-space normals into camera space (train.data).
+        "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
+                                    .reshape(4, 4), 6).tolist(),
+    }
+    if "xml" in task.desc:
+        record["scene_notes"] = external_notes(mi, scene)
+    if not task.images:
+        store.write_frame_record(task.scene, task.frame, record)
+    return record
 
+
+def _already_rendered(store: Store, task: FrameTask, names) -> dict | None:
+    """The frame's record marked ``skipped`` when all of ``names`` are on disk and recorded, else None."""
+    # A task for a subset of the images (task.images) writes no frame.json, so it has none to go by.
+    existing = store.frame_record(task.scene, task.frame) if not task.images else None
+    if existing and all(n in existing.get("images", {}) and store.image_path(task.scene, task.frame, n).exists()
+                        for n in names):
+        return {**existing, "skipped": True}
+    return None
+
+
+def _drop_temporary_files(store: Store, task: FrameTask) -> None:
+    """Remove the temporary files that interrupted writes left in the frame's folder."""
+    # A SIGKILL during a write leaves its temporary file (never a partial image): drop them.
+    # Only the task of this frame writes into this folder, so nothing live is removed.
+    frame_dir = store.frame_dir(task.scene, task.frame)
+    for tmp in frame_dir.glob(".*.tmp") if frame_dir.exists() else ():
+        tmp.unlink(missing_ok=True)
+
+
+def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, features) -> tuple:
+    """Render and write each image of ``names`` not already on disk: (records, ground-truth colours,
+    render seconds, write seconds, number of images reused)."""
     records: dict[str, dict] = {}
     gt_color: dict[str, np.ndarray] = {}
     render_s = write_s = 0.0
@@ -188,27 +228,7 @@ def render_frame(task: FrameTask) -> dict:
         if name in GT_IMAGES:
             gt_color[name] = result.buffers["color"]
         write_s += time.perf_counter() - t0
-    w, h = (int(v) for v in sensor.film().size())
-    record = {
-        "scene": task.scene, "frame": task.frame, "width": w, "height": h,
-        "images": records, "features": sorted(features),
-        "samples": int(w * h * sum(r["spp"] for r in records.values())),
-        "nonfinite": sum(sum(r.get("nonfinite", {}).values()) for r in records.values()),
-        "bytes": sum(r["bytes"] for r in records.values()),
-        "timing": {"build": round(build_s, 4), "render": round(render_s, 4), "write": round(write_s, 4),
-                   "total": round(time.perf_counter() - t_start, 4)},
-        "reused_images": reused,
-        **gt_summary(store, task, records, gt_color),
-        # The camera frame (columns: left, up, forward, origin): lets consumers turn the
-        # world-space normals into camera space (train.data).
-        "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
-                                    .reshape(4, 4), 6).tolist(),
-    }
-    if "xml" in task.desc:
-        record["scene_notes"] = external_notes(mi, scene)
-    if not task.images:
-        store.write_frame_record(task.scene, task.frame, record)
-    return record
+    return records, gt_color, render_s, write_s, reused
 
 
 def render_one(mi, scene, sensor, task: FrameTask, name: str, features) -> tuple:

@@ -267,11 +267,9 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
     """Measure the constants of the model on this machine (about two minutes on 2 cores)."""
     import drjit as dr
 
-    from mcdenoise.pipeline.exr import write_image
     from mcdenoise.pipeline.mitsuba_env import import_mitsuba
-    from mcdenoise.pipeline.store import sha256
 
-    from .buffers import needed_features, render_image
+    from .buffers import needed_features
     from .scene import build_scene, build_sensor, random_scene
 
     mi = import_mitsuba(cfg.render.variant, threads)
@@ -288,40 +286,13 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
             builds.append(time.process_time() - t0)
             for res in resolutions:
                 sensor = build_sensor(mi, desc, 0, res, res)
-                for depth in depths:
-                    kw = dict(features=features, max_depth=depth, rr_depth=cfg.render.rr_depth)
-                    render_image(mi, scene, sensor, spp=spps[0], seed=99, **kw)   # compile
-                    for spp in spps:
-                        # F821 is a false positive: ruff sees the `del scene` below; the lambda runs here, before it
-                        best = min(_cpu_seconds(lambda: render_image(mi, scene, sensor, spp=spp, seed=r, **kw))  # noqa: F821
-                                   for r in range(repeats))
-                        timings.setdefault(str(res), {}).setdefault(str(depth), []).append((res * res * spp, best))
-                # bytes and write time of a stack and a ground truth at the largest depth
-                raw = raw_bytes_per_pixel() * res * res
-                for kind, spp in (("stack", cfg.dataset.stack_spp), ("gt", gt_spp)):
-                    if kind == "gt" and res != min(resolutions):
-                        continue   # the 1024 spp reference only at the small size (time)
-                    result = render_image(mi, scene, sensor, spp=spp, seed=7, features=features,
-                                          max_depth=max(depths), rr_depth=cfg.render.rr_depth)
-                    path = tmp / f"{kind}{i}_{res}.exr"
-                    t0 = time.process_time()
-                    write_image(path, result.buffers, result.constants, encoding=cfg.render.encoding)
-                    sha256(path)
-                    writes.append((time.process_time() - t0) / (res * res / 1e6))
-                    ratios[kind].append(path.stat().st_size / raw)
-                    if kind == "gt":
-                        clean = tmp / f"clean{i}.exr"
-                        color = result.buffers["color"]
-                        write_image(clean, {"color": color, "color.variance": np.zeros_like(color)})
-                        ratios["gt_clean"].append(clean.stat().st_size / (res * res * 12))
+                _time_renders(mi, scene, sensor, features, cfg, res, depths, spps, repeats, timings)
+                _measure_writes(mi, scene, sensor, features, cfg, i, res, resolutions, depths, gt_spp, tmp,
+                                writes, ratios)
             del scene
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    render = {}
-    for res, per_depth in timings.items():
-        for depth, points in per_depth.items():
-            a, b = _fit(points)
-            render.setdefault(res, {})[depth] = {"rate": round(1.0 / b), "overhead_s": round(a, 4)}
+    render = _fit_render(timings)
     return {
         "date": time.strftime("%Y-%m-%d"),
         "machine": f"{_cpu_name()}, {os.cpu_count()} cores, {used_threads} render thread(s), "
@@ -335,6 +306,58 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
         "encoding": cfg.render.encoding,
         "encoding_factor": MEASURED["encoding_factor"],
     }
+
+
+def _time_renders(mi, scene, sensor, features, cfg: Config, res: int, depths, spps, repeats: int,
+                  timings: dict) -> None:
+    """Add (samples, best CPU seconds) of each depth and spp at resolution ``res`` to ``timings[res][depth]``."""
+    from .buffers import render_image
+
+    for depth in depths:
+        kw = dict(features=features, max_depth=depth, rr_depth=cfg.render.rr_depth)
+        render_image(mi, scene, sensor, spp=spps[0], seed=99, **kw)   # compile
+        for spp in spps:
+            best = min(_cpu_seconds(lambda: render_image(mi, scene, sensor, spp=spp, seed=r, **kw))
+                       for r in range(repeats))
+            timings.setdefault(str(res), {}).setdefault(str(depth), []).append((res * res * spp, best))
+
+
+def _measure_writes(mi, scene, sensor, features, cfg: Config, i: int, res: int, resolutions, depths, gt_spp: int,
+                    tmp: Path, writes: list, ratios: dict) -> None:
+    """Add the write time per megapixel and the compression ratios of a stack and a ground truth at ``res``."""
+    from mcdenoise.pipeline.exr import write_image
+    from mcdenoise.pipeline.store import sha256
+
+    from .buffers import render_image
+
+    # bytes and write time of a stack and a ground truth at the largest depth
+    raw = raw_bytes_per_pixel() * res * res
+    for kind, spp in (("stack", cfg.dataset.stack_spp), ("gt", gt_spp)):
+        if kind == "gt" and res != min(resolutions):
+            continue   # the 1024 spp reference only at the small size (time)
+        result = render_image(mi, scene, sensor, spp=spp, seed=7, features=features,
+                              max_depth=max(depths), rr_depth=cfg.render.rr_depth)
+        path = tmp / f"{kind}{i}_{res}.exr"
+        t0 = time.process_time()
+        write_image(path, result.buffers, result.constants, encoding=cfg.render.encoding)
+        sha256(path)
+        writes.append((time.process_time() - t0) / (res * res / 1e6))
+        ratios[kind].append(path.stat().st_size / raw)
+        if kind == "gt":
+            clean = tmp / f"clean{i}.exr"
+            color = result.buffers["color"]
+            write_image(clean, {"color": color, "color.variance": np.zeros_like(color)})
+            ratios["gt_clean"].append(clean.stat().st_size / (res * res * 12))
+
+
+def _fit_render(timings: dict) -> dict:
+    """The render constants of each resolution and depth: samples per second and overhead, fitted to ``timings``."""
+    render = {}
+    for res, per_depth in timings.items():
+        for depth, points in per_depth.items():
+            a, b = _fit(points)
+            render.setdefault(res, {})[depth] = {"rate": round(1.0 / b), "overhead_s": round(a, 4)}
+    return render
 
 
 def _cpu_name() -> str:

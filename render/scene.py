@@ -42,7 +42,24 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     c = np.asarray(center)
     camera = cam.random_camera(rng, c, radius, cfg.fov, float(cfg.camera_move), int(frames))
     room_half = camera["max_distance"] * 1.15 + 0.5 * radius   # the camera path stays inside the room
+    lights, environment, total = _random_lights(rng, cfg, camera, center, c, radius, room_half)
+    walls, floor = _random_walls_and_ground(rng, cfg, camera, lights, center, c, radius, room_half)
+    # Closed rooms lit through windows draw from their own stream, so that the scenes of a config without
+    # them (enclosed_probability 0) are exactly what they were before the key existed.
+    enclosed = np.random.default_rng([int(seed), int(index), 1])
+    if cfg.enclosed_probability > 0 and enclosed.uniform() < cfg.enclosed_probability:
+        walls, floor, lights, environment = _enclose(enclosed, cfg, camera, c, radius, room_half, lights, total)
+    environment = _maybe_delta_sun(cfg, seed, index, environment)
+    return {
+        "version": DESC_VERSION, "seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
+        "cluster": {"center": center, "radius": radius},
+        "objects": objects, "ground": floor, "walls": walls, "lights": lights, "environment": environment,
+        "camera": camera,
+    }
 
+
+def _random_lights(rng, cfg, camera, center, c, radius, room_half) -> tuple:
+    """The scene's lights and environment from a light budget; returns (lights, environment, total budget)."""
     # Light budget: a total irradiance at the cluster, split at random between the sources.
     n_area = int(rng.integers(int(cfg.area_lights[0]), int(cfg.area_lights[1]) + 1))
     small = [bool(rng.uniform() < cfg.small_light_probability) for _ in range(n_area)]
@@ -64,7 +81,11 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     if has_spot:
         lights.append(lt.spot_light(rng, c, radius, max_dist, next(budgets)))
     environment = lt.random_environment(rng, next(budgets)) if has_env else None
+    return lights, environment, total
 
+
+def _random_walls_and_ground(rng, cfg, camera, lights, center, c, radius, room_half) -> tuple:
+    """Walls behind the objects (with probability ``walls_probability``) and the ground: (walls, floor)."""
     walls: list = []
     if rng.uniform() < cfg.walls_probability:
         sides = [s for s in ("+x", "-x", "+z", "-z") if rng.uniform() < 0.6] or ["+x"]
@@ -78,21 +99,16 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
         ground_size = max(40.0 * radius, 4 * room_half)
     floor = ground(center, ground_size, surface_material(rng, cfg.texture_probability, ground_size,
                                                          radius * rng.uniform(1.0, 4.0), cfg.polished_probability))
-    # Closed rooms lit through windows draw from their own stream, so that the scenes of a config without
-    # them (enclosed_probability 0) are exactly what they were before the key existed.
-    enclosed = np.random.default_rng([int(seed), int(index), 1])
-    if cfg.enclosed_probability > 0 and enclosed.uniform() < cfg.enclosed_probability:
-        walls, floor, lights, environment = _enclose(enclosed, cfg, camera, c, radius, room_half, lights, total)
-    # Delta suns draw from a stream of their own too (the same reason).
+    return walls, floor
+
+
+def _maybe_delta_sun(cfg, seed: int, index: int, environment):
+    """The environment with its sun made a delta light, with probability ``sun_delta_probability``."""
+    # Delta suns draw from a stream of their own too (the same reason as enclosed rooms).
     if cfg.sun_delta_probability > 0 and environment and environment.get("sun"):
         if np.random.default_rng([int(seed), int(index), 2]).uniform() < cfg.sun_delta_probability:
             environment = {**environment, "sun": {**environment["sun"], "delta": True}}
-    return {
-        "version": DESC_VERSION, "seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
-        "cluster": {"center": center, "radius": radius},
-        "objects": objects, "ground": floor, "walls": walls, "lights": lights, "environment": environment,
-        "camera": camera,
-    }
+    return environment
 
 
 def _room_height(rng, camera, lights, c, radius) -> float:

@@ -88,48 +88,15 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
 
     den = load_denoiser(model, device, precision=precision)
     dev = den.device
-
-    def sync():
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-
-    def timed(fn, n=repeats):
-        def call():
-            fn()
-            sync()
-        call()                          # warm-up: kernels, allocations, autotuning
-        return round(best_time(call, n), 4)
-
+    timed = _timer(dev, repeats)
     m = den.model
     steps = den.formulation.steps
     rows = []
     for h, w in sizes:
         buf = synthetic_frame(h, w)
         row = {"size": f"{w}x{h}", "megapixels": round(h * w / 1e6, 3)}
-        row[f"ours_{steps}step_s"] = timed(lambda: den.denoise(buf, spp=4))
-        if steps != 3:
-            row["ours_3step_s"] = timed(lambda: den.denoise(buf, spp=4, steps=3), 1)
-        control, m.control = m.control, None
-        try:
-            row["base_s"] = timed(lambda: den.denoise(buf, spp=4))
-        finally:
-            m.control = control
-        g = torch.Generator().manual_seed(0)
-        x = torch.rand(1, m.base.in_channels, h + (-h % 16), w + (-w % 16), generator=g).to(dev)
-        cond = torch.rand(1, m.cond_channels, *x.shape[-2:], generator=g).to(dev)
-        with torch.no_grad(), den.autocast():
-            row["ours_network_s"] = timed(lambda: sample(m, x, cond, den.formulation, steps))
-            row["base_network_s"] = timed(lambda: m.base(x))
-        # The same networks on NHWC tensors, the layout of the GPU's fp16 tensor-core convolutions (OIDN's
-        # engine uses its own blocked layouts); the same numbers, checked in tests/test_denoiser.py.
-        xl, cl = x.contiguous(memory_format=torch.channels_last), cond.contiguous(memory_format=torch.channels_last)
-        m.to(memory_format=torch.channels_last)
-        try:
-            with torch.no_grad(), den.autocast():
-                row["ours_network_nhwc_s"] = timed(lambda: sample(m, xl, cl, den.formulation, steps))
-                row["base_network_nhwc_s"] = timed(lambda: m.base(xl))
-        finally:
-            m.to(memory_format=torch.contiguous_format)
+        _time_denoiser(den, m, steps, buf, timed, row)
+        _time_networks(den, m, steps, h, w, timed, row)
         if oidn.available() is None:
             row["oidn_prefilter_s"] = timed(lambda: oidn.denoise(buf, clean_aux=True))
             row["oidn_s"] = timed(lambda: oidn.denoise(buf))
@@ -140,6 +107,59 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
             "torch_threads": torch.get_num_threads(), "repeats": repeats, "rows": rows,
             "gflop_per_megapixel": network_gflops(m, den.formulation, steps),
             "parameters_millions": round(sum(p.numel() for p in m.parameters()) / 1e6, 2)}
+
+
+def _timer(dev, repeats: int):
+    """``timed(fn, n=repeats)``: the best of ``n`` calls of ``fn`` in seconds, after a warm-up call."""
+    import torch
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    def timed(fn, n=repeats):
+        def call():
+            fn()
+            sync()   # CUDA runs asynchronously: the time must include the kernels fn launched
+        call()                          # warm-up: kernels, allocations, autotuning
+        return round(best_time(call, n), 4)
+    return timed
+
+
+def _time_denoiser(den, m, steps: int, buf: dict, timed, row: dict) -> None:
+    """Add the whole denoiser's seconds on ``buf`` to ``row``: ours at its steps (and 3) and its base alone."""
+    row[f"ours_{steps}step_s"] = timed(lambda: den.denoise(buf, spp=4))
+    if steps != 3:
+        row["ours_3step_s"] = timed(lambda: den.denoise(buf, spp=4, steps=3), 1)
+    # Without its Control Module the denoiser runs its base alone.
+    control, m.control = m.control, None
+    try:
+        row["base_s"] = timed(lambda: den.denoise(buf, spp=4))
+    finally:
+        m.control = control
+
+
+def _time_networks(den, m, steps: int, h: int, w: int, timed, row: dict) -> None:
+    """Add the seconds of the networks alone on random h x w tensors to ``row``, in NCHW and NHWC layouts."""
+    import torch
+
+    dev = den.device
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(1, m.base.in_channels, h + (-h % 16), w + (-w % 16), generator=g).to(dev)
+    cond = torch.rand(1, m.cond_channels, *x.shape[-2:], generator=g).to(dev)
+    with torch.no_grad(), den.autocast():
+        row["ours_network_s"] = timed(lambda: sample(m, x, cond, den.formulation, steps))
+        row["base_network_s"] = timed(lambda: m.base(x))
+    # The same networks on NHWC tensors, the layout of the GPU's fp16 tensor-core convolutions (OIDN's
+    # engine uses its own blocked layouts); the same numbers, checked in tests/test_denoiser.py.
+    xl, cl = x.contiguous(memory_format=torch.channels_last), cond.contiguous(memory_format=torch.channels_last)
+    m.to(memory_format=torch.channels_last)
+    try:
+        with torch.no_grad(), den.autocast():
+            row["ours_network_nhwc_s"] = timed(lambda: sample(m, xl, cl, den.formulation, steps))
+            row["base_network_nhwc_s"] = timed(lambda: m.base(xl))
+    finally:
+        m.to(memory_format=torch.contiguous_format)
 
 
 def markdown(result: dict) -> str:

@@ -308,15 +308,16 @@ def data_commands(config: str, overrides) -> list[str]:
 def model_card(cfg: Config, record: dict, run: Path, config: str, out: Path, overrides) -> str:
     """The model card of an exported OIDN-based denoiser: what it is, its data, training, validation, commands."""
     train = json.loads((run / "train.json").read_text()) if (run / "train.json").exists() else {}
-    hist, best, m = train.get("history", []), train.get("best") or {}, train.get("machine") or {}
-    f, d, st = record.get("formulation", {}), cfg.dataset, record.get("settings", {})
+    lines = [*_card_what_it_is(record, run), *_card_data(cfg, config), *_card_training(cfg, record, train),
+             *_card_commands(cfg, record, config, out, overrides)]
+    return "\n".join(lines)
+
+
+def _card_what_it_is(record: dict, run: Path) -> list[str]:
+    """The card's title, where the model came from and its "What it is" section."""
+    f = record.get("formulation", {})
     sig = record.get("sigma") or {}
-    gain_keys = sorted((k for k in (hist[-1].get("val") or {} if hist else {}) if k.startswith("gain_spp")),
-                       key=lambda k: int(k[8:]))
-    extra = "".join(f" {shlex.quote(o)}" for o in overrides)
-    v = best.get("val") or {}
-    init = cfg.diffusion.init
-    lines = [
+    return [
         "# The shipped denoiser: a Control Module on OIDN's network", "",
         f"Exported from `{run}` on {record['exported']['date']}; loaded by `python -m pipeline denoise --exr IN.exr "
         "--out OUT.exr` and `make eval`'s `ours` rows wherever a config has no trained run of its own "
@@ -335,12 +336,30 @@ def model_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ove
         "instead (`oidn_ft/` networks when present).",
         f"- σ (`--samples K`, the `std` layer): scaled by {sig.get('scale', 1.0):.3g}, fitted on "
         f"{sig.get('pixels', '?')} validation pixels at {sig.get('steps', '?')} steps and {sig.get('samples', '?')} "
-        "samples (median |error| / σ = 0.6745).", "",
+        "samples (median |error| / σ = 0.6745).", ""]
+
+
+def _card_data(cfg: Config, config: str) -> list[str]:
+    """The card's "Data" section: the config, the store and what the dataset stage rendered."""
+    d = cfg.dataset
+    return [
         "## Data", "",
         f"`{config}`, store `{cfg.store}` (seed {cfg.seed}): {d.scenes} random scenes and the stress presets x "
         f"{d.stress_copies} ({d.stress_split} split), {d.frames} frame(s) each, {d.resolution[0]}x{d.resolution[1]}, "
         f"GT {_gt_spp(d)} x 2 cleaned by the GT cleaner, {d.stacks} stacks of {d.stack_spp} spp. None of "
-        f"configs/default.yaml's scenes (another seed).{_split_sizes(cfg.store)}", "",
+        f"configs/default.yaml's scenes (another seed).{_split_sizes(cfg.store)}", ""]
+
+
+def _card_training(cfg: Config, record: dict, train: dict) -> list[str]:
+    """The card's "Training" section: the settings, the best epoch, the machine and the table of epochs."""
+    hist, best, m = train.get("history", []), train.get("best") or {}, train.get("machine") or {}
+    f, st = record.get("formulation", {}), record.get("settings", {})
+    # The per-spp gain columns are those the last epoch's validation reports.
+    gain_keys = sorted((k for k in (hist[-1].get("val") or {} if hist else {}) if k.startswith("gain_spp")),
+                       key=lambda k: int(k[8:]))
+    v = best.get("val") or {}
+    init = cfg.diffusion.init
+    lines = [
         "## Training", "",
         f"{len([h for h in hist if h['epoch'] > 0])} epochs, {hist[-1]['seconds'] if hist else '?'} s; lr "
         f"{st.get('lr')}, batch {st.get('batch_size')}, crop {st.get('crop')}, EMA {st.get('ema')}, buffer-group "
@@ -360,14 +379,19 @@ def model_card(cfg: Config, record: dict, run: Path, config: str, out: Path, ove
         lines.append(f"| {h['epoch']} | {hv.get('psnr', float('nan')):.3f} | {hv.get('estimate_psnr', float('nan')):.3f} "
                      f"| {hv.get('psnr', 0) - hv.get('estimate_psnr', 0):+.4f} | " + " | ".join(gains)
                      + f" | {h.get('seconds')} |")
+    return lines
+
+
+def _card_commands(cfg: Config, record: dict, config: str, out: Path, overrides) -> list[str]:
+    """The card's "How it was made" section: the commands that remake the model, and where its evaluation is."""
+    extra = "".join(f" {shlex.quote(o)}" for o in overrides)
     spp = record.get("spp")
     spp = "any" if isinstance(spp, list) and len(spp) > 1 else spp
-    lines += ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
-              *data_commands(config, overrides),
-              *([f"python -m pipeline train --model oidn_ft --spp any --config {config}{extra}"]
-                if cfg.diffusion.base == "oidn_ft" and not init else []),   # the base: OIDN fine-tuned, blended
-              f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
-              f"python -m pipeline export --config {config} --spp {spp} --out {out}{extra}", "```", "",
-              "Evaluation against OIDN, oidn_ft, Isik and the noisy input on the default test set: "
-              "docs/example_report/eval.md; the ablation: docs/diffusion.md.", ""]
-    return "\n".join(lines)
+    return ["", "## How it was made (each command resumes where it stopped)", "", "```sh",
+            *data_commands(config, overrides),
+            *([f"python -m pipeline train --model oidn_ft --spp any --config {config}{extra}"]
+              if cfg.diffusion.base == "oidn_ft" and not cfg.diffusion.init else []),   # the base: OIDN fine-tuned, blended
+            f"python -m pipeline train --model diffusion --spp {spp} --config {config}{extra}",
+            f"python -m pipeline export --config {config} --spp {spp} --out {out}{extra}", "```", "",
+            "Evaluation against OIDN, oidn_ft, Isik and the noisy input on the default test set: "
+            "docs/example_report/eval.md; the ablation: docs/diffusion.md.", ""]
