@@ -52,10 +52,17 @@ def with_defines(p):
     return p
 
 
-def with_quiet(p: argparse.ArgumentParser, text: str | None = None) -> argparse.ArgumentParser:
-    """Add --quiet, the flag of every subcommand that reports progress (``text``: its help, if any)."""
+def with_quiet(p: argparse.ArgumentParser, text: str = "no progress bars or per-epoch lines; the summary line only"
+               ) -> argparse.ArgumentParser:
+    """Add --quiet, the flag of every subcommand that reports progress (``text``: its help)."""
     p.add_argument("--quiet", action="store_true", help=text)
     return p
+
+
+def command(sub, name: str, summary: str, **kwargs) -> argparse.ArgumentParser:
+    """A subcommand whose ``--help`` page opens with the one line the top-level list shows (``summary``)."""
+    return sub.add_parser(name, help=summary, description=kwargs.pop("description", summary[0].upper() + summary[1:]),
+                          **kwargs)
 
 
 def config(args: argparse.Namespace) -> Config:
@@ -79,7 +86,7 @@ def spp(text: str) -> int | str:
 
 def _render_commands(sub) -> None:
     """``dataset``, ``render-scene``, ``bench`` and ``plan``."""
-    p = with_config(sub.add_parser("dataset", help="render the dataset into the store"))
+    p = with_config(command(sub, "dataset", "render the dataset into the store"))
     p.add_argument("--shard", default=None, help="i/N: render only the i-th of N contiguous blocks of frames")
     p.add_argument("--time-limit", type=float, default=None, metavar="S",
                    help="start no frame after S seconds (frames in flight finish; a rerun renders the rest)")
@@ -88,7 +95,7 @@ def _render_commands(sub) -> None:
     with_quiet(p, "no progress bar or summary")
     p.set_defaults(fn=_dataset)
 
-    p = with_config(sub.add_parser("render-scene", help="render a Mitsuba 3 XML scene with its own camera into a store"))
+    p = with_config(command(sub, "render-scene", "render a Mitsuba 3 XML scene with its own camera into a store"))
     p.add_argument("scene", help="Mitsuba 3 scene XML")
     p.add_argument("--store", default=None, help="store path (default: the config's store)")
     p.add_argument("--resolution", default=None, help="WxH (default: the scene film's size)")
@@ -96,14 +103,14 @@ def _render_commands(sub) -> None:
     with_defines(p)
     p.set_defaults(fn=_render_scene)
 
-    p = with_config(sub.add_parser("bench", help="integrator vs path, dataset time shares, savings of omitted channels"))
+    p = with_config(command(sub, "bench", "integrator vs path, dataset time shares, savings of omitted channels"))
     p.add_argument("--out", default="reports/bench", help="folder for bench results (JSON, Markdown)")
     p.set_defaults(fn=_bench)
 
-    p = with_config(sub.add_parser("plan", help="estimate CPU core-hours, disk and wall time of the dataset stage"))
+    p = with_config(command(sub, "plan", "estimate CPU core-hours, disk and wall time of the dataset stage"))
     p.add_argument("--store", default=None, help="calibrate rate and bytes on an existing store's frames")
     p.add_argument("--workers", default="1,2,16,64,256,1024", help="core counts for the wall-time column")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the plan as JSON instead of a table")
     p.add_argument("--measure", action="store_true", help="measure the model's constants on this machine "
                                                            "(prints JSON for render/plan.py)")
     p.set_defaults(fn=_plan)
@@ -150,14 +157,15 @@ def _plan(args) -> int:
 
 def _clean_commands(sub) -> None:
     """``gt-clean`` and ``clean-report``."""
-    p = with_config(sub.add_parser("gt-clean", help="train the GT cleaner (resumable), then write gt_clean for every frame"))
+    p = with_config(command(sub, "gt-clean", "train the GT cleaner (resumable), then write gt_clean for every frame"))
     with_quiet(p)
     p.set_defaults(fn=_gt_clean)
 
-    p = with_config(sub.add_parser("clean-report", help="GT1 vs GT_clean against GT2 on val/test, crop grid; "
+    p = with_config(command(sub, "clean-report", "GT1 vs GT_clean against GT2 on val/test, crop grid; "
                                                          "--spp N adds the Isik baseline on the test split"))
-    p.add_argument("--out", default="reports/cleaner")
-    p.add_argument("--spp", type=int, default=None)
+    p.add_argument("--out", default="reports/cleaner", help="the report folder")
+    p.add_argument("--spp", type=int, default=None, help="also score the Isik baseline at this sample count (needs its "
+                                                         "run: make train MODEL=isik)")
     p.set_defaults(fn=_clean_report)
 
 
@@ -179,7 +187,7 @@ def _clean_report(args) -> int:
 
 
 def _training_commands(sub) -> None:
-    p = with_config(sub.add_parser("train", help="train a denoiser: --model diffusion (ours), oidn_ft (OIDN "
+    p = with_config(command(sub, "train", "train a denoiser: --model diffusion (ours), oidn_ft (OIDN "
                                                  "fine-tuned), isik or afgsa (baselines); diffusion runs under "
                                                  "torchrun for DDP"))
     p.add_argument("--model", default="diffusion", choices=["diffusion", "oidn_ft", "isik", "afgsa"],
@@ -190,7 +198,7 @@ def _training_commands(sub) -> None:
     with_quiet(p)
     p.set_defaults(fn=_train)
 
-    p = with_config(sub.add_parser("export", help="copy a trained diffusion run into a self-contained model folder "
+    p = with_config(command(sub, "export", "copy a trained diffusion run into a self-contained model folder "
                                                   "(the shipped model: train/shipped), or (--format oidn) an "
                                                   "oidn_ft run into a .tza file OIDN loads as its weights"))
     p.add_argument("--format", default="model", choices=["model", "oidn"],
@@ -218,12 +226,16 @@ def _training_commands(sub) -> None:
 
 
 def _inference_commands(sub) -> None:
-    p = with_config(sub.add_parser("pack", help="decode the store once into compact training packs (train/data.py)"))
+    p = with_config(command(sub, "pack", "decode the store once into compact training packs (train/data.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
     with_quiet(p)
     p.set_defaults(fn=_pack)
 
-    p = with_config(sub.add_parser("denoise", help="denoise a store frame or an EXR with a trained diffusion run"))
+    p = with_config(command(sub, "denoise", "denoise a store frame or an EXR with a trained diffusion run",
+                                   description="Denoise a store frame or an EXR with a trained diffusion run. The "
+                                               "weights: the config's run of the input's sample count "
+                                               "(<runs>/diffusion_spp<N>, else <runs>/diffusion_sppany; runs is "
+                                               "the config's 'runs' key), else the shipped model (train/shipped)."))
     p.add_argument("--spp", type=spp, default=None,
                    help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
                         "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
@@ -234,7 +246,7 @@ def _inference_commands(sub) -> None:
     p.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's)")
     p.add_argument("--samples", type=int, default=None,
                    help="average K samples; their per-pixel standard deviation goes to the 'std' layer")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None, help="the sampler's noise seed (default: the config's seed)")
     p.add_argument("--base-only", action="store_true", help="the ablation: base without the Control Module")
     p.add_argument("--strength", type=float, default=None,
                    help="the fraction (0..1) of what the Control Module changes that is applied to its base's output "
@@ -260,23 +272,24 @@ def _inference_commands(sub) -> None:
 
 
 def _report_commands(sub) -> None:
-    p = with_config(sub.add_parser("afgsa-report", help="AFGSA trained against GT_clean vs against GT1, both "
+    p = with_config(command(sub, "afgsa-report", "AFGSA trained against GT_clean vs against GT1, both "
                                                         "scored against GT_clean: table and crop grid"))
-    p.add_argument("--spp", type=int, default=4)
-    p.add_argument("--out", default="reports/afgsa")
+    p.add_argument("--spp", type=int, default=4, help="the sample count of the noisy input")
+    p.add_argument("--out", default="reports/afgsa", help="the report folder")
     p.add_argument("--run", action="append", default=None, metavar="LABEL=FOLDER", dest="runs",
                    help="another AFGSA run folder to compare (e.g. the adv_weight=0 ablation); repeatable")
     p.set_defaults(fn=_afgsa_report)
 
-    p = with_config(sub.add_parser("bench-denoise", help="seconds per frame of ours, its base and OIDN's own engine at "
+    p = with_config(command(sub, "bench-denoise", "seconds per frame of ours, its base and OIDN's own engine at "
                                                          "256², 1080p (and 4K on CUDA)"))
     p.add_argument("--spp", type=int, default=4, help="use the trained run of this spp when there is one")
     p.add_argument("--sizes", default=None, help="frame sizes WxH, comma-separated (default: 256x256,1920x1080; "
                                                 "with CUDA also 3840x2160)")
     p.add_argument("--device", default=None, help="auto, cuda or cpu (default: diffusion.device)")
-    p.add_argument("--precision", default="auto", choices=("auto", "fp32", "fp16", "bf16"))
-    p.add_argument("--repeats", type=int, default=2)
-    p.add_argument("--out", default="reports/bench")
+    p.add_argument("--precision", default="auto", choices=("auto", "fp32", "fp16", "bf16"),
+                   help="the networks' precision: auto is fp16 on CUDA, fp32 on the CPU")
+    p.add_argument("--repeats", type=int, default=2, help="timed runs per case (the best is reported)")
+    p.add_argument("--out", default="reports/bench", help="the folder of the results (JSON, Markdown)")
     p.set_defaults(fn=_bench_denoise)
 
 
@@ -374,7 +387,7 @@ def _bench_denoise(args) -> int:
 
 def _evaluate_commands(sub) -> None:
     """``eval`` and ``stability``."""
-    p = with_config(sub.add_parser("eval", help="every method on the test frames per spp: tables, error vs time, "
+    p = with_config(command(sub, "eval", "every method on the test frames per spp: tables, error vs time, "
                                                 "crops (reports/<run>/)"))
     p.add_argument("--spp", default=None, help="sample counts, comma-separated, e.g. 4 or 4,16 (default: eval.spp)")
     p.add_argument("--scene", action="append", default=None, metavar="XML", dest="scenes",
@@ -385,7 +398,7 @@ def _evaluate_commands(sub) -> None:
     with_quiet(p)
     p.set_defaults(fn=_eval)
 
-    p = with_config(sub.add_parser("stability", help="every method on synthetic edge cases (fireflies, NaN, sizes, ...)"))
+    p = with_config(command(sub, "stability", "every method on synthetic edge cases (fireflies, NaN, sizes, ...)"))
     p.add_argument("--out", default=None, help="report folder (default: as eval)")
     with_quiet(p)
     p.set_defaults(fn=_stability)
@@ -420,19 +433,19 @@ def _stability(args) -> int:
 
 def _core_commands(sub) -> None:
     """The core's subcommands: store tools and the config."""
-    p = sub.add_parser("inspect", help="describe a store (frames, channels, constants, timings, NaN/Inf)")
-    p.add_argument("store")
+    p = command(sub, "inspect", "describe a store (frames, channels, constants, timings, NaN/Inf)")
+    p.add_argument("store", help="the store's folder (e.g. data/default; `config` prints a config's)")
     p.add_argument("--frame", default=None, help="SCENE/FRAME, e.g. s00000/000: details of one frame")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="the report as JSON")
     p.set_defaults(fn=_inspect)
 
-    p = with_config(sub.add_parser("config", help="print the resolved config, or --doc the key reference"))
-    p.add_argument("--doc", action="store_true")
+    p = with_config(command(sub, "config", "print the resolved config, or --doc the key reference"))
+    p.add_argument("--doc", action="store_true", help="print every key with its type, default and meaning (Markdown)")
     p.set_defaults(fn=_config)
 
-    p = sub.add_parser("verify", help="check every file of a store (readable, channels, shapes, checksums, "
+    p = command(sub, "verify", "check every file of a store (readable, channels, shapes, checksums, "
                                       "manifests, gt_clean hashes, leftover .tmp); exit 1 on any problem")
-    p.add_argument("store")
+    p.add_argument("store", help="the store's folder")
     p.add_argument("--headers-only", action="store_true", help="skip pixel data and checksums (fast)")
     p.add_argument("--jobs", type=int, default=1, help="check scenes in this many processes")
     with_quiet(p, "only the summary line")
