@@ -37,11 +37,13 @@ Version 1 images (written before the checksum existed) are still read, without t
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import math
 import os
 import re
+import sys
 import tempfile
 import zlib
 from pathlib import Path
@@ -664,6 +666,28 @@ def _check_encoding(path: Path, record: dict, stored_channels) -> None:
                                 else f"channels {', '.join(kept)} are stored"))
 
 
+@contextlib.contextmanager
+def library_output(captured: list[str]):
+    """Inside: what C libraries (OpenEXR) print on the process's stdout and stderr goes to ``captured`` (its
+    non-empty lines) instead of the terminal, so that a damaged file is reported in one line, ours."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    with tempfile.TemporaryFile() as sink:
+        try:
+            for fd in saved:
+                os.dup2(sink.fileno(), fd)
+            yield captured
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, old in saved.items():
+                os.dup2(old, fd)
+                os.close(old)
+            sink.seek(0)
+            captured.extend(line.strip() for line in sink.read().decode(errors="replace").splitlines() if line.strip())
+
+
 def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray]:
     """Buffers of *any* EXR that uses the schema's channel names, or another tool's for the colour,
     albedo and normal (Mitsuba's aov integrator, Blender's passes: ``ALIASES`` below).
@@ -674,16 +698,22 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
     ``aliased``, when given, receives buffer → the other tool's channels it was read from.
     """
     path = Path(path)
+    if path.is_dir():
+        raise StoreError(f"{path}: a folder, expected an EXR file")
     if not path.is_file():
-        raise StoreError(f"{path}: EXR file not found")
+        raise StoreError(f"{path}: no such file, expected an EXR file")
     with open(path, "rb") as fh:
         if fh.read(4) != b"\x76\x2f\x31\x01":
             raise StoreError(f"{path}: not an OpenEXR file (bad magic number)")
+    said: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
+        with library_output(said), OpenEXR.File(str(path), separate_channels=True) as f:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as exc:
-        raise StoreError(f"{path}: corrupt or truncated EXR ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        # the library's own account of the damage (it prints it) says more than the exception it raises after
+        said = [line for line in said if "EXR_ERR" in line] or said
+        why = said[-1].removeprefix(f"{path}: ") if said else (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        raise StoreError(f"{path}: corrupt or truncated EXR ({why})") from None
     other = resolve(channels, {b: schema.BY_NAME[b].exr_channels for b in ALIASES}, str(path))
     if not all(c in channels for c in ("R", "G", "B")) and "color" not in other:
         raise StoreError(f"{path}: channels R, G, B (the noisy colour) are required, or a layer "

@@ -26,7 +26,7 @@ from mcdenoise.pipeline.exr import StoreError, write_output
 from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 
 from . import oidn
-from .model import ControlledOIDN, clean_aux, find_run, inputs, load, network_output, oidn_ft_blob, present
+from .model import NETWORK, ControlledOIDN, clean_aux, find_run, inputs, load, network_output, oidn_ft_blob, present
 from .sampler import Formulation, check_strength, sample, with_strength
 
 if TYPE_CHECKING:   # the store is imported where a store frame is read: ``denoise --exr`` needs none
@@ -204,28 +204,47 @@ def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
               file=sys.stderr, flush=True)
 
 
+def check_output(out: str, exr: str | None) -> None:
+    """``--out`` names a new file: not the input (the user's render would be overwritten), not a folder."""
+    if exr is not None and Path(out).resolve() == Path(exr).resolve():
+        raise TrainError(f"--out {out}: that is the input; name another file (the input stays as it is)")
+    if Path(out).is_dir():
+        raise TrainError(f"--out {out}: a folder, expected the name of the EXR file to write")
+
+
+def weights_text(folder: Path, meta: dict) -> str:
+    """How a line names a model folder: its path (relative to the working folder where it is inside it) and
+    what it is, e.g. ``train/shipped (Control Module on OIDN rt_hdr_calb_cnrm_large)``."""
+    path = Path(folder).resolve()
+    shown = path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path
+    return f"{shown} (Control Module on OIDN {meta.get('base_network', NETWORK)})"
+
+
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
                 samples: int | None = None, ensemble: int = 1, strength: float | None = None,
                 device: str | None = None, precision: str = "auto") -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
     mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
-    both over that many flipped and transposed copies (``train.infer.self_ensemble``); ``strength``: the fraction of
-    the Control Module's change applied (default: the model's)."""
+    both over that many flipped and transposed copies (``self_ensemble``); ``strength``: the fraction of
+    the Control Module's change applied (default: the model's). The input is read (and refused in one line)
+    before anything else is said or loaded; the output names the weights that ran."""
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
     if frame is not None and spp is None:
         raise TrainError("--frame needs --spp (which of the store's sample counts to denoise)")
-    if exr is not None and spp is None:
+    check_output(out, exr)
+    samples = cfg.diffusion.samples if samples is None else int(samples)
+    if samples < 1:
+        raise TrainError(f"--samples {samples}: expected at least 1")
+    buffers, source = _read_input(cfg, frame, exr, spp)
+    if spp is None:
         spp, how = _exr_spp(Path(exr))
         if not quiet:
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
-    f = cfg.diffusion
-    den = load_denoiser(find_run(cfg, spp), device or f.device, base_only, precision)
-    buffers, source = _read_input(cfg, frame, exr, spp)
-    samples = f.samples if samples is None else int(samples)
-    if samples < 1:
-        raise TrainError(f"--samples {samples}: expected at least 1")
+    folder = find_run(cfg, spp)
+    den = load_denoiser(folder, device or cfg.diffusion.device, base_only, precision)
+
     def run(b):   # colour and std side by side, so that one self-ensemble turns both back
         return np.concatenate(den.denoise(b, int(spp), skip=skip, seed=cfg.seed if seed is None else seed,
                                           steps=steps, samples=samples, with_std=True, strength=strength), axis=2)
@@ -233,26 +252,34 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
     out6 = self_ensemble(run, buffers, ensemble)
     hdr, std, seconds = out6[..., :3], out6[..., 3:], time.perf_counter() - t0
     meta = {"image": "denoised", "source": source, "spp": int(spp), "method": den.name,
-            "skip": den.formulation.skip if skip is None else skip, "steps": steps, "samples": samples,
-            "formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
-            "clamped_pixels": den.last_clamped, "black_input": den.last_black,
-            "estimate_only": den.last_estimate_only, "fallback": getattr(den, "fallback", ""),
-            "base_only": getattr(den, "last_base_only", False), "shortened_normals": getattr(den, "last_shortened", 0),
-            "ensemble": ensemble, "strength": getattr(den, "strength", 1.0) if strength is None else strength,
-            "seconds": round(seconds, 3)}
+            "weights": weights_text(folder, den.meta), "skip": den.formulation.skip if skip is None else skip,
+            "steps": steps, "samples": samples, **_outcome(den), "ensemble": ensemble,
+            "strength": den.strength if strength is None else strength, "seconds": round(seconds, 3)}
     write_output(Path(out), hdr, meta, layers={"std": std})
     if not quiet:
-        fallback = getattr(den, "fallback", "")
-        alone = (f"; no albedo/normal layers: {fallback} on the colour{' and albedo' if 'albedo' in buffers else ''}"
-                 if fallback else "; no variance/albedo/normal layers: the first estimate (OIDN) alone")
-        print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}, {spp} spp, {den.name}"
-              f"{f', self-ensemble of {ensemble}' if ensemble > 1 else ''}) in {seconds:.1f} s"
-              f" -> {out}" + (f"; {den.last_repaired} non-finite input values replaced by 0" if den.last_repaired
-                              else "") + (alone if den.last_estimate_only else "")
-              + ("; colour, albedo and normal only: the model's base alone (its model.json: control_without_groups)"
-                 if getattr(den, "last_base_only", False) else ""), flush=True)
+        print(_denoised_line(den, buffers, meta, hdr.shape, out), flush=True)
     return 0
 
+
+def _outcome(den: Denoiser) -> dict:
+    """What the last ``denoise`` call of ``den`` met in its input, for the output's header record."""
+    return {"formulation": den.formulation.record(), "repaired_nonfinite": den.last_repaired,
+            "clamped_pixels": den.last_clamped, "black_input": den.last_black,
+            "estimate_only": den.last_estimate_only, "fallback": den.fallback, "base_only": den.last_base_only,
+            "shortened_normals": den.last_shortened}
+
+
+def _denoised_line(den: Denoiser, buffers: dict, meta: dict, shape: tuple, out: str) -> str:
+    """The one line ``denoise`` ends with: what ran on what, in how long, where it went, what it had to do."""
+    ensemble, repaired = meta["ensemble"], den.last_repaired
+    alone = (f"; no albedo/normal layers: {den.fallback} on the colour{' and albedo' if 'albedo' in buffers else ''}"
+             if den.fallback else "; no variance/albedo/normal layers: the first estimate (OIDN) alone")
+    return (f"denoised {meta['source']} ({shape[1]}x{shape[0]}, {meta['spp']} spp, {den.name}"
+            f"{f', self-ensemble of {ensemble}' if ensemble > 1 else ''}) with {meta['weights']} in "
+            f"{meta['seconds']:.1f} s -> {out}" + (f"; {repaired} non-finite input values replaced by 0" if repaired
+                                                  else "") + (alone if den.last_estimate_only else "")
+            + ("; colour, albedo and normal only: the model's base alone (its model.json: control_without_groups)"
+               if den.last_base_only else ""))
 
 
 def oidn_weights_for(cfg: Config, network: str) -> tuple[bytes, str]:
@@ -290,6 +317,7 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
 
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
+    check_output(out, exr)
     buffers, source = _read_input(cfg, frame, exr, spp)
     # OIDN spreads a NaN/Inf over its receptive field: lost samples count as 0, as in every denoiser here
     buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
