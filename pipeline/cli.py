@@ -239,7 +239,9 @@ def _inference_commands(sub) -> None:
     p.add_argument("--spp", type=spp, default=None,
                    help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
                         "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
-    p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000")
+    p.add_argument("--frame", default=None, help="SCENE/FRAME of the store, e.g. s00000/000 (render-scene prints "
+                                                 "the command that denoises what it rendered)")
+    p.add_argument("--store", default=None, help="the store --frame reads (default: the config's store)")
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
     p.add_argument("--out", required=True, help="output EXR")
     p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
@@ -348,6 +350,8 @@ def _pack(args) -> int:
 
 def _denoise(args) -> int:
     from mcdenoise.train.infer import cmd_denoise, cmd_denoise_oidn
+    if args.store is not None:
+        args.overrides = [*args.overrides, f"store={args.store}"]
     if args.method != "ours" or args.oidn_weights:
         return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
                                 spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)

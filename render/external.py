@@ -1,7 +1,8 @@
 """User-supplied Mitsuba 3 XML scenes, rendered with their own camera but our buffers.
 
-The scene's own integrator and film are ignored: every image goes through our split-buffer
-integrator with a box-filtered film (``render.buffers.make_sensor``), at our sample counts, so a
+The scene's own integrator and film are replaced: every image goes through our split-buffer
+integrator with a box-filtered film (``render.buffers.make_sensor``), at our sample counts, with the path
+depths the scene's integrator sets (``max_depth``, ``rr_depth``: kept, and said), so a
 production scene lands in the store exactly like a test frame of the random dataset. The frame
 worker loads the XML and builds that camera (``render.frame.load_external_scene``,
 ``external_sensor``; a scene it cannot use raises ``render.frame.ExternalSceneError``).
@@ -104,6 +105,28 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
         raise
 
 
+def scene_depths(xml: str, defines: dict[str, str]) -> dict[str, int]:
+    """The path depths the scene's own integrator sets (``max_depth``, ``rr_depth`` of the first integrator that
+    names them, nested ones included, ``$name`` values from ``defines`` or the XML's ``<default>``); {} where it
+    sets none or the XML cannot be read here (Mitsuba reports that when it loads the scene)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(xml).getroot()
+    except (ET.ParseError, OSError):
+        return {}
+    values = {d.get("name"): d.get("value") for d in root.iter("default")}
+    values.update(defines)
+    found: dict[str, int] = {}
+    for integrator in root.iter("integrator"):
+        for prop in integrator.findall("integer"):
+            key, text = prop.get("name"), str(prop.get("value", ""))
+            text = values.get(text[1:], text) if text.startswith("$") else text
+            if key in ("max_depth", "rr_depth") and key not in found and re.fullmatch(r"-?\d+", str(text)):
+                found[key] = int(text)
+    return found
+
+
 def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, defines: dict) -> dict:
     from .dataset import render_frame_entry, scene_record, task_spp
     from .frame import FrameTask
@@ -114,9 +137,17 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
     seeds = {n: image_seed(cfg.seed, index, 0, k, 1, len(names)) for k, n in enumerate(names)}
     desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {})}
     record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
+    own = scene_depths(xml, defines)    # the scene's own path depths are part of its look: kept
+    record["integrator"].update(own)
     store.write_scene_manifest(sid, {**record, "packages": package_versions()})
+    render = dataclasses.asdict(cfg.render)
+    for key, value in own.items():
+        if value != render[key]:
+            print(f"render-scene: {sid}: the scene's integrator {key}={value} kept (render.{key}={render[key]} "
+                  "is the random scenes')")
+    render.update(own)
     task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,
-                     seeds=seeds, render=dataclasses.asdict(cfg.render), **task_spp(record))
+                     seeds=seeds, render=render, **task_spp(record))
     stats = {"failed": 0}
     for _, result, error in run_tasks([task], render_frame_entry, cfg.executor):
         if error is not None:
@@ -126,4 +157,6 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
               f"{result['nonfinite']} non-finite values repaired")
         for note in result.get("scene_notes", []):
             print(f"render-scene: {sid}: note: {note}")
+        print(f"render-scene: denoise it: python -m pipeline denoise --store {store_path} --frame {sid}/000 "
+              f"--spp {record['stack_spp']} --out {sid}.exr")
     return stats

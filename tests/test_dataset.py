@@ -199,6 +199,42 @@ def test_render_scene_writes_a_test_frame(tmp_path):
 
 
 
+def test_a_scenes_own_path_depths_are_read_from_its_integrator(tmp_path):
+    """``scene_depths``: max_depth and rr_depth of the first integrator that sets them (nested too), ``$name``
+    values from -D or the XML's defaults; nothing for a scene without them or an unreadable file."""
+    from mcdenoise.render.external import scene_depths
+
+    xml = tmp_path / "s.xml"
+    xml.write_text("""<scene version="3.0.0"><default name="depth" value="6"/>
+  <integrator type="aov"><string name="aovs" value="nn:sh_normal"/>
+    <integrator type="path"><integer name="max_depth" value="$depth"/><integer name="rr_depth" value="3"/></integrator>
+  </integrator></scene>""")
+    assert scene_depths(str(xml), {}) == {"max_depth": 6, "rr_depth": 3}
+    assert scene_depths(str(xml), {"depth": "12"}) == {"max_depth": 12, "rr_depth": 3}
+    (tmp_path / "none.xml").write_text('<scene version="3.0.0"><integrator type="path"/></scene>')
+    assert scene_depths(str(tmp_path / "none.xml"), {}) == {}
+    (tmp_path / "bad.xml").write_text("<scene")
+    assert scene_depths(str(tmp_path / "bad.xml"), {}) == {}
+
+
+@pytest.mark.slow
+def test_render_scene_keeps_the_scenes_own_max_depth_and_says_so(tmp_path):
+    xml = tmp_path / "deep.xml"
+    xml.write_text("""<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="12"/><integer name="height" value="8"/>
+      <rfilter type="box"/></film></sensor>
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+  <shape type="sphere"><bsdf type="diffuse"/></shape>
+</scene>""")
+    proc = cli("render-scene", xml, "--store", tmp_path / "ext", "--config", TINY)
+    assert "the scene's integrator max_depth=3 kept (render.max_depth=5" in proc.stdout
+    assert "denoise --store" in proc.stdout and "--frame ext_deep/000" in proc.stdout
+    assert Store(tmp_path / "ext").scene_manifest("ext_deep")["integrator"]["max_depth"] == 3
+
+
 @pytest.mark.slow
 def test_scene_parameters_are_given_with_D_as_on_mitsubas_command_line(tmp_path):
     """``-D name=value`` fills the XML's ``$name`` (Mitsuba's -D); a parameter without a value is named in the
