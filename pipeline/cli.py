@@ -233,9 +233,11 @@ def _inference_commands(sub) -> None:
 
     p = with_config(command(sub, "denoise", "denoise a store frame or an EXR with a trained diffusion run",
                                    description="Denoise a store frame or an EXR with a trained diffusion run. The "
-                                               "weights: the config's run of the input's sample count "
+                                               "weights: without --config, the shipped model (train/shipped); with "
+                                               "one, the config's run of the input's sample count "
                                                "(<runs>/diffusion_spp<N>, else <runs>/diffusion_sppany; runs is "
-                                               "the config's 'runs' key), else the shipped model (train/shipped)."))
+                                               "the config's 'runs' key) if it was trained on the config's store, "
+                                               "else train/shipped. The summary line names the weights that ran."))
     p.add_argument("--spp", type=spp, default=None,
                    help="the input's samples per pixel (and the run diffusion_spp<N>, else diffusion_sppany, else the "
                         "shipped model); required with --frame; with --exr: the EXR header's if it has one, else 16")
@@ -350,14 +352,19 @@ def _pack(args) -> int:
 
 def _denoise(args) -> int:
     from mcdenoise.train.infer import cmd_denoise, cmd_denoise_oidn
+    from mcdenoise.train.model import SHIPPED_MODEL
     if args.store is not None:
         args.overrides = [*args.overrides, f"store={args.store}"]
     if args.method != "ours" or args.oidn_weights:
         return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
                                 spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
+    # without a config (or a runs folder) the shipped model, whatever a runs folder here holds
+    own_runs = args.config is not None or any(o.startswith("runs=") for o in args.overrides)
+    model = None if own_runs else SHIPPED_MODEL
     return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                        base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples,
-                       ensemble=args.ensemble, strength=args.strength, device=args.device, precision=args.precision)
+                       ensemble=args.ensemble, strength=args.strength, device=args.device, precision=args.precision,
+                       model=model)
 
 
 def _afgsa_report(args) -> int:

@@ -577,7 +577,8 @@ class Config:
     scene: SceneConfig = doc("Scene randomizer.", factory=SceneConfig)
     render: RenderConfig = doc("Renderer and integrator.", factory=RenderConfig)
     executor: ExecutorConfig = doc("Where frames run.", factory=ExecutorConfig)
-    runs: str = doc("Folder for checkpoints, loss curves and logs of the training stages.", "runs/default")
+    runs: str = doc("Folder for checkpoints, loss curves and logs of the training stages; empty: runs/<the store's "
+                    "folder name> (data/tiny: runs/tiny), so two configs with their own stores never share runs.", "")
     clean: CleanConfig = doc("GT cleaner (make gt-clean) and the Isik baseline (make train MODEL=isik).",
                              factory=CleanConfig)
     afgsa: AfgsaConfig = doc("AFGSA, the paper's third competitor (make train MODEL=afgsa SPP=4).",
@@ -686,6 +687,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
     validate(cfg, source)
+    if not cfg.runs:
+        cfg.runs = str(Path("runs") / (Path(cfg.store).name or "default"))
     return cfg
 
 

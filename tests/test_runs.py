@@ -1,8 +1,12 @@
 """Run folders (``pipeline.config``): one naming rule for every trainer, and the per-stage spellings
 that delegate to it."""
+from pathlib import Path
+
 import pytest
 
 from mcdenoise.pipeline.config import find_run, load_config, pick_device, run_candidates, run_dir
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_model_has_its_folder(tmp_path):
@@ -63,3 +67,34 @@ def test_find_run_takes_the_own_run_then_the_any_spp_run(tmp_path):
 def test_pick_device():
     assert str(pick_device("cpu")) == "cpu"
     assert pick_device("auto").type in ("cpu", "cuda")
+
+
+def test_each_shipped_config_owns_its_runs_and_reports():
+    """No two configs of configs/ share a runs folder (nor, so, a report folder): a config without ``runs:``
+    gets runs/<its store's folder name>."""
+    configs = sorted((ROOT / "configs").glob("*.yaml"))
+    runs = {p.name: load_config(p).runs for p in configs}
+    assert len(set(runs.values())) == len(runs), runs
+    assert runs["tiny.yaml"] == "runs/tiny" and runs["default.yaml"] == "runs/default"
+    assert load_config(None, ["store=elsewhere/mine"]).runs == "runs/mine"
+    assert load_config(None, ["store=elsewhere/mine", "runs=r"]).runs == "r"
+
+
+def test_a_diffusion_run_trained_on_another_store_is_passed_over_in_one_line(tmp_path, capsys):
+    """A run of another config in the runs folder (its model.json names another store) is not this config's
+    model: the shipped one serves, and one line says so; the run of this store serves."""
+    import json
+    import shutil
+
+    from mcdenoise.train.model import SHIPPED_MODEL, find_run as find_diffusion_run
+
+    run = tmp_path / "runs" / "diffusion_sppany"
+    shutil.copytree(SHIPPED_MODEL, run)
+    record = json.loads((run / "model.json").read_text())
+    (run / "model.json").write_text(json.dumps({**record, "store": str(tmp_path / "other_store")}))
+    cfg = load_config(None, [f"store={tmp_path / 'mine'}", f"runs={tmp_path / 'runs'}"])
+    assert find_diffusion_run(cfg, 4) == SHIPPED_MODEL
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 1 and f"{run} was trained on {tmp_path / 'other_store'}" in out[0] and "using" in out[0]
+    (run / "model.json").write_text(json.dumps({**record, "store": str(tmp_path / "mine")}))
+    assert find_diffusion_run(cfg, 4) == run

@@ -141,6 +141,31 @@ def test_denoise_exr_uses_the_shipped_model_by_default(tmp_path):
 
 
 @pytest.mark.slow
+def test_denoise_without_a_config_runs_the_shipped_model_and_names_the_weights(tmp_path):
+    """A runs folder where the command runs (runs/default, a model trained on data/default) is not used without
+    --config: the shipped model is, and the summary line and the output's header say which weights ran; with a
+    config of that store, its run is."""
+    import json
+    import shutil
+
+    from mcdenoise.pipeline.exr import read_header
+    from mcdenoise.train.model import SHIPPED_MODEL
+
+    run = tmp_path / "runs" / "default" / "diffusion_sppany"
+    shutil.copytree(SHIPPED_MODEL, run)
+    record = json.loads((run / "model.json").read_text())
+    (run / "model.json").write_text(json.dumps({**record, "store": "data/default"}))
+    (tmp_path / "mine.yaml").write_text("store: data/default\n")
+    write_rgb_exr(tmp_path / "in.exr", synthetic_buffers(32, 40, seed=7, noise=0.7)["color"])
+    env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    for extra, weights in (([], f"{SHIPPED_MODEL} (Control Module on OIDN"),
+                           (["--config", "mine.yaml"], "runs/default/diffusion_sppany (Control Module on OIDN")):
+        proc = subprocess.run([sys.executable, "-m", "mcdenoise", "denoise", "--exr", "in.exr", "--out", "out.exr",
+                               "--spp", "4", *extra], cwd=tmp_path, capture_output=True, text=True, env=env)
+        assert proc.returncode == 0, proc.stderr
+        assert f"with {weights}" in proc.stdout and read_header(tmp_path / "out.exr")["weights"].startswith(weights)
+
+@pytest.mark.slow
 def test_denoise_exr_warns_when_a_wide_reconstruction_filter_correlated_the_noise(tmp_path):
     """Mitsuba's default film filter (gaussian) splats samples over neighbours; OIDN leaves such noise in
     place, so `denoise --exr` says so and how to render instead; a box-filtered render gets no warning."""

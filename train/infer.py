@@ -223,12 +223,13 @@ def weights_text(folder: Path, meta: dict) -> str:
 def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: str, skip: int | None,
                 seed: int | None, base_only: bool = False, quiet: bool = False, steps: int | None = None,
                 samples: int | None = None, ensemble: int = 1, strength: float | None = None,
-                device: str | None = None, precision: str = "auto") -> int:
+                device: str | None = None, precision: str = "auto", model: Path | None = None) -> int:
     """Denoise one frame of the store (``SCENE/FRAME``) or one EXR and write ``out`` (EXR: ``color``, the
     mean of ``samples`` samples, and ``std``, their per-pixel standard deviation); ``ensemble``: the mean of
     both over that many flipped and transposed copies (``self_ensemble``); ``strength``: the fraction of
-    the Control Module's change applied (default: the model's). The input is read (and refused in one line)
-    before anything else is said or loaded; the output names the weights that ran."""
+    the Control Module's change applied (default: the model's); ``model``: the model folder (default: the config's
+    run for ``spp``, ``find_run``). The input is read (and refused in one line) before anything else is said or
+    loaded; the output names the weights that ran."""
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
     if frame is not None and spp is None:
@@ -242,7 +243,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         spp, how = _exr_spp(Path(exr))
         if not quiet:
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
-    folder = find_run(cfg, spp)
+    folder = model or find_run(cfg, spp)
     den = load_denoiser(folder, device or cfg.diffusion.device, base_only, precision)
 
     def run(b):   # colour and std side by side, so that one self-ensemble turns both back

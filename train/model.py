@@ -561,16 +561,41 @@ def oidn_ft_blob(folder: Path, network: str) -> Path:
 def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     """The trained run for ``spp``: ``diffusion_spp<N>[_variant]`` if it exists, else the spp-conditioned
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
-    ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError) if none."""
+    ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError)
+    if none. A run trained on another store than the config's (its model.json's ``store``) is passed over, said in
+    one line: another config's run in a shared folder is not this config's model."""
     named = variant if variant is not None else cfg.diffusion.name
     shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped else None
-    folder = config_mod.find_run(cfg, "diffusion", spp, "model.json", variant, fallback=shipped)
+    folder = config_mod.find_run(cfg, "diffusion", spp, "model.json", variant)
+    if folder is not None and not trained_on(folder, cfg.store):
+        instead = f"using {shipped}" if shipped is not None else "no other model"
+        _note_once(f"note: {folder} was trained on {weights.read_record(folder, 'oidn_control', '').get('store')}, not "
+                   f"this config's store {cfg.store}: {instead}")
+        folder = None
+    if folder is None and shipped is not None:
+        return shipped
     if folder is not None:
         return folder
     candidates = config_mod.run_candidates(cfg, "diffusion", spp, variant) + ([shipped] if shipped else [])
-    raise CheckpointError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))}: run "
+    raise CheckpointError(f"no diffusion checkpoint in {' or '.join(map(str, candidates))} trained on {cfg.store}: run "
                           f"`make train SPP={spp}` or `make train SPP=any`" +
                           (f" with diffusion.name={variant}" if variant else ""))
+
+
+def trained_on(folder: Path, store: str) -> bool:
+    """Whether the run in ``folder`` was trained on ``store`` (the same folder; a record without a store: yes)."""
+    recorded = weights.read_record(folder, "oidn_control", "run `make train SPP=any`").get("store")
+    return recorded is None or Path(recorded).resolve() == Path(store).resolve()
+
+
+_NOTED: set[str] = set()
+
+
+def _note_once(line: str) -> None:
+    """Print ``line`` the first time it comes (the evaluator looks a run up once per sample count)."""
+    if line not in _NOTED:
+        _NOTED.add(line)
+        print(line, flush=True)
 
 
 # ---- saving and loading ------------------------------------------------------------------------
