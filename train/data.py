@@ -195,7 +195,8 @@ class Crops(EpochItems):
                        for g in GROUPS}
         H, W = pack["x"].shape[-2:]
         if self.crop > min(H, W) or self.crop % ALIGNMENT:
-            raise StoreError(f"crop {self.crop}: must be a multiple of {ALIGNMENT} up to the frames' {min(H, W)}")
+            raise StoreError(f"diffusion.crop {self.crop}: must be a multiple of {ALIGNMENT} up to the frames' "
+                             f"{min(H, W)} (set diffusion.crop={min(H, W) // ALIGNMENT * ALIGNMENT})")
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = self.item_rng(index)
