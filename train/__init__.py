@@ -10,8 +10,8 @@ The diffusion denoiser, by role (``make train SPP=N`` → ``commands._train`` �
 - ``train.loss``: each crop's error relative to OIDN's.
 - ``train.sampler``: the reverse diffusion and the strength knob.
 - ``train.data``: the inputs in OIDN's space, training packs and crops, the run's frame sources.
-- ``train.train``: the training task (``train``, ``RefineTask``: model, data, optimiser; the step;
-  validation) and its learning-rate schedule, EMA and DDP helpers.
+- ``train.train``: the training run, written out in order (``train``: model, data, optimiser; the
+  epochs and the step; validation, the files) and its learning-rate schedule, EMA and DDP helpers.
 - ``train.infer``: denoise a frame with a model folder (``load_denoiser``), σ's calibration.
 - ``train.export``: a self-contained model folder (``train/shipped``) and changes to one after training.
 
