@@ -322,7 +322,7 @@ class TrainCase:
     history_file: str = "train.json"
 
 
-# The Control Module on OIDN's frozen network (train/train.py RefineTask); the EMA state resumes too.
+# The Control Module on OIDN's frozen network (train/train.py train); the EMA state resumes too.
 REFINE = TrainCase("diffusion", 4, "diffusion_spp4",
                    ["diffusion.epochs=4", "diffusion.crop=16", "diffusion.batch_size=2", "diffusion.val_frames=1",
                     "diffusion.warmup_steps=2", "diffusion.device=cpu", "diffusion.base_network=rt_hdr_alb_nrm"],
