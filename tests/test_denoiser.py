@@ -469,3 +469,41 @@ def test_the_sampler_does_no_work_twice(base):
     model.control = None
     g = network_gflops(model, FORM, 1, side=32)
     assert g["ours"] == g["base"]
+
+
+def test_an_epoch_without_a_full_batch_is_a_config_error_naming_the_keys():
+    from mcdenoise.train.train import check_steps
+
+    check_steps(8, 8, 2, 4)                               # one full batch: one step
+    with pytest.raises(ConfigError, match=r"diffusion\.batch_size 8: more than the 7 training crops .*"
+                                          r"diffusion\.batch_size=7 or raise diffusion\.crops_per_frame"):
+        check_steps(7, 8, 7, 1)
+
+
+@pytest.mark.slow
+def test_a_run_that_would_take_no_step_stops_before_any_work_in_one_line(cleaned, tmp_path):
+    store, _ = cleaned
+    proc = cli("train", "--model", "diffusion", "--spp", "any", "--config", TINY, f"store={store}",
+               f"runs={tmp_path / 'runs'}", *REFINE_TINY, "diffusion.batch_size=64", check=False)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith("error: diffusion.batch_size 64: more than the") and "no optimiser step" in proc.stderr
+    assert not (tmp_path / "runs" / "pack").exists()       # refused before the store was decoded
+
+
+def test_an_implausible_sigma_fit_is_reported_as_a_failure_and_not_stored(tmp_path, monkeypatch, capsys):
+    """σ's scale is the error over the samples' spread; 3e5 says the spread does not track the error on these
+    frames: the run says the fit failed and model.json keeps no σ (a plausible fit is stored as before)."""
+    from types import SimpleNamespace
+
+    from mcdenoise.train import train as trainer
+
+    run = SimpleNamespace(rank=0, folder=tmp_path, device="cpu", cfg=SimpleNamespace(seed=0), name="r", says=True)
+    for scale, stored in ((3.36e5, False), (2.8, True)):
+        (tmp_path / "model.json").write_text(json.dumps({"format": "x", "sigma": {"scale": 9.0}}))
+        fit = {"scale": scale, "steps": 3, "samples": 4, "pixels": 100, "strength": 1.0}
+        monkeypatch.setattr(infer, "load_denoiser", lambda folder, device: None)
+        monkeypatch.setattr(infer, "calibrate", lambda den, val, seed, fit=fit: fit)
+        trainer.calibrate_sigma(run, [{"frame": 0}])
+        record = json.loads((tmp_path / "model.json").read_text())
+        out = capsys.readouterr().out
+        assert (record.get("sigma") == fit) == stored and ("σ fit failed" in out) != stored

@@ -35,7 +35,7 @@ from torch.utils.data import DataLoader
 from mcdenoise.pipeline import config as config_mod, weights
 from mcdenoise.pipeline.checkpoint import load_last, save_last
 from mcdenoise.pipeline.config import Config, pick_device
-from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.errors import ConfigError, TrainError
 from mcdenoise.pipeline.exr import atomic_write_json, read_json
 from mcdenoise.pipeline.metrics import PSNR_CEILING, psnr
 from mcdenoise.pipeline.progress import progress
@@ -47,6 +47,10 @@ from .data import Crops, StoreSource
 from .loss import relative_loss
 from .model import FORMAT, NETWORK, ControlledOIDN, UNet, cond_names, load, network_output, run_dir, save
 from .sampler import Formulation, sample, snr_weight
+
+# The σ scales a fit may find: the samples' spread within a factor 100 of the error either way (the shipped
+# model's is 2.82); outside it the spread does not track the error on these frames.
+SIGMA_PLAUSIBLE = (0.01, 100.0)
 
 # What a warm-started run copies from its start's model.json besides the weights: how the model is used
 KEPT = ("control_without_groups",)
@@ -289,15 +293,27 @@ def resume(run: Run) -> tuple[int, list, dict | None]:
     return int(record["epoch"]), record["history"], record["best"]
 
 
+def check_steps(crops: int, batch_size: int, frames: int, per_frame: int) -> None:
+    """An epoch of ``crops`` crops per rank takes at least one optimiser step (full batches only), else a
+    ConfigError naming the keys to change: a run that would step zero times must not look trained."""
+    if crops < batch_size:
+        raise ConfigError(f"diffusion.batch_size {batch_size}: more than the {crops} training crops an epoch has "
+                          f"({frames} train frames x diffusion.crops_per_frame {per_frame}), so no optimiser step "
+                          f"would run; set diffusion.batch_size={max(1, crops)} or raise diffusion.crops_per_frame")
+
+
 def load_data(run: Run) -> Data:
     """The store's training pack as crops, this rank's share of them per epoch, the val frames (rank 0), and the
     model wrapped in DDP under torchrun."""
     t = time.perf_counter()
     d = run.cfg.diffusion
+    frames = len(run.source.train_keys) + sum(len(keys) for _, keys in run.source.extra)
+    check_steps(frames * d.crops_per_frame // run.world, d.batch_size, frames, d.crops_per_frame)
     pack = run.source.train_pack(not run.says)
     crops = Crops(pack, d.crop, d.crops_per_frame, run.cfg.seed, run.spps, dropout=d.dropout)
     per_rank = len(crops) // run.world
-    steps_per_epoch = max(1, per_rank // d.batch_size)
+    check_steps(per_rank, d.batch_size, len(crops.frames), d.crops_per_frame)
+    steps_per_epoch = per_rank // d.batch_size
     if d.epoch_steps:
         steps_per_epoch = min(steps_per_epoch, d.epoch_steps)
         per_rank = min(per_rank, steps_per_epoch * d.batch_size)
@@ -368,12 +384,20 @@ def calibrate_sigma(run: Run, val: list[dict]) -> None:
     # Imported here: inference is not needed before the training is done (nor loaded before the first step).
     from .infer import calibrate, load_denoiser
     record = read_json(path, "model record")
-    record["sigma"] = calibrate(load_denoiser(run.folder, str(run.device)), val, run.cfg.seed)
+    sg = calibrate(load_denoiser(run.folder, str(run.device)), val, run.cfg.seed)
+    fitted = f"σ scale {sg['scale']:.3g} fitted on {sg['pixels']} validation pixels ({sg['steps']} steps, " \
+             f"{sg['samples']} samples)"
+    if sg["pixels"] > 0 and not SIGMA_PLAUSIBLE[0] <= sg["scale"] <= SIGMA_PLAUSIBLE[1]:
+        # a fit this far off says the samples' spread does not track the error here: no σ rather than a wrong one
+        record.pop("sigma", None)
+        atomic_write_json(path, record)
+        print(f"{run.name}: the σ fit failed: {fitted}, outside {SIGMA_PLAUSIBLE[0]:g}..{SIGMA_PLAUSIBLE[1]:g}; "
+              "model.json keeps no σ scale (the std layer is the samples' unscaled spread)", flush=True)
+        return
+    record["sigma"] = sg
     atomic_write_json(path, record)
     if run.says:
-        sg = record["sigma"]
-        print(f"{run.name}: σ scale {sg['scale']:.3g} fitted on {sg['pixels']} validation pixels "
-              f"({sg['steps']} steps, {sg['samples']} samples)", flush=True)
+        print(f"{run.name}: {fitted}", flush=True)
 
 
 # ---- validation, files and lines ---------------------------------------------------------------------
