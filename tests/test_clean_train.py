@@ -20,7 +20,6 @@ from mcdenoise.clean.train import (
     run_dir,
     save_best,
     train,
-    train as train_clean,
 )
 from mcdenoise.pipeline.store import Store
 from tests.helpers import FRAMES, SCENES, SIZE, make_clean_store, tiny_cfg
@@ -175,7 +174,7 @@ def test_baseline_trains_from_low_spp(cfg_dir):
     ds = BaselinePairs(store, store.frames("train"), spp=4, crop=8, crops_per_frame=1, seed=0)
     item = ds[0]
     assert item["inputs"].shape == (IN_CHANNELS, 8, 8)
-    assert train_clean(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
+    assert train(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
     folder = run_dir(cfg, "baseline", 4)
     assert folder.name == "isik_spp4" and (folder / "model.safetensors").exists()
     meta = json.loads((folder / "model.json").read_text())
@@ -197,7 +196,7 @@ def test_baseline_sppany_draws_every_spp_and_serves_them(cfg_dir):
     for i in range(len(ds)):
         ds[i]
     assert sorted(set(seen)) == [4, 8]
-    assert train_clean(cfg, mode="baseline", spp="any", quiet=True)["epochs"] > 0
+    assert train(cfg, mode="baseline", spp="any", quiet=True)["epochs"] > 0
     folder = run_dir(cfg, "baseline", "any")
     meta = json.loads((folder / "model.json").read_text())
     assert folder.name == "isik_sppany" and meta["spp"] == "any" and meta["spp_choices"] == [4, 8]
@@ -213,7 +212,7 @@ def test_clean_report_scores_and_draws(cfg_dir):
     from mcdenoise.pipeline.metrics import all_metrics, mse
 
     cfg = tiny_cfg(cfg_dir, epochs=2)
-    assert cmd_gt_clean(cfg, quiet=True) == 0 and train_clean(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
+    assert cmd_gt_clean(cfg, quiet=True) == 0 and train(cfg, mode="baseline", spp=4, quiet=True)["epochs"] > 0
     out = cfg_dir / "report"
     r = run_report(cfg, out=str(out), spp=4)
     store = Store(cfg.store)
@@ -242,3 +241,21 @@ def test_time_budget_stops_after_an_epoch_and_resumes(cfg_dir):
     cfg = tiny_cfg(cfg_dir, epochs=3, time_budget_s="0.000001")
     assert train(cfg, "cleaner", quiet=True)["epochs"] == 1
     assert train(cfg, "cleaner", quiet=True)["epochs"] == 2
+
+
+@pytest.mark.slow
+def test_gt_clean_twice_writes_the_same_bytes(cleaned, tiny_store, tmp_path):
+    """Same seeds, same files: ``gt-clean`` run again in a fresh process on the same rendered store trains the
+    same cleaner to the byte and writes the same GT_clean pixels (what makes two make demo runs agree; it holds
+    for one torch thread count: float sums over another number of threads round differently: README.md)."""
+    import shutil
+
+    from tests.helpers import CLEAN_TINY, TINY, assert_same_store, cli
+
+    store, runs = cleaned
+    again = tmp_path / "store"
+    shutil.copytree(tiny_store[0], again)
+    cli("gt-clean", "--config", TINY, f"store={again}", f"runs={tmp_path / 'runs'}", *CLEAN_TINY, "--quiet")
+    assert (tmp_path / "runs/cleaner/model.safetensors").read_bytes() == (runs / "cleaner/model.safetensors").read_bytes()
+    assert any(again.rglob("gt_clean.exr"))
+    assert_same_store(store, again)            # every image, gt_clean included: pixels and header records
