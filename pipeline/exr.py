@@ -11,16 +11,24 @@ measurements), each written with a lossless compression (``STORE_ENCODINGS``: ``
 
 - ``exact``: every value as rendered, ZIP; a format version 2 record, what every store held
   before the compact encoding existed;
-- ``compact`` (the store's default, format version 3, the record's ``encoding`` says how): the
-  beauty is left out when it equals the sum of the radiance components within
-  ``BEAUTY_TOLERANCE`` (the reader sums them, ``schema.beauty_from_components``); variances and
-  depth stay float32 with their mantissa rounded to ``MANTISSA_BITS`` (relative error at most
-  2^-(bits+1)), so they compress well; the radiance components and the half features are stored
-  exactly. ZIP by default, which every OpenEXR reader opens (2.x and 3.x); ``compact-zstd``
-  writes the same values with ZSTD, smaller but readable only with OpenEXR >= 3.5.
+- ``compact`` (the store's default, format version 4, the record's ``encoding`` says how): when
+  the beauty equals the sum of the radiance components within ``BEAUTY_TOLERANCE``, its exact
+  value is that sum (the reader computes it, ``schema.beauty_from_components``) and ``R, G, B``
+  hold a half-precision **view** of it (``beauty_view``; record ``beauty: view``), so that every
+  EXR tool shows the picture, for about 10 % more bytes a frame (docs/store.md, "What the picture
+  costs"; a float32 beauty would cost 18 %); the reader never takes ``color`` from the view.
+  Variances and depth stay float32 with their mantissa rounded to ``MANTISSA_BITS`` (relative
+  error at most 2^-(bits+1)), so they compress well; the radiance components and the half
+  features are stored exactly. ZIP by default, which every OpenEXR reader opens (2.x and 3.x);
+  ``compact-zstd`` writes the same values with ZSTD, smaller but readable only with OpenEXR >= 3.5.
+  Format version 3 compact images (written before the view existed) have no ``R, G, B`` at all
+  (``beauty: sum``) and read as they always did.
+
+Every image shows its picture: the beauty's ``R, G, B`` are real channels in every encoding (the
+exact float32 beauty, or the compact view), never left out as a constant.
 
 Images for people (``write_output``: a denoiser's result) store every channel, constant or not, with
-ZIP, so any EXR tool sees R, G, B; only the store leaves constant channels out.
+ZIP; the store leaves constant channels other than the beauty's out.
 
 Every problem with a file raises ``StoreError`` naming the path and, where it applies, the
 channel and what was expected.
@@ -57,9 +65,13 @@ from .errors import StoreError, StoreWriteError
 from .numerics import constant_value
 
 FORMAT = "mcdenoise-image"
-FORMAT_VERSION = 3              # the compact encoding; the exact one writes version 2 records
+FORMAT_VERSION = 4              # the compact encoding; the exact one writes version 2 records
 EXACT_VERSION = 2
-READ_VERSIONS = (1, 2, 3)       # 1: no checksum; 3: an 'encoding' record
+READ_VERSIONS = (1, 2, 3, 4)    # 1: no checksum; 3: an 'encoding' record; 4: the beauty's half view
+# The beauties a compact record may state, per format version: 'sum' (version 3: no R, G, B; the
+# reader sums the components), 'view' (version 4: R, G, B are a half view of that sum), 'stored'.
+BEAUTIES = {3: ("sum", "stored"), 4: ("view", "stored")}
+HALF_MAX = 65504.0              # the largest finite half: a view clamps brighter pixels to it
 ENCODINGS = ("compact", "exact")
 # Mantissa bits kept by the compact encoding (float32 has 23): variances, and the depth mean.
 # Relative error <= 2^-(bits+1): 2^-6 = 1.6 % for a variance, below the sampling error of the
@@ -229,8 +241,9 @@ def _buffer_channels(path: Path, buffers: list[str], arrays: dict[str, np.ndarra
     """(HxW, stored channels, omitted channel constants) of every buffer and its variance.
 
     A key in ``constants`` is omitted with that value rounded to the channel's storage type; with
-    ``omit_constant`` so is a channel whose stored data is constant over the frame. Values are
-    rounded to the ``encoding``'s mantissa bits first (``_mantissa_bits``)."""
+    ``omit_constant`` so is a channel whose stored data is constant over the frame, except the
+    beauty's ``R, G, B`` (a viewer shows them). Values are rounded to the ``encoding``'s mantissa
+    bits first (``_mantissa_bits``)."""
     shape = None
     channels: dict[str, np.ndarray] = {}
     omitted: dict[str, float] = {}
@@ -251,7 +264,7 @@ def _buffer_channels(path: Path, buffers: list[str], arrays: dict[str, np.ndarra
                 data = np.ascontiguousarray(arr[..., c], dtype=dtype)
                 if bits is not None:
                     data = round_mantissa(data, bits)
-                value = constant_value(data) if omit_constant else None
+                value = constant_value(data) if omit_constant and key != "color" else None
                 if value is not None:
                     omitted[ch] = value
                 else:
@@ -297,8 +310,11 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     _add_layers(path, channels, layers or {}, shape)
     record = {"format": FORMAT, "version": EXACT_VERSION, "buffers": buffers}
     if encoding == "compact":
-        derived = _derive_beauty(path, buffers, channels, omitted, shape)
-        record.update(version=FORMAT_VERSION, encoding={"name": encoding, "beauty": "sum" if derived else "stored",
+        view = _beauty_view_channels(path, buffers, channels, omitted, shape)
+        channels.update(view)
+        for ch in view:
+            omitted.pop(ch, None)
+        record.update(version=FORMAT_VERSION, encoding={"name": encoding, "beauty": "view" if view else "stored",
                                                         "mantissa_bits": dict(MANTISSA_BITS),
                                                         "compression": compression})
     if not channels:
@@ -332,23 +348,29 @@ def write_output(path: Path, hdr: np.ndarray, meta: dict, layers: dict[str, np.n
                        layers=layers, encoding="exact")
 
 
-def _derive_beauty(path: Path, buffers: list[str], channels: dict[str, np.ndarray], omitted: dict[str, float],
-                   shape) -> bool:
-    """Leave the beauty's channels out of ``channels``/``omitted`` when the reader can sum it from the
-    components: all are present and the beauty is within ``BEAUTY_TOLERANCE`` of their sum in every
-    pixel. Returns whether it did."""
+def beauty_view(color: np.ndarray) -> np.ndarray:
+    """The half-precision view of an exact (float32) beauty that a compact image stores as ``R, G, B``:
+    rounded to the nearest half, pixels beyond the half range clamped to +-``HALF_MAX`` (relative error
+    <= 2^-11 in the half normal range, absolute <= 2^-25 below it)."""
+    return np.clip(np.asarray(color, np.float32), -HALF_MAX, HALF_MAX).astype(np.float16)
+
+
+def _beauty_view_channels(path: Path, buffers: list[str], channels: dict[str, np.ndarray], omitted: dict[str, float],
+                          shape) -> dict[str, np.ndarray]:
+    """When the reader can derive the beauty from the components (all present, the beauty within
+    ``BEAUTY_TOLERANCE`` of their sum in every pixel): ``R, G, B`` as the half view of that derived
+    beauty (``beauty_view``), to replace the float32 beauty; else {} (the beauty stays stored)."""
     if "color" not in buffers or not all(name in buffers for name in schema.RADIANCE_COMPONENTS):
-        return False
+        return {}
     parts = {name: _gather(path, schema.BY_NAME[name].exr_channels, channels, omitted, shape)
              for name in ("color", *schema.RADIANCE_COMPONENTS)}
     magnitude = sum(np.abs(parts[name].astype(np.float64)) for name in schema.RADIANCE_COMPONENTS)
-    error = np.abs(parts["color"].astype(np.float64) - schema.beauty_from_components(parts))
+    derived = schema.beauty_from_components(parts)
+    error = np.abs(parts["color"].astype(np.float64) - derived)
     if not np.all(error <= BEAUTY_TOLERANCE * magnitude):
-        return False
-    for ch in schema.BY_NAME["color"].exr_channels:
-        channels.pop(ch, None)
-        omitted.pop(ch, None)
-    return True
+        return {}
+    view = beauty_view(derived)
+    return {ch: np.ascontiguousarray(view[..., c]) for c, ch in enumerate(schema.BY_NAME["color"].exr_channels)}
 
 
 def checksum(record: dict, channels: dict[str, np.ndarray]) -> str:
@@ -458,8 +480,10 @@ def _header_info(attrs: dict, fail) -> dict:
     if attrs["lineOrder"][1][0] > 2:
         fail(f"EXR line order {attrs['lineOrder'][1][0]} is not valid")
     from . import schema
-    expected = {ch: np.dtype(schema.storage_dtype(ch)) for ch in schema.exr_channel_map()}
-    expected.update({ch: np.dtype(t) for ch, t in schema.output_layer_channels().items()})
+    expected = {ch: (np.dtype(schema.storage_dtype(ch)),) for ch in schema.exr_channel_map()}
+    expected.update({ch: (np.dtype(t),) for ch, t in schema.output_layer_channels().items()})
+    # the beauty is float32, or its half view (a compact image; _check_encoding matches it to the record)
+    expected.update({ch: (np.dtype(np.float32), np.dtype(np.float16)) for ch in schema.BY_NAME["color"].exr_channels})
     channels: dict[str, np.dtype] = {}
     data, pos = attrs["channels"][1], 0
     while True:
@@ -479,10 +503,11 @@ def _header_info(attrs: dict, fail) -> dict:
             fail(f"channel {name!r} is not a channel of the schema")
         if name in channels:
             fail(f"channel {name!r} is listed twice")
+        allowed = " or ".join(t.name for t in expected[name])
         if ptype not in PIXEL_TYPES:
-            fail(f"channel {name!r} has EXR pixel type {ptype}, expected {expected[name].name}")
-        if PIXEL_TYPES[ptype] != expected[name]:
-            fail(f"channel {name!r} is {PIXEL_TYPES[ptype].name}, expected {expected[name].name}")
+            fail(f"channel {name!r} has EXR pixel type {ptype}, expected {allowed}")
+        if PIXEL_TYPES[ptype] not in expected[name]:
+            fail(f"channel {name!r} is {PIXEL_TYPES[ptype].name}, expected {allowed}")
         if (xs, ys) != (1, 1):
             fail(f"channel {name!r} is subsampled ({xs}x{ys}); the store never subsamples")
         channels[name] = PIXEL_TYPES[ptype]
@@ -555,7 +580,8 @@ def _no_constant(name: str):
 
 def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """Read an image: ``{name: HxWxC float32, name.variance: ...}`` with constants restored and a
-    derived beauty summed from its components (the compact encoding).
+    derived beauty summed from its components (the compact encoding; ``R, G, B``, where they are its
+    half view, are only checked against it, never returned).
 
     ``buffers`` restricts the result to those buffers (faster for consumers that need few).
     """
@@ -579,6 +605,7 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
     except Exception as exc:
         raise StoreError(f"{path}: corrupt or truncated EXR pixel data ({type(exc).__name__}: {exc})") from None
     derive = "color" in wanted and _beauty_derived(record)
+    view = derive and encoding_of(record).get("beauty") == "view"
     need = list(dict.fromkeys(wanted + (list(schema.RADIANCE_COMPONENTS) if derive else [])))
     arrays: dict[str, np.ndarray] = {}
     for name in need:
@@ -589,6 +616,8 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
                 arrays[key] = _gather(path, names, pixels, constants, (h, w), dtype, name)
     if derive:
         arrays["color"] = schema.beauty_from_components(arrays)
+    if view:
+        _check_view(path, pixels, arrays["color"], (h, w))
     if "checksum" in record:
         if any(p is None or p.shape != (h, w) for p in pixels.values()):
             raise StoreError(f"{path}: a channel's pixel data does not have the shape {(h, w)}")
@@ -597,6 +626,17 @@ def read_image(path: Path, buffers: list[str] | None = None) -> tuple[dict[str, 
             raise StoreError(f"{path}: checksum mismatch (header {record['checksum']!r}, data {actual!r}): "
                              f"the file is damaged")
     return {key: arrays[key] for name in wanted for key in (name, schema.variance_name(name))}, record
+
+
+def _check_view(path: Path, pixels: dict, color: np.ndarray, shape) -> None:
+    """The stored ``R, G, B`` of a ``beauty: view`` image are ``beauty_view`` of the derived ``color``, bit for
+    bit (pixels where ``color`` is not finite are left to the caller: the writer never writes them)."""
+    stored = _gather(path, schema.BY_NAME["color"].exr_channels, pixels, {}, shape, np.float16, "color")
+    finite = np.isfinite(color)
+    differ = int(np.count_nonzero(stored[finite] != beauty_view(color[finite]).astype(np.float32)))
+    if differ:
+        raise StoreError(f"{path}: channels R, G, B (the beauty's half view) differ from the beauty derived from the "
+                         f"components in {differ} values: the file was changed")
 
 
 def _gather(path: Path, names: tuple[str, ...], pixels: dict, constants: dict, shape, dtype: type | None = None,
@@ -625,9 +665,9 @@ def _gather(path: Path, names: tuple[str, ...], pixels: dict, constants: dict, s
 
 
 def encoding_of(record: dict) -> dict:
-    """An image record's encoding (its header's, or its copy in frame.json): a version 3 record says it;
-    older images are all exact with the beauty stored."""
-    if record.get("version") == FORMAT_VERSION and isinstance(record.get("encoding"), dict):
+    """An image record's encoding (its header's, or its copy in frame.json): a version 3 or 4 record says
+    it; older images are all exact with the beauty stored."""
+    if record.get("version") in tuple(BEAUTIES) and isinstance(record.get("encoding"), dict):
         return record["encoding"]
     return {"name": "exact", "beauty": "stored"}
 
@@ -642,28 +682,49 @@ def store_encoding(record: dict) -> str:
 
 
 def _beauty_derived(record: dict) -> bool:
-    """Whether the image leaves the beauty out for the reader to sum (checked by ``_check_encoding``)."""
-    return encoding_of(record).get("beauty") == "sum"
+    """Whether the reader sums the beauty from its components (``sum``: left out; ``view``: R, G, B hold its
+    half view), as ``_check_encoding`` checked."""
+    return encoding_of(record).get("beauty") in ("sum", "view")
 
 
-def _check_encoding(path: Path, record: dict, stored_channels) -> None:
-    """A version 3 record names a known encoding; a derived beauty has no stored or constant channel
-    and all its components are listed."""
-    if record["version"] < FORMAT_VERSION:
+def _check_encoding(path: Path, record: dict, stored_channels: dict) -> None:
+    """The beauty's channels are what the record says. A version 3 or 4 record names a known encoding and a
+    beauty of its version (``BEAUTIES``); a derived beauty (``sum``, ``view``) lists all its components and
+    records no constant for R, G, B; ``sum`` stores no R, G, B, ``view`` stores them as half; any other
+    image's stored R, G, B are float32 (``stored_channels``: ``scan_exr``'s name -> dtype)."""
+    color = schema.BY_NAME["color"].exr_channels
+    beauty = "stored"
+    if record["version"] >= 3:
+        enc, allowed = record.get("encoding"), BEAUTIES[record["version"]]
+        if not (isinstance(enc, dict) and enc.get("name") in ENCODINGS and enc.get("beauty") in allowed):
+            raise StoreError(f"{path}: header record 'encoding' is {enc!r}, expected "
+                             f"{{'name': one of {', '.join(ENCODINGS)}, 'beauty': {' or '.join(map(repr, allowed))}, "
+                             f"...}} (format version {record['version']})")
+        beauty = enc["beauty"]
+    if beauty == "stored":
+        wrong = [f"{ch} is {stored_channels[ch].name}" for ch in color
+                 if ch in stored_channels and stored_channels[ch] != np.float32]
+        if wrong:
+            raise StoreError(f"{path}: the beauty is stored exactly, but channel {', '.join(wrong)}, expected float32")
         return
-    enc = record.get("encoding")
-    if not (isinstance(enc, dict) and enc.get("name") in ENCODINGS and enc.get("beauty") in ("sum", "stored")):
-        raise StoreError(f"{path}: header record 'encoding' is {enc!r}, expected "
-                         f"{{'name': one of {', '.join(ENCODINGS)}, 'beauty': 'sum' or 'stored', ...}}")
-    if enc["beauty"] == "sum":
-        listed = record.get("buffers") if isinstance(record.get("buffers"), list) else []
-        constants = record.get("constants") if isinstance(record.get("constants"), dict) else {}
-        missing = [n for n in ("color", *schema.RADIANCE_COMPONENTS) if n not in listed]
-        kept = [ch for ch in schema.BY_NAME["color"].exr_channels if ch in stored_channels or ch in constants]
+    listed = record.get("buffers") if isinstance(record.get("buffers"), list) else []
+    constants = record.get("constants") if isinstance(record.get("constants"), dict) else {}
+    missing = [n for n in ("color", *schema.RADIANCE_COMPONENTS) if n not in listed]
+    if beauty == "sum":
+        kept = [ch for ch in color if ch in stored_channels or ch in constants]
         if missing or kept:
             raise StoreError(f"{path}: the beauty is marked as the sum of its components, but "
                              + (f"buffers {', '.join(missing)} are not listed" if missing
                                 else f"channels {', '.join(kept)} are stored"))
+        return
+    wrong = [f"{ch} is {stored_channels[ch].name if ch in stored_channels else 'missing'}" for ch in color
+             if stored_channels.get(ch) != np.float16]
+    constant = [ch for ch in color if ch in constants]
+    if missing or wrong or constant:
+        raise StoreError(f"{path}: the beauty is marked as derived from its components with R, G, B its half view, "
+                         "but " + (f"buffers {', '.join(missing)} are not listed" if missing
+                                   else f"channel {', '.join(wrong)}, expected float16" if wrong
+                                   else f"channels {', '.join(constant)} are recorded as constants"))
 
 
 @contextlib.contextmanager
@@ -696,6 +757,8 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
     ``N.X``…, ``variance.R``…) is read when all its channels are present and left out otherwise
     (consumers treat a missing feature as its background value). No ``mcdenoise`` header is needed.
     ``aliased``, when given, receives buffer → the other tool's channels it was read from.
+    An image of this store whose beauty is derived (compact: ``R, G, B`` missing or a half view) is read
+    with ``read_image``, so its colour is the exact beauty, never the view.
     """
     path = Path(path)
     if path.is_dir():
@@ -709,11 +772,14 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
     try:
         with library_output(said), OpenEXR.File(str(path), separate_channels=True) as f:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
+            ours = f.header().get(META_KEY)
     except Exception as exc:
         # the library's own account of the damage (it prints it) says more than the exception it raises after
         said = [line for line in said if "EXR_ERR" in line] or said
         why = said[-1].removeprefix(f"{path}: ") if said else (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise StoreError(f"{path}: corrupt or truncated EXR ({why})") from None
+    if _derived_record(ours):
+        return read_image(path)[0]
     other = resolve(channels, {b: schema.BY_NAME[b].exr_channels for b in ALIASES}, str(path))
     if not all(c in channels for c in ("R", "G", "B")) and "color" not in other:
         raise StoreError(f"{path}: channels R, G, B (the noisy colour) are required, or a layer "
@@ -733,6 +799,15 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
                         raise StoreError(f"{path}: channel {n!r} has shape {a.shape}, expected {shape}")
                 out[key] = np.stack(arrs, axis=2).astype(np.float32)
     return out
+
+
+def _derived_record(raw) -> bool:
+    """Whether a header's ``mcdenoise`` attribute (``raw``) is a record of this store with a derived beauty."""
+    try:
+        record = json.loads(raw) if isinstance(raw, str) else None
+    except (json.JSONDecodeError, ValueError, RecursionError):
+        return False
+    return isinstance(record, dict) and record.get("format") == FORMAT and _beauty_derived(record)
 
 
 # ---- Other tools' layer names (Mitsuba's aov integrator, Blender), for denoise --exr -------------

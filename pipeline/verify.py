@@ -15,10 +15,12 @@ What is checked (each problem is reported as ``PATH: what is wrong``):
   ``--headers-only``) the pixels decoded: storage types per schema (float32 radiance and
   variance), the header checksum, every value finite, the header's repaired non-finite counts
   equal to ``frame.json``'s.
-- the image's encoding (``pipeline.exr``): a version 3 (compact) image is ZIP- or ZSTD-compressed,
-  names a known encoding, leaves out the beauty only when it lists all its components (the reader
-  checks that), and (with pixels) holds variances and depth with no more mantissa bits than its
-  record states; version 1 and 2 (exact) images are ZIP-compressed.
+- the image's encoding (``pipeline.exr``): a version 3 or 4 (compact) image is ZIP- or
+  ZSTD-compressed, names a known encoding, derives the beauty only when it lists all its components,
+  stores R, G, B as the record says (version 4 ``view``: half, equal bit for bit to the half view of
+  the derived beauty; ``stored``: float32; version 3 ``sum``: none) (the reader checks that), and
+  (with pixels) holds variances and depth with no more mantissa bits than its record states;
+  version 1 and 2 (exact) images are ZIP-compressed.
 - ``gt_clean.exr``: made by the cleaner that ``cleaner.json`` names (header ``cleaner_sha256``),
   listed there, the frame's size; ``cleaner.json``'s checkpoint, where it still exists, has that
   hash; no gt_clean without a cleaner.json.

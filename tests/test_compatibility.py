@@ -9,7 +9,8 @@ import OpenEXR
 import OpenImageIO as oiio
 import pytest
 
-from mcdenoise.pipeline.exr import read_image, scan_exr, write_image
+from mcdenoise.pipeline import schema
+from mcdenoise.pipeline.exr import HALF_MAX, read_image, scan_exr, write_image
 from mcdenoise.pipeline.store import Store
 from tests.helpers import TINY, cli
 
@@ -51,10 +52,71 @@ def test_the_pinned_reader_is_an_older_openexr():
     assert version and (3, 0) <= (int(version[1]), int(version[2])) < (3, 5), oiio.get_string_attribute("library_list")
 
 
+def assert_shows_the_beauty(path, beauty: np.ndarray, view: bool) -> None:
+    """OpenImageIO lists R, G, B first and its pixels of them are the beauty our reader returns: within half
+    precision (relative 2^-11, 2^-25 absolute below half's normal range, clamped to its range) for a compact
+    image's view, exactly for a stored beauty."""
+    inp = oiio.ImageInput.open(str(path))
+    assert inp is not None, oiio.geterror()
+    try:
+        spec = inp.spec()
+        assert list(spec.channelnames[:3]) == ["R", "G", "B"], spec.channelnames
+        rgb = inp.read_image(0, 0, 0, 3, oiio.FLOAT)
+    finally:
+        inp.close()
+    assert rgb.shape == beauty.shape and np.all(np.isfinite(rgb))
+    if not view:
+        np.testing.assert_array_equal(rgb, beauty)
+        return
+    exact = np.clip(beauty.astype(np.float64), -HALF_MAX, HALF_MAX)
+    assert np.all(np.abs(rgb - exact) <= 2.0 ** -11 * np.abs(exact) + 2.0 ** -25)
+
+
+def _frame_buffers(rng, h=12, w=16) -> dict[str, np.ndarray]:
+    """Every buffer of a frame as the renderer leaves it: the beauty accumulated separately (float32), so it
+    is the sum of the components to round-off only; radiance from 1e-7 to 1e5, fireflies past half's range."""
+    out = {}
+    for b in schema.BUFFERS:
+        x = rng.lognormal(-1, 3, (h, w, b.size)) if b.radiance else rng.random((h, w, b.size))
+        out[b.name] = x.astype(np.float32)
+        out[schema.variance_name(b.name)] = (rng.random((h, w, b.size)) * 1e-2).astype(np.float32)
+    out["diffuse_indirect"][2, 3] = 9e4
+    color = np.zeros((h, w, 3), np.float32)
+    for name in reversed(schema.RADIANCE_COMPONENTS):
+        color = color + out[name]
+    out["color"] = color
+    return out
+
+
+def test_every_store_image_shows_its_picture_in_openimageio(tmp_path):
+    """The store's writer (compact, the default): a stack and a GT have R, G, B, the half view of the beauty,
+    and our reader returns the exact beauty derived from the components; gt_clean (colour only) stores its
+    beauty exactly, and a constant one too."""
+    store = Store(tmp_path / "store")
+    rng = np.random.default_rng(3)
+    for image in ("s00", "gt1"):
+        buffers = _frame_buffers(rng)
+        record = store.write_image("s00000", 0, image, buffers, meta={"image": image})
+        assert record["encoding"]["beauty"] == "view"
+        path = store.image_path("s00000", 0, image)
+        ours, _ = read_image(path)
+        exact = schema.beauty_from_components(buffers)
+        np.testing.assert_array_equal(ours["color"].view(np.uint32), exact.view(np.uint32))
+        assert_shows_the_beauty(path, ours["color"], view=True)
+        assert_same_channels(path)
+    for name, hdr in (("gt_clean", _frame_buffers(rng)["color"]), ("black", np.zeros((12, 16, 3), np.float32))):
+        record = store.write_image("s00000", 0, name, {"color": hdr, "color.variance": np.zeros_like(hdr)},
+                                   meta={"image": name})
+        path = store.image_path("s00000", 0, name)
+        assert record["encoding"]["beauty"] == "stored"
+        np.testing.assert_array_equal(read_image(path)[0]["color"], hdr)
+        assert_shows_the_beauty(path, hdr, view=False)
+
+
 @pytest.mark.slow
 def test_store_frames_open_in_openimageio(tiny_store):
     """Every image of a rendered frame (the default compact encoding, ZIP) opens; each stored channel
-    holds what our reader returns for it."""
+    holds what our reader returns for it, and R, G, B show the beauty."""
     store = Store(tiny_store[0])
     key = store.frames()[0]
     for image in store.frame_record(key.scene, key.frame)["images"]:
@@ -62,6 +124,8 @@ def test_store_frames_open_in_openimageio(tiny_store):
         theirs = assert_same_channels(path)
         assert oiio_read(path)[1] == "zip"
         ours, record = read_image(path)
+        assert record["encoding"]["beauty"] == "view"
+        assert_shows_the_beauty(path, ours["color"], view=True)
         for c, ch in enumerate(("emission.R", "emission.G", "emission.B")):
             if ch in theirs:
                 np.testing.assert_array_equal(theirs[ch], ours["emission"][..., c])

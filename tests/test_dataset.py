@@ -82,13 +82,13 @@ def test_inspect_reports_frames_and_constants(tiny_store):
     key = Store(root).frames()[0]
     detail = json.loads(cli("inspect", root, "--frame", f"{key.scene}/000", "--json").stdout)["frame"]
     gt1 = detail["images"]["gt1"]
-    assert gt1["spp"] == 64 and "diffuse_direct.R" in gt1["channels"]   # the beauty R is derived (compact)
+    assert gt1["spp"] == 64 and {"diffuse_direct.R", "R"} <= set(gt1["channels"])   # R: the beauty's half view
     assert set(gt1["channels"]).isdisjoint(gt1["constants"])
     text = cli("inspect", root).stdout
     assert "6/6 frames complete" in text
-    # every image counted under its encoding (the tiny config writes the compact one, beauty derived)
-    assert report["encodings"] == {"compact, beauty sum": 6 * 6}
-    assert "encodings (images): compact, beauty sum: 36" in text
+    # every image counted under its encoding (the tiny config writes the compact one, beauty derived, R, G, B its view)
+    assert report["encodings"] == {"compact, beauty view": 6 * 6}
+    assert "encodings (images): compact, beauty view: 36" in text
 
 
 def test_inspect_says_identical_instead_of_the_json_psnr_ceiling():

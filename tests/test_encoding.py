@@ -1,6 +1,6 @@
 """The compact store encoding (pipeline.exr, docs/store.md "Bytes per channel group"): every
-encoded value within its stated bound, everything else exact, and old (exact, version 2) stores
-still read and verify."""
+encoded value within its stated bound, everything else exact, R, G, B the beauty's half view, and
+old (exact version 2, compact version 3 without R, G, B) stores still read and verify."""
 import json
 
 import numpy as np
@@ -13,6 +13,8 @@ from mcdenoise.pipeline.exr import (
     BEAUTY_TOLERANCE,
     MANTISSA_BITS,
     StoreError,
+    beauty_view,
+    checksum,
     read_header,
     read_image,
     round_mantissa,
@@ -20,7 +22,7 @@ from mcdenoise.pipeline.exr import (
     store_encoding,
     write_image,
 )
-from mcdenoise.pipeline.store import Store
+from mcdenoise.pipeline.store import Store, sha256
 from mcdenoise.pipeline.verify import verify_store
 from tests.helpers import make_clean_store
 
@@ -75,8 +77,8 @@ def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
     rec = write_image(tmp_path / "compact.exr", img, encoding="compact")
     exact, _ = read_image(tmp_path / "exact.exr")
     back, header = read_image(tmp_path / "compact.exr")
-    assert header == rec and rec["version"] == 3
-    assert rec["encoding"] == {"name": "compact", "beauty": "sum", "mantissa_bits": MANTISSA_BITS, "compression": "ZIP"}
+    assert header == rec and rec["version"] == 4
+    assert rec["encoding"] == {"name": "compact", "beauty": "view", "mantissa_bits": MANTISSA_BITS, "compression": "ZIP"}
     assert back.keys() == exact.keys()
     for b in schema.BUFFERS:
         var = schema.variance_name(b.name)
@@ -91,7 +93,10 @@ def test_compact_round_trip_exact_or_within_the_stated_bounds(tmp_path):
     magnitude = sum(np.abs(img[n].astype(np.float64)) for n in schema.RADIANCE_COMPONENTS)
     assert np.all(np.abs(back["color"].astype(np.float64) - img["color"]) <= BEAUTY_TOLERANCE * magnitude)
     info = scan_exr(tmp_path / "compact.exr")
-    assert info["compression"] == "ZIP" and not {"R", "G", "B"} & set(info["channels"])
+    assert info["compression"] == "ZIP" and all(info["channels"][c] == np.float16 for c in "RGB")
+    with OpenEXR.File(str(tmp_path / "compact.exr"), separate_channels=True) as f:
+        view = np.stack([f.channels()[c].pixels for c in "RGB"], axis=2)
+    np.testing.assert_array_equal(view, beauty_view(back["color"]))       # the view of the exact derived beauty
     assert info["channels"]["variance.R"] == np.float32 and info["channels"]["depth.Z"] == np.float32
     assert scan_exr(tmp_path / "exact.exr")["compression"] == "ZIP"
     assert (tmp_path / "compact.exr").stat().st_size < (tmp_path / "exact.exr").stat().st_size
@@ -142,7 +147,7 @@ def test_constant_channels_and_pruned_features_in_the_compact_encoding(tmp_path)
     rec = write_image(tmp_path / "a.exr", img, constants={"metallic": 0.0, "metallic.variance": 1 / 3},
                       encoding="compact")
     back, _ = read_image(tmp_path / "a.exr")
-    assert rec["encoding"]["beauty"] == "sum" and "emission.R" in rec["constants"]
+    assert rec["encoding"]["beauty"] == "view" and "emission.R" in rec["constants"]
     assert back["depth.variance"][0, 0, 0] == round_mantissa(np.float32([0.1]), MANTISSA_BITS["variance"])[0]
     assert_within(back["metallic.variance"], np.float32([[[1 / 3]]]), 2.0 ** -(MANTISSA_BITS["variance"] + 1),
                   "metallic.variance")
@@ -163,6 +168,123 @@ def test_inconsistent_compact_header_is_refused(tmp_path):
             f.write(str(tmp_path / "bad.exr"))
         with pytest.raises(StoreError, match=r"bad\.exr: .*" + message):
             read_header(tmp_path / "bad.exr")
+
+
+def as_format_version_3(path, out):
+    """Rewrite a compact (version 4, ``beauty: view``) image at ``out`` as the compact writer wrote it before
+    the view existed: no R, G, B, a version 3 record with ``beauty: sum``, its checksum, ZIP."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        chans = {k: v.pixels.copy() for k, v in f.channels().items() if k not in ("R", "G", "B")}
+        record = json.loads(f.header()["mcdenoise"])
+    assert record["encoding"]["beauty"] == "view"
+    record.update(version=3, encoding={**record["encoding"], "beauty": "sum"})
+    record["checksum"] = checksum(record, chans)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                       "mcdenoise": json.dumps(record, sort_keys=True)}, chans) as f:
+        f.write(str(out))
+    return record
+
+
+def test_exact_and_stored_beauties_are_real_channels_even_when_constant(tmp_path):
+    """Every image shows its picture: a constant beauty (a black frame, an empty environment) is stored as R, G,
+    B in each encoding, float32, and reads as the same constant it used to be restored from."""
+    img = rendered_like()
+    for name in ("color", *schema.RADIANCE_COMPONENTS):
+        img[name][:] = 0.0
+    img["emission"][:] = 0.25
+    img["color"][:] = 0.25
+    for encoding, beauty in (("exact", "stored"), ("compact", "view")):
+        rec = write_image(tmp_path / f"{encoding}.exr", img, encoding=encoding)
+        assert "R" not in rec["constants"] and rec.get("encoding", {"beauty": "stored"})["beauty"] == beauty
+        assert {"R", "G", "B"} <= set(scan_exr(tmp_path / f"{encoding}.exr")["channels"])
+        assert np.all(read_image(tmp_path / f"{encoding}.exr")[0]["color"] == np.float32(0.25))
+    only = {"color": np.zeros_like(img["color"]), "color.variance": np.zeros_like(img["color"])}   # gt_clean-like
+    rec = write_image(tmp_path / "black.exr", only, encoding="compact")
+    assert rec["encoding"]["beauty"] == "stored" and set(rec["constants"]) == {"variance.R", "variance.G", "variance.B"}
+    assert {c: t.name for c, t in scan_exr(tmp_path / "black.exr")["channels"].items()} == dict.fromkeys("RGB", "float32")
+
+
+def test_compact_images_of_format_version_3_read_as_before(tmp_path):
+    """A compact store written before the view (version 3, ``beauty: sum``, no R, G, B) reads what the same
+    image written today reads, bit for bit, and verifies; a version 3 record cannot claim a view."""
+    img = rendered_like()
+    rec = write_image(tmp_path / "new.exr", img, encoding="compact")
+    old = as_format_version_3(tmp_path / "new.exr", tmp_path / "old.exr")
+    assert not {"R", "G", "B"} & set(scan_exr(tmp_path / "old.exr")["channels"])
+    a, ra = read_image(tmp_path / "new.exr")
+    b, rb = read_image(tmp_path / "old.exr")
+    assert (ra, rb) == (rec, old) and a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k].view(np.uint32), b[k].view(np.uint32), err_msg=k)
+    # a whole store: its images rewritten with beauties that are the sums of their components (views), then as
+    # version 3; the pooled reads are the same, and verify passes both
+    root = make_clean_store(tmp_path / "store", encoding="compact")
+    store = Store(root)
+    keys = store.frames()
+    for key in keys:
+        frame = store.frame_record(key.scene, key.frame)
+        for image, record in frame["images"].items():
+            arrays, header = store.read_image(key.scene, key.frame, image)
+            arrays["color"] = schema.beauty_from_components(arrays)
+            meta = {k: header[k] for k in ("image", "scene", "frame")}
+            frame["images"][image] = store.write_image(key.scene, key.frame, image, arrays, meta=meta)
+            assert frame["images"][image]["encoding"]["beauty"] == "view"
+        store.write_frame_record(key.scene, key.frame, frame)
+    assert verify_store(root).problems == []
+    before = {key: store.read(key.scene, key.frame, spp=8) for key in keys}
+    for key in keys:
+        frame = store.frame_record(key.scene, key.frame)
+        for image in frame["images"]:
+            path = store.image_path(key.scene, key.frame, image)
+            record = as_format_version_3(path, path)
+            frame["images"][image] = {**record, "bytes": path.stat().st_size, "sha256": sha256(path)}
+        store.write_frame_record(key.scene, key.frame, frame)
+        after = store.read(key.scene, key.frame, spp=8)
+        assert after.keys() == before[key].keys()
+        for k in after:
+            np.testing.assert_array_equal(after[k].view(np.uint32), before[key][k].view(np.uint32), err_msg=k)
+    assert verify_store(root).problems == []
+    bad = {**old, "version": 3, "encoding": {**old["encoding"], "beauty": "view"}}
+    with OpenEXR.File(str(tmp_path / "new.exr"), separate_channels=True) as f:
+        chans = {k: v.pixels.copy() for k, v in f.channels().items()}
+    bad["checksum"] = checksum(bad, chans)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "mcdenoise": json.dumps(bad)}, chans) as f:
+        f.write(str(tmp_path / "bad.exr"))
+    with pytest.raises(StoreError, match=r"bad\.exr: header record 'encoding' is .*'beauty': 'sum' or 'stored'"):
+        read_header(tmp_path / "bad.exr")
+
+
+def test_a_view_that_is_not_the_derived_beauty_is_refused(tmp_path):
+    """The view R, G, B must be the half view of the beauty the reader derives (an edited file whose checksum
+    was redone, or a writer's mistake) and must be half; a stored beauty must be float32."""
+    write_image(tmp_path / "a.exr", rendered_like(), encoding="compact")
+    with OpenEXR.File(str(tmp_path / "a.exr"), separate_channels=True) as f:
+        good = {k: v.pixels.copy() for k, v in f.channels().items()}
+        record = json.loads(f.header()["mcdenoise"])
+
+    def rewrite(chans, rec=record):
+        rec = {**rec, "checksum": checksum(rec, chans)}
+        with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "mcdenoise": json.dumps(rec)}, chans) as f:
+            f.write(str(tmp_path / "bad.exr"))
+
+    edited = {**good, "G": good["G"].copy()}
+    edited["G"][2, 3] = np.float16(7.0)
+    rewrite(edited)
+    with pytest.raises(StoreError, match=r"bad\.exr: channels R, G, B \(the beauty's half view\) differ from the beauty "
+                                         r"derived from the components in 1 values"):
+        read_image(tmp_path / "bad.exr")
+    assert read_image(tmp_path / "bad.exr", ["albedo"])[0].keys() == {"albedo", "albedo.variance"}
+    rewrite({**good, "R": good["R"].astype(np.float32)})
+    with pytest.raises(StoreError, match=r"bad\.exr: the beauty is marked as derived .* but channel R is float32, "
+                                         r"expected float16"):
+        read_header(tmp_path / "bad.exr")
+    rewrite({k: v for k, v in good.items() if k != "B"})
+    with pytest.raises(StoreError, match=r"but channel B is missing, expected float16"):
+        read_header(tmp_path / "bad.exr")
+    rewrite(good, {**record, "encoding": {**record["encoding"], "beauty": "stored"}})
+    with pytest.raises(StoreError, match=r"the beauty is stored exactly, but channel R is float16, G is float16, "
+                                         r"B is float16, expected float32"):
+        read_header(tmp_path / "bad.exr")
 
 
 def test_old_format_store_still_reads_and_verifies(tmp_path):
@@ -186,12 +308,13 @@ def test_old_format_store_still_reads_and_verifies(tmp_path):
 
 
 def test_rendered_store_is_compact_and_derives_every_beauty(tiny_store):
-    """The dataset stage writes the compact encoding, and real renders meet the beauty tolerance."""
+    """The dataset stage writes the compact encoding, and real renders meet the beauty tolerance (so every
+    image stores the half view and derives the exact beauty)."""
     store = Store(tiny_store[0])
     for key in store.frames():
         for image in store.frame_record(key.scene, key.frame)["images"]:
             rec = store.image_header(key.scene, key.frame, image)
-            assert rec["version"] == 3 and rec["encoding"]["beauty"] == "sum", f"{key}/{image}"
+            assert rec["version"] == 4 and rec["encoding"]["beauty"] == "view", f"{key}/{image}"
 
 
 def test_encoding_config_key():
@@ -243,3 +366,16 @@ def test_encodings_are_measured_on_the_stores_frames(tmp_path):
     table = encodings_table(result)
     assert "| compact (ZIP) (default) |" in table and "| compact-zstd (ZSTD) |" in table
     assert all(line.endswith("| no (OpenEXR >= 3.5) |") == ("ZSTD" in line) for line in table.splitlines()[4:])
+
+
+def test_denoise_exr_of_a_store_image_reads_the_exact_beauty_not_the_view(tmp_path):
+    """``read_layers`` (``denoise --exr``) on a compact store image returns what ``read_image`` does: the
+    colour derived from the components, not the half view in R, G, B (nor, for version 3, nothing)."""
+    from mcdenoise.pipeline.exr import read_layers
+    write_image(tmp_path / "new.exr", rendered_like(), encoding="compact")
+    as_format_version_3(tmp_path / "new.exr", tmp_path / "old.exr")
+    exact = read_image(tmp_path / "new.exr")[0]
+    for name in ("new.exr", "old.exr"):
+        layers = read_layers(tmp_path / name)
+        assert layers.keys() == exact.keys()
+        assert all(np.array_equal(layers[k], exact[k]) for k in exact), name

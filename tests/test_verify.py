@@ -80,7 +80,12 @@ def _extra_mantissa_bit(chans):
 
 
 def _beauty_back(chans):
-    chans.update({c: np.zeros_like(chans["diffuse_direct.R"]) for c in "RGB"})
+    chans.update({c: np.zeros_like(chans["diffuse_direct.R"]) for c in "RGB"})     # float32, where the view is half
+    return chans
+
+
+def _view_edited(chans):
+    chans["B"][2, 3] = chans["B"][2, 3] * np.float16(2) + np.float16(1)
     return chans
 
 
@@ -111,7 +116,10 @@ DAMAGE = {
     "variance beyond its mantissa bits": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", _extra_mantissa_bit),
                                           "s02.exr", "buffer 'color.variance' has 1 values with more than the 5"),
     "derived beauty stored": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", _beauty_back), "s02.exr",
-                              "the beauty is marked as the sum of its components, but channels R, G, B are stored"),
+                              "the beauty is marked as derived from its components with R, G, B its half view, but "
+                              "channel R is float32, G is float32, B is float32, expected float16"),
+    "view edited": (lambda r: _rewrite_exr(r / FRAME / "gt2.exr", _view_edited), "gt2.exr",
+                    "channels R, G, B (the beauty's half view) differ from the beauty derived from the components in 1"),
     "compact image as PIZ": (lambda r: _rewrite_exr(r / FRAME / "s02.exr", lambda c: c, compression=OpenEXR.PIZ_COMPRESSION),
                              "s02.exr", "compact image compressed with PIZ, expected ZIP or ZSTD"),
     "other cleaner": (lambda r: _edit_json(r / "cleaner.json", lambda d: d.update(sha256="0" * 64)),
