@@ -21,7 +21,8 @@ from pathlib import Path
 from .config import Config, ConfigError, documentation_markdown, load_config, to_dict
 from .errors import PipelineError
 
-DESCRIPTION = "Command line: python -m pipeline <stage> [--config FILE] [key=value ...]."
+DESCRIPTION = ("Render a Monte Carlo denoising dataset with Mitsuba 3, clean its ground truth, train and score the "
+               "denoisers, and denoise EXRs. Every stage reads --config FILE and key=value overrides.")
 
 
 def build_parser(prog: str = "python -m pipeline") -> argparse.ArgumentParser:
@@ -32,7 +33,6 @@ def build_parser(prog: str = "python -m pipeline") -> argparse.ArgumentParser:
                     _evaluate_commands, _core_commands):
         declare(sub)
     return parser
-
 
 
 # ---- options every stage's subcommands share ---------------------------------------------------------
