@@ -64,7 +64,7 @@ from torch import nn
 from mcdenoise.pipeline import config as config_mod, schema, weights
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.errors import CheckpointError, StoreError, WeightsError
-from mcdenoise.pipeline.exr import atomic_write_bytes
+from mcdenoise.pipeline.exr import atomic_write_bytes, read_json
 from mcdenoise.pipeline.weights import TZATensor, read_tza
 
 from . import oidn
@@ -569,8 +569,8 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     folder = config_mod.find_run(cfg, "diffusion", spp, "model.json", variant)
     if folder is not None and not trained_on(folder, cfg.store):
         instead = f"using {shipped}" if shipped is not None else "no other model"
-        _note_once(f"note: {folder} was trained on {weights.read_record(folder, 'oidn_control', '').get('store')}, not "
-                   f"this config's store {cfg.store}: {instead}")
+        _note_once(f"note: {folder} was trained on {trained_store(folder)}, not this config's store {cfg.store}: "
+                   f"{instead}")
         folder = None
     if folder is None and shipped is not None:
         return shipped
@@ -584,8 +584,14 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
 
 def trained_on(folder: Path, store: str) -> bool:
     """Whether the run in ``folder`` was trained on ``store`` (the same folder; a record without a store: yes)."""
-    recorded = weights.read_record(folder, "oidn_control", "run `make train SPP=any`").get("store")
+    recorded = trained_store(folder)
     return recorded is None or Path(recorded).resolve() == Path(store).resolve()
+
+
+def trained_store(folder: Path) -> str | None:
+    """The store a run's model.json says it was trained on (None where it says none); loading checks the rest."""
+    record = read_json(Path(folder) / "model.json", "model record")
+    return record.get("store") if isinstance(record, dict) else None
 
 
 _NOTED: set[str] = set()
