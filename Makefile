@@ -1,7 +1,7 @@
 # mcdenoise: Monte Carlo denoising dataset -> GT cleaner -> diffusion denoiser -> evaluation.
 #
-#   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik
-#                             baseline and OIDN fine-tuned (SPP=any), evaluation of every method with
+#   make demo                 the main job on configs/default.yaml: dataset, GT cleaning, the Isik,
+#                             OIDN fine-tuned and AFGSA baselines (SPP=any), evaluation of every method with
 #                             the shipped diffusion denoiser at 4, 16 and 64 spp (sets itself up)
 #   make test                 lint (ruff: pycodestyle errors, pyflakes, import order) and the
 #                             whole test suite, what CI runs (sets itself up)
@@ -65,6 +65,7 @@ demo: setup
 	$(RUN) inspect $$($(RUN) config --config $(CONFIG) $(OVERRIDES) | sed -n 's/^store: //p')
 	$(RUN) train --model isik --spp any --config $(CONFIG) $(OVERRIDES)
 	$(RUN) train --model oidn_ft --spp any --config $(CONFIG) $(OVERRIDES)
+	$(RUN) train --model afgsa --spp any --config $(CONFIG) $(OVERRIDES)
 	$(RUN) clean-report --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
 	$(RUN) eval --config $(CONFIG) $(OVERRIDES)
 
