@@ -86,10 +86,11 @@ MEASURED: dict = {
  },
  "gt_spp_for_ratio": 1024,
  "encoding": "exact",
- "encoding_factor": {"exact": 1.0, "compact": 0.611, "compact-zstd": 0.517},
+ "encoding_factor": {"exact": 1.0, "compact": 0.673, "compact-zstd": 0.570},
  "encoding_factor_source": "compact-zstd: verify data/default --bytes 100: 11.92 / 23.05 MiB per frame (86 frames), "
                            "2026-12-01; compact: verify data/encodings --encodings 4: 15.22 / 24.90 MiB per frame (4 frames "
-                           "of configs/default.yaml), 2026-12-04",
+                           "of configs/default.yaml), 2026-12-04; both x 1.102 for the half beauty view of format "
+                           "version 4 (docs/store.md: 9.17 -> 10.11 MiB per frame of 22 frames, 2026-12-06)",
  "gt_psnr": {
   "source": "data/default (configs/default.yaml, 86 frames, 172 GTs at 1024 spp, 128x128, max_depth 8), 2026-12-01",
   "spp": 1024,

@@ -6,6 +6,8 @@ import pytest
 
 from mcdenoise.pipeline.config import find_run, load_config, pick_device, run_candidates, run_dir
 
+from .helpers import TINY, cli
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -98,3 +100,14 @@ def test_a_diffusion_run_trained_on_another_store_is_passed_over_in_one_line(tmp
     assert len(out) == 1 and f"{run} was trained on {tmp_path / 'other_store'}" in out[0] and "using" in out[0]
     (run / "model.json").write_text(json.dumps({**record, "store": str(tmp_path / "mine")}))
     assert find_diffusion_run(cfg, 4) == run
+
+
+def test_export_without_a_run_names_the_make_line_of_its_config(tmp_path):
+    """The hint is a command that trains what the export reads: the same config's runs."""
+    proc = cli("export", "--config", TINY, f"runs={tmp_path}", "--spp", "4", "--out", tmp_path / "model", check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].endswith(f"run `make train SPP=4 CONFIG={TINY}` first")
+    assert not (tmp_path / "model").exists()
+    proc = cli("export", "--format", "oidn", f"runs={tmp_path}", check=False)
+    assert proc.returncode == 2 and "run `make train MODEL=oidn_ft SPP=any` first" in proc.stderr, proc.stderr

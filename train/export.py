@@ -37,13 +37,18 @@ from mcdenoise.pipeline.exr import StoreError, atomic_write_json
 from .model import run_dir
 
 
+def train_command(args: str, config: str | None) -> str:
+    """The make line that trains what an export needs, on the config the export was given (its runs)."""
+    return f"make train {args}" + (f" CONFIG={config}" if config else "")
+
+
 def export(cfg: Config, spp, out: Path, quiet: bool = False, config: str | None = None,
            overrides: list[str] | tuple = ()) -> Path:
     """The run ``diffusion_spp<spp>[_<name>]`` as a model folder: model.json, control.safetensors (float16),
     base.tza (the frozen OIDN weights), README.md; an ``oidn_ft/`` folder already in ``out`` (OIDN fine-tuned
     for inputs without albedo or normal) is kept."""
     folder = run_dir(cfg, spp)
-    meta = weights.read_record(folder, "oidn_control", f"run `make train SPP={spp}` first")
+    meta = weights.read_record(folder, "oidn_control", f"run `{train_command(f'SPP={spp}', config)}` first")
     tmp = out.parent / (out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -127,7 +132,8 @@ def export_oidn(cfg: Config, out: Path | None = None, quiet: bool = False, confi
 
     folder = runs_dir(cfg, "oidn_ft")
     if not (folder / "model.safetensors").exists():
-        raise StoreError(f"{folder}: no oidn_ft run to export (run `make train MODEL=oidn_ft SPP=any` first)")
+        raise StoreError(f"{folder}: no oidn_ft run to export "
+                         f"(run `{train_command('MODEL=oidn_ft SPP=any', config)}` first)")
     net, record = load_run(folder, cfg)
     name = record["network"]
     if out is None:
