@@ -424,9 +424,13 @@ def weights_name(path: Path) -> str:
         return str(path)
 
 
-def check_names(names: list[str]) -> None:
+def check_names(names: list[str], key: str = "eval.methods") -> None:
+    """ConfigError naming ``key`` for an unknown or repeated method name."""
     for name in names:
-        parse(name)
+        try:
+            parse(name)
+        except ConfigError as exc:
+            raise ConfigError(str(exc).replace("eval.methods:", f"{key}:", 1)) from None
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ConfigError(f"eval.methods: {', '.join(dup)} listed twice")
+        raise ConfigError(f"{key}: {', '.join(dup)} listed twice")

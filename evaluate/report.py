@@ -391,6 +391,8 @@ def write_eval(result: dict, out_dir: Path) -> str:
     write_frames_csv(out_dir / "eval_frames.csv", result)
     write_json(out_dir / "eval.json", result)
     text = format_markdown(result)
+    if result.get("sequences"):
+        text += "\nSequences: every scene along its camera move, frame 1 apart: [sequence.md](sequence.md)\n"
     write_text(out_dir / "eval.md", text)
     return text
 

@@ -36,6 +36,8 @@ from .harness import finite_output, run_method
 from .methods import Loader, MethodUnavailable, check_names, curve_kind, label
 from .montecarlo import equal_time_images, mc_curve, mean_curve
 from .scoring import NOT_COMPUTED, check_metrics, score, usable_metrics
+from .sequence import camera_for, check_sequence_names, evaluate_sequences, sequences
+from .sequence_report import write_sequence_page
 from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
 EXTERNAL = "external"
@@ -349,11 +351,45 @@ def _time_vs_error(spp, keys, rows, equal, costs, mc_mean) -> list[dict]:
     return points
 
 
+def evaluate_sequence_groups(cfg: Config, store: Store, groups: dict, spps: list[int], loader: Loader,
+                             metric_names: list[str], quiet: bool) -> tuple[dict, dict]:
+    """``evaluate.sequence`` on the evaluated split and the external scenes (the stress presets are stills):
+    ({group: result}, {group: {spp: strip}}) for the groups with a scene of two or more frames; a group whose
+    frames have no camera is ``{"skipped": why}``."""
+    out, strips = {}, {}
+    if not cfg.eval.sequence_methods:
+        return out, strips
+    for group in (cfg.eval.split, EXTERNAL):
+        keys = [k for seq in sequences(store, groups.get(group, [])).values() for k in seq]
+        if not keys:
+            continue
+        try:
+            for k in keys:
+                camera_for(store, k)
+        except StoreError as exc:
+            out[group] = {"skipped": str(exc)}
+            print(f"note: no sequence page for {group}: {exc}", flush=True)
+            continue
+        n = len(keys)
+        names = {k: _reference_name(store, k, group == EXTERNAL) for k in keys}
+        bar = progress(total=n * len(spps), desc=f"sequences {group}", unit="frame", disable=quiet)
+        out[group], strips[group] = evaluate_sequences(
+            cfg, store, keys, names.get, [s for s in spps if _spp_problem(store, keys, s) is None], loader,
+            lambda k, spp: realization_stacks(store, k, spp, 1)[0], metric_names, bar)
+        bar.close()
+    return out, strips
+
+
+def _reference_name(store: Store, key: FrameKey, allow_gt1: bool) -> str:
+    return "gt_clean" if store.image_path(key.scene, key.frame, "gt_clean").exists() or not allow_gt1 else "gt1"
+
+
 def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | None = None, out: str | None = None,
              quiet: bool = False, defines: dict[str, str] | None = None) -> dict:
     t0 = time.perf_counter()
     e = cfg.eval
     check_names(e.methods)
+    check_sequence_names(e.sequence_methods)
     check_metrics(e.metrics)
     spps = [int(s) for s in (spps or e.spp)]
     if not spps or any(s < 1 for s in spps):
@@ -380,8 +416,10 @@ def run_eval(cfg: Config, spps: list[int] | None = None, scenes: list[str] | Non
               "metrics_missing": {**missing, **NOT_COMPUTED}, "groups": {}}
     for group, keys in groups.items():
         result["groups"][group] = evaluate_group(cfg, store, group, keys, spps, loader, metric_names, out_dir, quiet)
+    result["sequences"], strips = evaluate_sequence_groups(cfg, store, groups, spps, loader, metric_names, quiet)
     result["meta"]["seconds"] = time.perf_counter() - t0
     result["stability"] = report.load_stability(out_dir)
+    write_sequence_page(result["sequences"], strips, out_dir, e.bootstrap_resamples, e.bootstrap_seed)
     text = report.write_eval(result, out_dir)
     if not quiet:
         print(text)

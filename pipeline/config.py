@@ -557,6 +557,14 @@ class EvalConfig(Section):
                               "intervals.", 0)
     crops: int = doc("Frames in the crop grid per spp.", 4)
     crop_size: int = doc("Side of each crop in pixels.", 64)
+    sequence_methods: list = doc("Methods scored along each scene's camera move (the sequence page, scenes of at "
+                                 "least two frames): any per-frame method of eval.methods' names, and "
+                                 "oidn_prefilter_temporal (oidn_prefilter's output blended with its own warped "
+                                 "history: the classic temporal filter). Empty: no sequence page.",
+                                 factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours"])
+    temporal_weight: float = doc("Share of the new frame in oidn_prefilter_temporal's exponential blend (1: no "
+                                 "history); the history is clamped to the new output's 3x3 range.", 0.5)
+    sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
 
@@ -567,6 +575,10 @@ class EvalConfig(Section):
         if self.bootstrap_resamples < 100:
             bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
         self.one_of(bad, "equal_time", ("render", "pool", "none"))
+        if not 0.0 < self.temporal_weight <= 1.0:
+            bad("temporal_weight", f"must be in (0, 1] (1: no history), got {self.temporal_weight}")
+        if self.sequence_fps <= 0:
+            bad("sequence_fps", f"must be > 0, got {self.sequence_fps}")
 
 
 @dataclass

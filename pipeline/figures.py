@@ -5,7 +5,7 @@ the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row 
 ``size``² window of every image, picked where the row's reference image has the most gradient
 energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
 ``pipeline.metrics.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
-when every value is positive).
+when every value is positive). ``animated_strip``: a sequence as an animated GIF, one column per method.
 """
 from __future__ import annotations
 
@@ -81,8 +81,9 @@ def save_figure(fig, path: str | Path, **kwargs) -> None:
 
 def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title: str, xlabel: str = "epoch",
                 ylabel: str = "loss", right: dict[str, list[tuple[float, float]]] | None = None,
-                right_label: str = "") -> None:
-    """Named (x, y) series as a PNG, written atomically; ``right`` series get their own y axis."""
+                right_label: str = "", log: bool | None = None) -> None:
+    """Named (x, y) series as a PNG, written atomically; ``right`` series get their own y axis; ``log``: a log
+    y axis (None: when every value is positive)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -96,7 +97,7 @@ def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title:
             values += [y for _, y in pts]
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    if values and all(v > 0 for v in values):
+    if log or (log is None and values and all(v > 0 for v in values)):
         ax.set_yscale("log")
     ax.grid(True, alpha=0.3)
     handles, labels = ax.get_legend_handles_labels()
@@ -112,3 +113,36 @@ def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title:
     ax.legend(handles, labels)
     fig.tight_layout()
     atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))
+
+
+def animated_strip(titles: list[str], frames: list[list[np.ndarray | None]], path: Path, scale: int | None = None,
+                   ms_per_frame: int = 500) -> None:
+    """An animated GIF that plays a sequence side by side: ``frames[t]`` holds frame t's HDR image (H, W, 3) per
+    column of ``titles`` (None: a grey cell), gamma-tonemapped, each pixel drawn ``scale`` x ``scale`` (default:
+    cells at least 160 pixels wide, room for a title), the column's title and the frame number above it.
+    Written atomically; loops forever."""
+    from PIL import Image, ImageDraw
+
+    if not frames or not titles:
+        return
+    h, w = next(img.shape[:2] for row in frames for img in row if img is not None)
+    scale = scale or max(1, -(-160 // w))
+    cell_w, cell_h, band = w * scale, h * scale, 14
+    pictures = []
+    for t, row in enumerate(frames):
+        canvas = Image.new("RGB", (cell_w * len(titles), cell_h + band), (24, 24, 24))
+        draw = ImageDraw.Draw(canvas)
+        for c, (title, img) in enumerate(zip(titles, row)):
+            if img is None:
+                canvas.paste((96, 96, 96), (c * cell_w, band, (c + 1) * cell_w, band + cell_h))
+            else:
+                rgb = (np.clip(gamma_compress(np.asarray(img, np.float32)), 0, 1) * 255 + 0.5).astype(np.uint8)
+                cell = Image.fromarray(rgb).resize((cell_w, cell_h), Image.NEAREST)
+                canvas.paste(cell, (c * cell_w, band))
+            draw.text((c * cell_w + 3, 1), title if c else f"{title}  #{t + 1}", fill=(230, 230, 230))
+        pictures.append(canvas)
+
+    def write(tmp: str) -> None:
+        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], duration=ms_per_frame, loop=0)
+
+    atomic_write_bytes(Path(path), write)

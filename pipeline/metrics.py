@@ -276,6 +276,19 @@ def fvvdp(pred, ref, display: str = "standard_4k") -> float:
     return float(q)
 
 
+def fvvdp_video(preds, refs, display: str = "standard_4k", fps: float = 24.0) -> float:
+    """FovVideoVDP quality in JOD of a sequence watched as a video at ``fps`` (lists of (H, W, 3) HDR frames,
+    Reinhard-tonemapped as ``fvvdp``): flicker between frames counts, as a viewer sees it."""
+    import torch
+
+    fvvdp(preds[0], refs[0], display)                 # builds (and caches) the model for the display
+    t = np.ascontiguousarray(np.stack([reinhard(np.asarray(p, np.float32)) for p in preds]), dtype=np.float32)
+    r = np.ascontiguousarray(np.stack([reinhard(np.asarray(x, np.float32)) for x in refs]), dtype=np.float32)
+    with torch.no_grad():
+        q, _ = _FVVDP[display].predict(t, r, dim_order="FHWC", frames_per_second=fps)
+    return float(q)
+
+
 def all_metrics(pred, ref, eps: float = SMAPE_EPS) -> dict[str, float]:
     """``{"psnr", "l1", "smape"}`` as floats (numpy or torch inputs)."""
     if is_torch(pred):

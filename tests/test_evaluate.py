@@ -136,6 +136,9 @@ def test_eval_end_to_end(store_root, tmp_path, monkeypatch):
         assert (out / name).stat().st_size > 0, name
     g = result["groups"]["test"]
     assert g["frames"] == [f"{SCENE}/000", f"{SCENE}/001"] and set(g["reference"].values()) == {"gt_clean"}
+    # frames written without a camera: no sequence page for them, and the reason names the record
+    skipped = result["sequences"]["test"]["skipped"]
+    assert "frame.json" in skipped and "no camera" in skipped
     assert "4 stacks of 4 spp" in g["spp"]["64"]["skipped"]
     # render-time model recovered from frame.json
     assert all(c["how"] == "fit" and c["b"] == pytest.approx(B) and c["a"] == pytest.approx(A)

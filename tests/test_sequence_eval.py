@@ -1,0 +1,90 @@
+"""The evaluation along camera moves (``evaluate.sequence``) on the tiny config's rendered store: every scene's
+frames in order, frame 1 apart, the temporal filter's history, the instability, and the page with its strip."""
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mcdenoise.evaluate.run import run_eval
+from mcdenoise.evaluate.sequence import camera_for, check_sequence_names, sequences
+from mcdenoise.pipeline import motion
+from mcdenoise.pipeline.config import ConfigError, load_config
+from mcdenoise.pipeline.store import FrameKey, Store
+
+from .helpers import TINY
+
+
+@pytest.fixture(scope="module")
+def report(cleaned, tmp_path_factory):
+    store, runs = cleaned
+    out = tmp_path_factory.mktemp("seq") / "report"
+    cfg = load_config(TINY, [f"store={store}", f"runs={runs}", "eval.methods=[noisy, oidn_prefilter]",
+                             "eval.sequence_methods=[noisy, oidn_prefilter, oidn_prefilter_temporal]",
+                             "eval.metrics=[l1, psnr]", "eval.equal_time=none", "eval.spp=[4]"])
+    return cfg, run_eval(cfg, out=str(out), quiet=True), out
+
+
+@pytest.mark.slow
+def test_every_test_scene_is_scored_frame_by_frame(report):
+    cfg, result, out = report
+    store = Store(cfg.store)
+    test = [k for k in store.frames("test")]
+    seq = result["sequences"]["test"]
+    assert seq["scenes"] == {s: [str(k) for k in ks] for s, ks in sequences(store, test).items()} and seq["scenes"]
+    rows = seq["spp"]["4"]["methods"]
+    for name, row in rows.items():
+        assert row["available"], name
+        per_frame = row["per_frame"]
+        assert [r["index"] for r in per_frame] == [i for ks in seq["scenes"].values() for i in range(len(ks))]
+        for r in per_frame:                            # frame 1 has no frame before it: no instability
+            assert ("instability" in r["metrics"]) == (r["index"] > 0)
+            if r["index"] > 0:
+                assert 0 <= r["metrics"]["instability"] < 1 and 0.5 < r["valid_fraction"] <= 1
+    base, filtered = rows["oidn_prefilter"]["per_frame"], rows["oidn_prefilter_temporal"]["per_frame"]
+    for a, b in zip(base, filtered):
+        if a["index"] == 0:                            # no history yet: the per-frame output itself
+            assert b["metrics"] == a["metrics"]
+        else:                                          # the history changes the output
+            assert b["metrics"]["psnr"] != a["metrics"]["psnr"]
+    # the noisy input flickers more than OIDN's output: fresh noise in every frame
+    assert rows["noisy"]["mean"]["later"]["instability"] > 2 * rows["oidn_prefilter"]["mean"]["later"]["instability"]
+
+
+@pytest.mark.slow
+def test_the_page_its_curves_and_the_strip(report):
+    _, result, out = report
+    page = (out / "sequence.md").read_text()
+    assert "| `oidn_prefilter_temporal` |" in page and "instability" in page
+    assert "[sequence.md](sequence.md)" in (out / "eval.md").read_text()
+    for name in ("sequence_test_psnr_spp4.png", "sequence_test_instability_spp4.png"):
+        assert (out / name).stat().st_size > 0
+    frames = len(next(iter(result["sequences"]["test"]["scenes"].values())))
+    with Image.open(out / "sequence_test_spp4.gif") as gif:
+        assert gif.n_frames == frames
+
+
+@pytest.mark.slow
+def test_the_camera_of_an_old_frame_comes_from_its_scene_description(report, tmp_path):
+    cfg, _, _ = report
+    root = tmp_path / "store"
+    shutil.copytree(cfg.store, root)
+    store = Store(root)
+    key = FrameKey(sorted({k.scene for k in store.frames("test")})[0], 1)
+    recorded = camera_for(store, key)
+    record = store.frame_record(key.scene, key.frame)
+    record.pop("fov_x", None)                           # a frame rendered before the fov was recorded
+    store.write_frame_record(key.scene, key.frame, record)
+    old = camera_for(store, key)
+    fov = store.scene_manifest(key.scene)["description"]["camera"]["frames"][1]["fov"]
+    assert old.fov_x == fov and np.array_equal(old.camera_to_world, recorded.camera_to_world)
+    assert abs(recorded.fov_x - fov) < 1e-3            # the recorded fov is the described one (rounded to 1e-4)
+    assert isinstance(old, motion.Camera)
+
+
+def test_sequence_method_names_are_checked():
+    check_sequence_names(["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours"])
+    with pytest.raises(ConfigError, match="eval.sequence_methods: unknown method 'blur'"):
+        check_sequence_names(["blur"])
+    with pytest.raises(ConfigError, match="eval.sequence_methods: oidn_prefilter_temporal listed twice"):
+        check_sequence_names(["oidn_prefilter_temporal", "oidn_prefilter_temporal"])
