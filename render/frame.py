@@ -27,6 +27,7 @@ from mcdenoise.pipeline import metrics, schema
 from mcdenoise.pipeline.errors import PipelineError, innermost_message
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+from mcdenoise.pipeline.motion import Camera, camera_record
 from mcdenoise.pipeline.store import GT_IMAGES, Store, image_names, sha256
 
 
@@ -156,8 +157,10 @@ def render_frame(task: FrameTask) -> dict:
     t0 = time.perf_counter()
     sensor = frame_sensor(mi, task, scene)
     build_s += time.perf_counter() - t0
-    records, gt_color, render_s, write_s, reused = _render_images(mi, scene, sensor, store, task, names, features)
-    w, h = (int(v) for v in sensor.film().size())
+    camera = sensor_camera(mi, sensor)
+    records, gt_color, render_s, write_s, reused = _render_images(mi, scene, sensor, store, task, names, features,
+                                                                  camera)
+    w, h = camera.width, camera.height
     record = {
         "scene": task.scene, "frame": task.frame, "width": w, "height": h,
         "images": records, "features": sorted(features),
@@ -169,9 +172,10 @@ def render_frame(task: FrameTask) -> dict:
         "reused_images": reused,
         **gt_summary(store, task, records, gt_color),
         # The camera frame (columns: left, up, forward, origin): lets consumers turn the
-        # world-space normals into camera space (train.data).
-        "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
-                                    .reshape(4, 4), 6).tolist(),
+        # world-space normals into camera space (train.data); with the field of view and clip
+        # distances, the whole camera (pipeline.motion.camera_from_record: reprojection).
+        "camera_to_world": np.round(camera.camera_to_world, 6).tolist(),
+        **camera_record(camera),
     }
     if "xml" in task.desc:
         record["scene_notes"] = external_notes(mi, scene)
@@ -199,7 +203,17 @@ def _drop_temporary_files(store: Store, task: FrameTask) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, features) -> tuple:
+def sensor_camera(mi, sensor) -> Camera:
+    """The ``pipeline.motion.Camera`` of a perspective ``sensor`` (its pose, x field of view, film size
+    and clip distances), written into the frame's record and every image's header."""
+    params = mi.traverse(sensor)
+    w, h = (int(v) for v in sensor.film().size())
+    return Camera(np.asarray(sensor.world_transform().matrix.numpy(), np.float64).reshape(4, 4),
+                  float(np.asarray(params["x_fov"]).ravel()[0]), w, h, float(sensor.near_clip()),
+                  float(sensor.far_clip()))
+
+
+def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, features, camera: Camera) -> tuple:
     """Render and write each image of ``names`` not already on disk: (records, ground-truth colours,
     render seconds, write seconds, number of images reused)."""
     records: dict[str, dict] = {}
@@ -224,7 +238,7 @@ def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, feat
                 "features": sorted(features), **extra}
         records[name] = store.write_image(task.scene, task.frame, name, result.buffers, result.constants,
                                           meta, omit_constant=task.render["omit_constant"],
-                                          encoding=task.render.get("encoding", "compact"))
+                                          encoding=task.render.get("encoding", "compact"), camera=camera)
         if name in GT_IMAGES:
             gt_color[name] = result.buffers["color"]
         write_s += time.perf_counter() - t0
