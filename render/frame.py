@@ -75,9 +75,14 @@ def load_external_scene(mi, xml: str, defines: dict[str, str] | None = None):
         raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}{how}") from None
 
 
-def external_sensor(mi, scene, width: int | None, height: int | None):
-    """A perspective sensor with the scene's first camera pose and field of view, our film."""
+def external_sensor(mi, scene, width: int | None, height: int | None, move: dict | None = None, frame: int = 0):
+    """A perspective sensor with the scene's first camera pose and field of view, our film; with ``move``
+    (``{"kind", "amount", "frames"}``, render-scene --frames/--move) the pose of ``frame`` on that path:
+    ``orbit``/``dolly`` about the look-at target (``look_distance``), ``sensors`` from the first camera to
+    the scene's second perspective camera (field of view interpolated linearly), or still where the scene
+    has only one."""
     from mcdenoise.render.buffers import make_sensor
+    from mcdenoise.render.camera import dolly_path, orbit_path, sensor_path
 
     sensors = scene.sensors()
     if not sensors:
@@ -90,8 +95,43 @@ def external_sensor(mi, scene, width: int | None, height: int | None):
     w = width or int(size[0])
     h = height or int(size[1])
     matrix = np.asarray(params["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
-    to_world = mi.ScalarTransform4f(matrix)
-    return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
+    fov = float(params["x_fov"][0])
+    if move:
+        frames, kind, amount = int(move["frames"]), move["kind"], float(move.get("amount", 0.0))
+        if kind in ("orbit", "dolly"):
+            path = (orbit_path if kind == "orbit" else dolly_path)(matrix, look_distance(mi, scene, matrix), amount,
+                                                                   frames)
+            matrix = path[frame]
+        elif kind == "sensors":
+            second = [s for s in sensors[1:] if "x_fov" in mi.traverse(s)]
+            if second:
+                other = mi.traverse(second[0])
+                end = np.asarray(other["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
+                try:
+                    matrix = sensor_path(matrix, end, frames)[frame]
+                except ValueError as exc:
+                    raise ExternalSceneError(f"the scene's two cameras: {exc}") from None
+                s = frame / (frames - 1) if frames > 1 else 0.0
+                fov = (1 - s) * fov + s * float(other["x_fov"][0])
+        else:
+            raise ExternalSceneError(f"unknown camera move {kind!r}")
+    return make_sensor(mi, mi.ScalarTransform4f(matrix), fov, w, h)
+
+
+def look_distance(mi, scene, camera_to_world: np.ndarray) -> float:
+    """How far ahead the camera's look-at target is (a scene file keeps only the camera's matrix, not the
+    target it was made from): the first surface on the view axis; where the axis hits nothing, the
+    scene's bounding-box centre's distance along it (or from the camera, when that centre is behind)."""
+    origin = camera_to_world[:3, 3]
+    forward = camera_to_world[:3, 2] / np.linalg.norm(camera_to_world[:3, 2])
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*map(float, origin)), mi.Vector3f(*map(float, forward))))
+    hit = np.asarray(si.is_valid()).ravel()
+    if hit.size and bool(hit[0]):
+        return float(np.asarray(si.t).ravel()[0])
+    bbox = scene.bbox()
+    centre = (np.asarray(bbox.min, dtype=np.float64).ravel() + np.asarray(bbox.max, dtype=np.float64).ravel()) / 2
+    along = float(np.dot(centre - origin, forward))
+    return along if along > 0 else max(float(np.linalg.norm(centre - origin)), 1.0)
 
 
 def external_notes(mi, scene) -> list[str]:
@@ -138,7 +178,7 @@ def frame_scene(mi, task: FrameTask):
 def frame_sensor(mi, task: FrameTask, scene):
     w, h = task.resolution or (None, None)
     if "xml" in task.desc:
-        return external_sensor(mi, scene, w, h)
+        return external_sensor(mi, scene, w, h, task.desc.get("move"), task.frame)
     from mcdenoise.render.scene import build_sensor
     return build_sensor(mi, task.desc, task.frame, w, h)
 
