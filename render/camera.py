@@ -160,12 +160,12 @@ def _quaternion(r: np.ndarray) -> np.ndarray:
         w = np.sqrt(1 + tr) / 2
         q = [w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)]
     else:
-        i, j, l = k - 1, k % 3, (k + 1) % 3
+        i, j, n = k - 1, k % 3, (k + 1) % 3        # the largest diagonal entry and the next two, cyclic
         v = np.zeros(3)
-        v[i] = np.sqrt(1 + r[i, i] - r[j, j] - r[l, l]) / 2
+        v[i] = np.sqrt(1 + r[i, i] - r[j, j] - r[n, n]) / 2
         v[j] = (r[j, i] + r[i, j]) / (4 * v[i])
-        v[l] = (r[l, i] + r[i, l]) / (4 * v[i])
-        q = [(r[l, j] - r[j, l]) / (4 * v[i]), *v]
+        v[n] = (r[n, i] + r[i, n]) / (4 * v[i])
+        q = [(r[n, j] - r[j, n]) / (4 * v[i]), *v]
     q = np.asarray(q)
     return q / np.linalg.norm(q)
 

@@ -60,6 +60,22 @@ def test_sensor_path_interpolates_between_two_cameras():
         sensor_path(a, b @ flip, 3)
 
 
+def test_sensor_path_ends_on_any_two_rotations():
+    """The endpoints come back exactly (to round-off) for random rotations and half turns, whichever
+    diagonal entry the quaternion conversion pivots on."""
+    rng = np.random.default_rng(3)
+    turns = [rotation(rng.normal(size=3), rng.uniform(-np.pi, np.pi)) for _ in range(20)]
+    turns += [rotation(axis, np.pi) for axis in np.eye(3)]
+    for r0, r1 in zip(turns, turns[1:] + turns[:1]):
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3], b[:3, :3], b[:3, 3] = r0, r1, [1, 2, 3]
+        path = sensor_path(a, b, 4)
+        np.testing.assert_allclose(path[0], a, atol=1e-12)
+        np.testing.assert_allclose(path[-1], b, atol=1e-12)
+        for pose in path:
+            np.testing.assert_allclose(pose[:3, :3].T @ pose[:3, :3], np.eye(3), atol=1e-12)
+
+
 def test_move_values():
     assert parse_move("orbit:10") == ("orbit", 10.0) and parse_move("dolly:-0.5") == ("dolly", -0.5)
     assert camera_move(8, "dolly:.2") == {"kind": "dolly", "amount": 0.2, "frames": 8}
