@@ -98,7 +98,8 @@ def apply_cleaner(cfg: Config, quiet: bool = False) -> dict:
         store.write_image(key.scene, key.frame, "gt_clean",
                           {RADIANCE: hdr, f"{RADIANCE}.variance": np.zeros_like(hdr)},
                           meta={"image": "gt_clean", "scene": key.scene, "frame": key.frame, "source": "gt1",
-                                "cleaner_sha256": digest, "cleaner_epoch": meta.get("epoch")})
+                                "cleaner_sha256": digest, "cleaner_epoch": meta.get("epoch")},
+                          camera=_camera(store, key))
         frames_done[str(key)] = digest
         stats["written"] += 1
     record = {"checkpoint": str(ckpt), "sha256": digest, "epoch": meta.get("epoch"), "metrics": meta.get("metrics"),
@@ -113,6 +114,15 @@ def apply_cleaner(cfg: Config, quiet: bool = False) -> dict:
               f"cleaner {digest[:12]} (epoch {meta.get('epoch')}) -> {store.root}/scenes/*/*/gt_clean.exr",
               flush=True)
     return stats
+
+
+def _camera(store: Store, key):
+    """The frame's camera for gt_clean's header, as its other images carry it; None for a frame rendered
+    before cameras were recorded (its images have none either)."""
+    try:
+        return store.camera(key.scene, key.frame)
+    except StoreError:
+        return None
 
 
 def _current(store: Store, key, digest: str) -> bool:

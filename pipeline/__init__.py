@@ -15,6 +15,8 @@ torch load on demand.
 - ``pipeline.exr``: one multi-channel EXR image of the store, written atomically; other tools' layer
   names (Mitsuba's aov integrator, Blender) for colour, albedo and normal.
 - ``pipeline.store``: the on-disk store (manifests, frames, stacks): the one reader/writer API.
+- ``pipeline.motion``: a frame's camera (from frame.json or an EXR header), projection, and the
+  reprojection and warping of one frame onto the next.
 - ``pipeline.weights``: weight files: OIDN's Tensor Archive (TZA), safetensors with a CRC-32, and model
   folders (format tags, save, load, the checks of what they were built on).
 - ``pipeline.checkpoint``: a training run's resumable state (``last.safetensors``).

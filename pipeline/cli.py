@@ -100,6 +100,10 @@ def _render_commands(sub) -> None:
     p.add_argument("--store", default=None, help="store path (default: the config's store)")
     p.add_argument("--resolution", default=None, help="WxH (default: the scene film's size)")
     p.add_argument("--name", default=None, help="scene id in the store (default: ext_<file stem>)")
+    p.add_argument("--frames", type=int, default=1, help="frames 000..N-1 along a camera path (default: 1)")
+    p.add_argument("--move", default=None, metavar="KIND:AMOUNT",
+                   help="the path of --frames: orbit:DEGREES about the look-at target, or dolly:FRACTION of the "
+                        "distance towards it (default: from the scene's first camera to its second, if it has one)")
     with_defines(p)
     p.set_defaults(fn=_render_scene)
 
@@ -127,7 +131,7 @@ def _render_scene(args) -> int:
     from mcdenoise.render.external import parse_defines, render_scene
     cfg = config(args)
     stats = render_scene(args.scene, args.store or cfg.store, cfg, resolution=args.resolution, name=args.name,
-                         defines=parse_defines(args.defines))
+                         defines=parse_defines(args.defines), frames=args.frames, move=args.move)
     return 1 if stats["failed"] else 0
 
 

@@ -287,7 +287,7 @@ def _add_layers(path: Path, channels: dict[str, np.ndarray], layers: dict[str, n
 
 def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, float] | None = None,
                 meta: dict | None = None, omit_constant: bool = True, layers: dict[str, np.ndarray] | None = None,
-                encoding: str = "exact", compression: str | None = None) -> dict:
+                encoding: str = "exact", compression: str | None = None, camera=None) -> dict:
     """Write buffers (``name`` and ``name.variance`` keys, HxWxC float arrays) to one EXR.
 
     ``constants`` maps keys that were not computed at all (pruned features) to their value.
@@ -295,7 +295,9 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     as ``<name>.R/G/B`` and listed in the record's ``layers``; readers of the buffers ignore them.
     ``encoding``: one of ``STORE_ENCODINGS`` (module docstring); 'exact' writes what this function always
     wrote (a version 2 record, ZIP). ``compression``: another lossless one than the encoding's
-    (``LOSSLESS`` names; measurements).
+    (``LOSSLESS`` names; measurements). ``camera``: the frame's ``pipeline.motion.Camera``, written as the
+    standard header attributes ``worldToCamera`` and ``worldToNDC`` (``CAMERA_ATTRIBUTES``; the pixels and
+    the record do not change).
     Returns the image's record: buffers, omitted channel constants, shape and ``meta``.
     """
     if encoding not in STORE_ENCODINGS:
@@ -330,6 +332,9 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
         "type": OpenEXR.scanlineimage,
         META_KEY: json.dumps(record, sort_keys=True, allow_nan=False),
     }
+    if camera is not None:
+        from .motion import exr_matrices
+        header.update(exr_matrices(camera))     # float32 4x4 arrays: OpenEXR writes them as m44f
 
     def write(tmp: str) -> None:
         with OpenEXR.File(header, channels) as f:
@@ -458,6 +463,11 @@ def _attributes(head: bytes, max_name: int, fail) -> tuple[dict, int]:
         pos += n
 
 
+# The standard camera attributes (pipeline.motion: Imath row-vector matrices). Ours are m44f; m44d (a
+# double matrix, as some writers make) is read too. Their size and finiteness are checked on every scan.
+CAMERA_ATTRIBUTES = ("worldToCamera", "worldToNDC")
+_MATRIX_TYPES = {"m44f": (64, "<f4"), "m44d": (128, "<f8")}
+
 _REQUIRED = {"channels": ("chlist", None), "compression": ("compression", 1), "dataWindow": ("box2i", 16),
              "displayWindow": ("box2i", 16), "lineOrder": ("lineOrder", 1), "pixelAspectRatio": ("float", 4),
              "screenWindowCenter": ("v2f", 8), "screenWindowWidth": ("float", 4)}
@@ -516,7 +526,59 @@ def _header_info(attrs: dict, fail) -> dict:
     lines = LOSSLESS[comp][1]
     return {"width": w, "height": h, "y0": y0, "channels": channels, "compression": LOSSLESS[comp][0],
             "lines": lines, "chunks": math.ceil(h / lines),
-            "row_bytes": w * sum(dt.itemsize for dt in channels.values())}
+            "row_bytes": w * sum(dt.itemsize for dt in channels.values()), "matrices": _matrices(attrs, fail)}
+
+
+def _matrices(attrs: dict, fail) -> dict[str, np.ndarray]:
+    """The header's camera attributes (``CAMERA_ATTRIBUTES``) present, as 4x4 float64 arrays (row-vector
+    convention, as stored); ``fail`` on another type, a wrong size or a value that is not finite."""
+    out = {}
+    for name in CAMERA_ATTRIBUTES:
+        if name not in attrs:
+            continue
+        kind, raw = attrs[name]
+        if kind not in _MATRIX_TYPES or len(raw) != _MATRIX_TYPES[kind][0]:
+            fail(f"EXR header attribute {name!r} is {kind!r} of {len(raw)} bytes, expected 'm44f' of 64 bytes "
+                 "(or 'm44d' of 128)")
+        m = np.frombuffer(raw, dtype=_MATRIX_TYPES[kind][1]).astype(np.float64).reshape(4, 4)
+        if not np.all(np.isfinite(m)):
+            fail(f"EXR header attribute {name!r} has values that are not finite")
+        out[name] = m
+    return out
+
+
+def read_camera(path: Path):
+    """The ``pipeline.motion.Camera`` of any EXR whose header has the standard ``worldToCamera`` and
+    ``worldToNDC`` attributes (a store image, or another renderer's with the same conventions), its image
+    size the display window's. Only the header is read, in pure Python; StoreError naming the file and
+    what is missing or unusable."""
+    from .motion import camera_from_exr
+    path = Path(path)
+
+    def fail(msg: str):
+        raise StoreError(f"{path}: {msg}")
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read ({_reason(exc)})") from None
+    if head[:4] != MAGIC or len(head) < 8:
+        fail("not an OpenEXR file (bad magic number)")
+    version = int.from_bytes(head[4:8], "little")
+    if version & 0x1000:
+        fail("a multi-part EXR: read the camera of a single-part image")
+    attrs, _ = _attributes(head, 255 if version & 0x400 else 31, fail)
+    matrices = _matrices(attrs, fail)
+    missing = [n for n in CAMERA_ATTRIBUTES if n not in matrices]
+    if missing:
+        fail(f"no camera: header attribute {' and '.join(map(repr, missing))} missing (images rendered before "
+             "cameras were recorded have none)")
+    window = attrs.get("displayWindow")
+    if window is None or window[0] != "box2i" or len(window[1]) != 16:
+        fail("EXR header lacks a valid 'displayWindow'")
+    x0, y0, x1, y1 = (int.from_bytes(window[1][i:i + 4], "little", signed=True) for i in range(0, 16, 4))
+    return camera_from_exr(matrices["worldToCamera"], matrices["worldToNDC"], x1 - x0 + 1, y1 - y0 + 1, str(path))
 
 
 def _check_chunks(f, size: int, info: dict, fail) -> None:

@@ -182,6 +182,16 @@ class Store:
         _names(list(images), path, "images", "image name")
         return data
 
+    def camera(self, scene: str, frame: int):
+        """The frame's ``pipeline.motion.Camera`` from its ``frame.json``; StoreError in one line naming the
+        file and what is missing (no record yet, or a frame rendered before cameras were recorded)."""
+        from .motion import camera_from_record
+        path = self.frame_dir(scene, frame) / "frame.json"
+        record = self.frame_record(scene, frame)
+        if record is None:
+            raise StoreError(f"{path}: frame record is missing: the frame is not rendered, so it has no camera")
+        return camera_from_record(record, str(path))
+
     def write_frame_record(self, scene: str, frame: int, data: dict) -> None:
         atomic_write_json(self.frame_dir(scene, frame) / "frame.json", data)
 
@@ -243,11 +253,12 @@ class Store:
 
     # ---- images ------------------------------------------------------------------------
     def write_image(self, scene: str, frame: int, image: str, arrays, constants=None, meta=None,
-                    omit_constant: bool = True, encoding: str = "compact") -> dict:
+                    omit_constant: bool = True, encoding: str = "compact", camera=None) -> dict:
         """Write one image (``pipeline.exr.write_image``; a store's images are compact unless the
-        config's ``render.encoding`` says 'exact'); its record plus ``bytes`` and ``sha256``."""
+        config's ``render.encoding`` says 'exact'; ``camera``, the frame's, goes into its header);
+        its record plus ``bytes`` and ``sha256``."""
         path = self.image_path(scene, frame, image)
-        record = write_image(path, arrays, constants, meta, omit_constant, encoding=encoding)
+        record = write_image(path, arrays, constants, meta, omit_constant, encoding=encoding, camera=camera)
         return {**record, "bytes": path.stat().st_size, "sha256": sha256(path)}
 
     def read_image(self, scene: str, frame: int, image: str, buffers: list[str] | None = None):

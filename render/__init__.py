@@ -5,7 +5,8 @@
   ``build_sensor`` make it a Mitsuba scene and camera).
 - ``render.geometry``, ``render.materials``, ``render.textures``, ``render.lights``,
   ``render.camera``: its parts: random shapes as meshes, BSDFs, procedural textures, lights set
-  by target irradiance, a smooth camera move over the frames.
+  by target irradiance, a smooth camera move over the frames (and the orbit, dolly and
+  camera-to-camera paths of a user's scene).
 - ``render.layout``: object placement, the ground and a room's walls, shared with the stress presets.
 - ``render.stress``: named extreme scenes in the same description format (``dataset.stress``).
 - ``render.integrator``: the split-buffer path tracer: every buffer of ``pipeline.schema`` in one pass.
@@ -16,7 +17,8 @@
   GT2 and the low-spp stacks, from a random scene or a user's XML.
 - ``render.dataset``: the dataset stage (``make dataset``): plan scenes and frames, run the
   missing ones, write the manifests.
-- ``render.external``: a user's Mitsuba scene into the store's ``external`` split (``render-scene``).
+- ``render.external``: a user's Mitsuba scene into the store's ``external`` split (``render-scene``),
+  one frame or a sequence along a camera path.
 - ``render.plan``: what a config costs before anything runs (``plan``).
 - ``render.bench``: the dataset stage's performance claims, measured (``make bench``).
 """

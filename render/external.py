@@ -11,6 +11,13 @@ worker loads the XML and builds that camera (``render.frame.load_external_scene`
 ``-D`` values fill the XML's ``$name`` parameters, as on Mitsuba's command line) puts a user's scene
 into the split ``external`` of the store (created if needed) as one frame with the same images as
 a dataset frame (GT1, GT2, stacks), rendered by the same worker code.
+
+``--frames N`` renders frames 000..N-1 along a camera path that starts at the scene's camera
+(``render.camera``): ``--move orbit:DEGREES`` turns it about the look-at target (the first surface on
+its view axis: ``render.frame.look_distance``) by that angle over the frames, ``--move dolly:FRACTION``
+moves it that fraction of the distance towards the target; without ``--move`` the frames go from the
+scene's first perspective camera to its second (a hand-made scene carries its own move that way; the
+camera stays still where there is no second). Every frame records its camera (frame.json, EXR headers).
 """
 from __future__ import annotations
 
@@ -29,6 +36,9 @@ EXTERNAL_SPLIT = "external"
 # External scenes take seeds from a range no random scene reaches (scene index >= 2^20).
 _EXTERNAL_INDEX_BASE = 1 << 20
 
+
+# Most frames of one external scene: frame seeds stay distinct 32-bit counters (frame_seeds) up to here.
+MAX_FRAMES = 100
 
 # load_file's own keywords: a scene parameter of that name could not be passed to it.
 _RESERVED = ("path", "parallel", "optimize", "update_scene")
@@ -72,9 +82,31 @@ def _register(store: Store, cfg: Config, sid: str) -> int:
     return _EXTERNAL_INDEX_BASE + ext.index(sid)
 
 
+def camera_move(frames: int, move: str | None) -> dict | None:
+    """The scene description's ``move`` for ``--frames``/``--move`` (None for a single frame, so its
+    description is what it always was); ConfigError in one line for values that cannot be rendered."""
+    from .camera import parse_move
+    if not 1 <= frames <= MAX_FRAMES:
+        raise ConfigError(f"--frames {frames}: render 1 to {MAX_FRAMES} frames of a scene")
+    if move is not None and frames == 1:
+        raise ConfigError(f"--move {move!r} needs --frames 2 or more (one frame does not move)")
+    if frames == 1:
+        return None
+    if move is None:
+        return {"kind": "sensors", "frames": frames}
+    try:
+        kind, amount = parse_move(move)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    return {"kind": kind, "amount": amount, "frames": frames}
+
+
 def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
-                 name: str | None = None, defines: dict[str, str] | None = None) -> dict:
-    """Render ``xml`` (its ``$name`` parameters from ``defines``) into the store's external split."""
+                 name: str | None = None, defines: dict[str, str] | None = None, frames: int = 1,
+                 move: str | None = None) -> dict:
+    """Render ``xml`` (its ``$name`` parameters from ``defines``) into the store's external split: one
+    frame, or ``frames`` along ``move`` (module docstring)."""
+    path_move = camera_move(frames, move)
     if not Path(xml).is_file():
         raise StoreError(f"{xml}: scene file not found")
     size = None
@@ -91,7 +123,7 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
     manifest = store.manifest_path.read_bytes() if store.manifest_path.exists() else None
     folder_existed = store.scene_dir(sid).exists()
     try:
-        return _render(store, store_path, cfg, xml, sid, size, defines or {})
+        return _render(store, store_path, cfg, xml, sid, size, defines or {}, path_move)
     except BaseException:
         if not root_existed:
             shutil.rmtree(store.root, ignore_errors=True)
@@ -127,16 +159,27 @@ def scene_depths(xml: str, defines: dict[str, str]) -> dict[str, int]:
     return found
 
 
-def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, defines: dict) -> dict:
+def frame_seeds(master: int, index: int, frame: int, names: list[str]) -> dict[str, int]:
+    """Seeds of one frame of an external scene. Frame f counts as scene ``index + f * 2^20`` of one frame:
+    frame 0 keeps the seeds a single-frame render always had, and later frames take ranges no random
+    scene (index < 2^20) and no other external frame reaches."""
+    return {n: image_seed(master, index + frame * _EXTERNAL_INDEX_BASE, 0, k, 1, len(names))
+            for k, n in enumerate(names)}
+
+
+def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, defines: dict,
+            move: dict | None = None) -> dict:
     from .dataset import render_frame_entry, scene_record, task_spp
     from .frame import FrameTask
 
     index = _register(store, cfg, sid)
     d = cfg.dataset
     names = image_names(d.stacks)
-    seeds = {n: image_seed(cfg.seed, index, 0, k, 1, len(names)) for k, n in enumerate(names)}
-    desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {})}
-    record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, 1, list(size) if size else None, {"0": seeds}, desc)
+    frames = move["frames"] if move else 1
+    seeds = {str(f): frame_seeds(cfg.seed, index, f, names) for f in range(frames)}
+    desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {}),
+            **({"move": move} if move else {})}
+    record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, frames, list(size) if size else None, seeds, desc)
     own = scene_depths(xml, defines)    # the scene's own path depths are part of its look: kept
     record["integrator"].update(own)
     store.write_scene_manifest(sid, {**record, "packages": package_versions()})
@@ -146,17 +189,19 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
             print(f"render-scene: {sid}: the scene's integrator {key}={value} kept (render.{key}={render[key]} "
                   "is the random scenes')")
     render.update(own)
-    task = FrameTask(store=str(store_path), scene=sid, frame=0, desc=desc, resolution=size,
-                     seeds=seeds, render=render, **task_spp(record))
+    tasks = [FrameTask(store=str(store_path), scene=sid, frame=f, desc=desc, resolution=size,
+                       seeds=seeds[str(f)], render=render, **task_spp(record)) for f in range(frames)]
     stats = {"failed": 0}
-    for _, result, error in run_tasks([task], render_frame_entry, cfg.executor):
+    notes: list[str] = []
+    for task, result, error in run_tasks(tasks, render_frame_entry, cfg.executor):
         if error is not None:
             raise StoreError(str(error).strip().splitlines()[-1] if str(error).strip() else repr(error))
-        print(f"render-scene: {sid} -> {store.frame_dir(sid, 0)}: {result['width']}x{result['height']}, "
+        print(f"render-scene: {sid} -> {store.frame_dir(sid, task.frame)}: {result['width']}x{result['height']}, "
               f"{len(result['images'])} images, {result['timing']['total']:.1f} s, "
               f"{result['nonfinite']} non-finite values repaired")
-        for note in result.get("scene_notes", []):
-            print(f"render-scene: {sid}: note: {note}")
-        print(f"render-scene: denoise it: python -m pipeline denoise --store {store_path} --frame {sid}/000 "
-              f"--spp {record['stack_spp']} --out {sid}.exr")
+        notes = result.get("scene_notes", notes)
+    for note in notes:
+        print(f"render-scene: {sid}: note: {note}")
+    print(f"render-scene: denoise it: python -m pipeline denoise --store {store_path} --frame {sid}/000 "
+          f"--spp {record['stack_spp']} --out {sid}.exr")
     return stats

@@ -27,6 +27,7 @@ from mcdenoise.pipeline import metrics, schema
 from mcdenoise.pipeline.errors import PipelineError, innermost_message
 from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+from mcdenoise.pipeline.motion import Camera, camera_record
 from mcdenoise.pipeline.store import GT_IMAGES, Store, image_names, sha256
 
 
@@ -74,9 +75,14 @@ def load_external_scene(mi, xml: str, defines: dict[str, str] | None = None):
         raise ExternalSceneError(f"{xml}: Mitsuba cannot load this scene: {first}{how}") from None
 
 
-def external_sensor(mi, scene, width: int | None, height: int | None):
-    """A perspective sensor with the scene's first camera pose and field of view, our film."""
+def external_sensor(mi, scene, width: int | None, height: int | None, move: dict | None = None, frame: int = 0):
+    """A perspective sensor with the scene's first camera pose and field of view, our film; with ``move``
+    (``{"kind", "amount", "frames"}``, render-scene --frames/--move) the pose of ``frame`` on that path:
+    ``orbit``/``dolly`` about the look-at target (``look_distance``), ``sensors`` from the first camera to
+    the scene's second perspective camera (field of view interpolated linearly), or still where the scene
+    has only one."""
     from mcdenoise.render.buffers import make_sensor
+    from mcdenoise.render.camera import dolly_path, orbit_path, sensor_path
 
     sensors = scene.sensors()
     if not sensors:
@@ -89,8 +95,43 @@ def external_sensor(mi, scene, width: int | None, height: int | None):
     w = width or int(size[0])
     h = height or int(size[1])
     matrix = np.asarray(params["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
-    to_world = mi.ScalarTransform4f(matrix)
-    return make_sensor(mi, to_world, float(params["x_fov"][0]), w, h)
+    fov = float(params["x_fov"][0])
+    if move:
+        frames, kind, amount = int(move["frames"]), move["kind"], float(move.get("amount", 0.0))
+        if kind in ("orbit", "dolly"):
+            path = (orbit_path if kind == "orbit" else dolly_path)(matrix, look_distance(mi, scene, matrix), amount,
+                                                                   frames)
+            matrix = path[frame]
+        elif kind == "sensors":
+            second = [s for s in sensors[1:] if "x_fov" in mi.traverse(s)]
+            if second:
+                other = mi.traverse(second[0])
+                end = np.asarray(other["to_world"].matrix.numpy(), dtype=np.float64).reshape(4, 4)
+                try:
+                    matrix = sensor_path(matrix, end, frames)[frame]
+                except ValueError as exc:
+                    raise ExternalSceneError(f"the scene's two cameras: {exc}") from None
+                s = frame / (frames - 1) if frames > 1 else 0.0
+                fov = (1 - s) * fov + s * float(other["x_fov"][0])
+        else:
+            raise ExternalSceneError(f"unknown camera move {kind!r}")
+    return make_sensor(mi, mi.ScalarTransform4f(matrix), fov, w, h)
+
+
+def look_distance(mi, scene, camera_to_world: np.ndarray) -> float:
+    """How far ahead the camera's look-at target is (a scene file keeps only the camera's matrix, not the
+    target it was made from): the first surface on the view axis; where the axis hits nothing, the
+    scene's bounding-box centre's distance along it (or from the camera, when that centre is behind)."""
+    origin = camera_to_world[:3, 3]
+    forward = camera_to_world[:3, 2] / np.linalg.norm(camera_to_world[:3, 2])
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*map(float, origin)), mi.Vector3f(*map(float, forward))))
+    hit = np.asarray(si.is_valid()).ravel()
+    if hit.size and bool(hit[0]):
+        return float(np.asarray(si.t).ravel()[0])
+    bbox = scene.bbox()
+    centre = (np.asarray(bbox.min, dtype=np.float64).ravel() + np.asarray(bbox.max, dtype=np.float64).ravel()) / 2
+    along = float(np.dot(centre - origin, forward))
+    return along if along > 0 else max(float(np.linalg.norm(centre - origin)), 1.0)
 
 
 def external_notes(mi, scene) -> list[str]:
@@ -137,7 +178,7 @@ def frame_scene(mi, task: FrameTask):
 def frame_sensor(mi, task: FrameTask, scene):
     w, h = task.resolution or (None, None)
     if "xml" in task.desc:
-        return external_sensor(mi, scene, w, h)
+        return external_sensor(mi, scene, w, h, task.desc.get("move"), task.frame)
     from mcdenoise.render.scene import build_sensor
     return build_sensor(mi, task.desc, task.frame, w, h)
 
@@ -156,8 +197,10 @@ def render_frame(task: FrameTask) -> dict:
     t0 = time.perf_counter()
     sensor = frame_sensor(mi, task, scene)
     build_s += time.perf_counter() - t0
-    records, gt_color, render_s, write_s, reused = _render_images(mi, scene, sensor, store, task, names, features)
-    w, h = (int(v) for v in sensor.film().size())
+    camera = sensor_camera(mi, sensor)
+    records, gt_color, render_s, write_s, reused = _render_images(mi, scene, sensor, store, task, names, features,
+                                                                  camera)
+    w, h = camera.width, camera.height
     record = {
         "scene": task.scene, "frame": task.frame, "width": w, "height": h,
         "images": records, "features": sorted(features),
@@ -169,9 +212,10 @@ def render_frame(task: FrameTask) -> dict:
         "reused_images": reused,
         **gt_summary(store, task, records, gt_color),
         # The camera frame (columns: left, up, forward, origin): lets consumers turn the
-        # world-space normals into camera space (train.data).
-        "camera_to_world": np.round(np.asarray(sensor.world_transform().matrix.numpy(), np.float64)
-                                    .reshape(4, 4), 6).tolist(),
+        # world-space normals into camera space (train.data); with the field of view and clip
+        # distances, the whole camera (pipeline.motion.camera_from_record: reprojection).
+        "camera_to_world": np.round(camera.camera_to_world, 6).tolist(),
+        **camera_record(camera),
     }
     if "xml" in task.desc:
         record["scene_notes"] = external_notes(mi, scene)
@@ -199,7 +243,17 @@ def _drop_temporary_files(store: Store, task: FrameTask) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, features) -> tuple:
+def sensor_camera(mi, sensor) -> Camera:
+    """The ``pipeline.motion.Camera`` of a perspective ``sensor`` (its pose, x field of view, film size
+    and clip distances), written into the frame's record and every image's header."""
+    params = mi.traverse(sensor)
+    w, h = (int(v) for v in sensor.film().size())
+    return Camera(np.asarray(sensor.world_transform().matrix.numpy(), np.float64).reshape(4, 4),
+                  float(np.asarray(params["x_fov"]).ravel()[0]), w, h, float(sensor.near_clip()),
+                  float(sensor.far_clip()))
+
+
+def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, features, camera: Camera) -> tuple:
     """Render and write each image of ``names`` not already on disk: (records, ground-truth colours,
     render seconds, write seconds, number of images reused)."""
     records: dict[str, dict] = {}
@@ -224,7 +278,7 @@ def _render_images(mi, scene, sensor, store: Store, task: FrameTask, names, feat
                 "features": sorted(features), **extra}
         records[name] = store.write_image(task.scene, task.frame, name, result.buffers, result.constants,
                                           meta, omit_constant=task.render["omit_constant"],
-                                          encoding=task.render.get("encoding", "compact"))
+                                          encoding=task.render.get("encoding", "compact"), camera=camera)
         if name in GT_IMAGES:
             gt_color[name] = result.buffers["color"]
         write_s += time.perf_counter() - t0

@@ -21,6 +21,15 @@ def test_paper_config_has_paper_settings():
     assert (d.scenes, d.frames, d.resolution, d.gt_spp, d.stack_spp, d.stacks) == (5650, 8, [256, 256], 4096, 4, 16)
 
 
+def test_sequence_config_renders_8_frame_sequences_into_its_own_store():
+    from mcdenoise.pipeline.config import run_dir
+    cfg = load_config(ROOT / "configs" / "sequence.yaml")
+    d = cfg.dataset
+    assert (d.frames, d.scenes) == (8, 3) and d.resolution == [64, 48]
+    assert cfg.store == "data/sequence" and Path(run_dir(cfg, "cleaner")).parent == Path("runs/sequence")
+    assert cfg.diffusion.crop % 16 == 0 and cfg.diffusion.crop <= min(d.resolution)
+
+
 def test_overrides_are_typed_and_nested():
     cfg = load_config(ROOT / "configs" / "tiny.yaml", ["dataset.scenes=5", "render.max_depth=3",
                                                        "dataset.resolution=[16, 8]", "scene.fov=[30, 40]"])

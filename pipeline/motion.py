@@ -1,0 +1,336 @@
+"""Cameras of a sequence, and how pixels move between its frames: projection, reprojection, warping.
+
+Pure numpy; what temporal denoising needs to bring frame t-1 onto frame t.
+
+Conventions
+-----------
+* **Camera** (``Camera``): Mitsuba's perspective pinhole. ``camera_to_world`` is the sensor's
+  ``to_world`` (columns: left, up, forward, origin; orthonormal, a mirrored camera's first column
+  may point right); ``fov_x`` the field of view in degrees across the film's ``width`` (Mitsuba's
+  ``x_fov``); square pixels, principal point at the image centre; ``near``/``far`` the clip distances.
+  In the camera's local frame a point (x, y, z) with z > 0 is in front and lands at
+
+      px = W/2 (1 - x / (z tan(fov_x/2))),   py = H/2 - (W/2) y / (z tan(fov_x/2))
+
+  (local +x is the image's left, +y its top: Mitsuba's ``camera_to_sample`` transform).
+* **Pixel coordinates**: continuous, x to the right, y down, (0, 0) the upper left corner of the
+  image. Pixel (i, j) (column i, row j) covers [i, i+1) x [j, j+1) and its centre is (i + 0.5, j + 0.5):
+  the store's film is box-filtered without sample border, so every sample lands in the pixel it falls in.
+* **Depth** (the store's ``depth`` buffer, ``render.integrator``): camera-space z, ``dot(p - o, forward)``,
+  not the distance along the ray; 0 where the camera ray escapes (background). It is the mean over
+  the pixel's samples, so it is z at the pixel centre up to z's variation inside the pixel (exact on a
+  surface facing the camera; a silhouette pixel averages its surfaces, and 0 for the background).
+
+Reprojection (``reproject``)
+----------------------------
+Each pixel centre of frame t with depth > 0 is unprojected to its world point and projected into
+frame t-1. It is **invalid** when
+
+* its depth is 0 (background: no point to follow);
+* it lands off frame t-1 (outside [0, W] x [0, H]) or not in front of that camera (z <= near);
+* (``depth_prev`` given) disoccluded: frame t-1 sees another surface there. The test reads the
+  four pixel centres around the landing spot (the bilinear footprint the warp reads, clamped at the
+  image border; taps of weight below ``TAP_EPS`` are left out). A footprint with a background tap is
+  invalid; otherwise the bilinear interpolation of 1/depth_prev is compared with the point's own
+  z in frame t-1: invalid when |z / z_seen - 1| > ``depth_tolerance``. 1/z is affine in screen
+  coordinates on a plane, so on planes the interpolation is exact (up to the pixel-mean of depth)
+  and the test does not depend on the surface's slant; a footprint straddling two surfaces at depth
+  ratio r reads a mixed 1/z and is caught once the far tap's weight exceeds about tolerance / (r - 1);
+* (``normal_t`` and ``normal_prev`` given) the world-space shading normals disagree: the
+  bilinearly read normal of t-1, normalised, has a dot product below ``normal_threshold`` with
+  frame t's (world-space normals of a point do not change when the camera moves).
+
+Warping (``warp``)
+------------------
+Bilinear interpolation of the image of t-1 at ``xy_prev`` over the same four taps (clamped at the
+border, weights below ``TAP_EPS`` dropped and the rest renormalised, so a landing spot on a pixel
+centre returns that pixel exactly); invalid pixels are 0. Where ``valid`` comes from ``reproject``
+with ``depth_prev``, a valid pixel's footprint holds no background tap and no tap of another
+surface beyond the tolerance above, so the warp never blends across a silhouette.
+
+OpenEXR headers (``exr_matrices``, ``camera_from_exr``)
+------------------------------------------------------
+Store images carry the standard attributes ``worldToCamera`` and ``worldToNDC`` (``m44f``), as
+OpenEXR defines them: Imath's **row-vector** convention, p' = p M with p = (x, y, z, 1), so the
+stored matrix is the transpose of the column-vector matrix used here (M[3] holds the translation).
+Camera space is RenderMan's: left-handed, x right, y up, z forward (Mitsuba's local x negated).
+NDC: (0, 0) the upper left and (1, 1) the lower right corner of the image, so pixel coordinates are
+(W x_ndc, H y_ndc) after the homogeneous divide; NDC z is Mitsuba's perspective depth (0 at near,
+1 at far).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import StoreError
+
+# Bilinear taps lighter than this are left out of the footprint (and the rest renormalised): a landing
+# spot within 1e-3 pixel of a centre reads that pixel alone, so round-off never brings in a neighbour.
+TAP_EPS = 1e-3
+# Default tolerances of reproject: a relative depth mismatch of 5 % is far above the pixel-mean and
+# the compact encoding's depth rounding (2^-11), and far below the depth steps between objects.
+DEPTH_TOLERANCE = 0.05
+NORMAL_THRESHOLD = 0.9          # cos 25.8 degrees: half-float normals, curved surfaces' footprints
+# OpenEXR camera space (x right) from Mitsuba's local camera space (x left).
+_FLIP_X = np.diag([-1.0, 1.0, 1.0, 1.0])
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera of one frame (module docstring: conventions)."""
+    camera_to_world: np.ndarray     # 4x4 float64, Mitsuba's to_world (columns left, up, forward, origin)
+    fov_x: float                    # degrees across the width
+    width: int
+    height: int
+    near: float = 1e-3
+    far: float = 1e4
+
+    def __post_init__(self):
+        m = np.asarray(self.camera_to_world, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"camera_to_world must be a finite 4x4 matrix, got shape {m.shape}")
+        if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
+            raise ValueError(f"camera_to_world's last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+        if not np.allclose(m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-4):
+            raise ValueError("camera_to_world's first three columns must be orthonormal (a rigid camera)")
+        if not (math.isfinite(self.fov_x) and 0 < self.fov_x < 180):
+            raise ValueError(f"fov_x must be in (0, 180) degrees, got {self.fov_x!r}")
+        if not (int(self.width) == self.width >= 1 and int(self.height) == self.height >= 1):
+            raise ValueError(f"width and height must be positive integers, got {self.width!r}x{self.height!r}")
+        if not (0 <= self.near < self.far):
+            raise ValueError(f"need 0 <= near < far, got near={self.near!r}, far={self.far!r}")
+        object.__setattr__(self, "camera_to_world", m)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    @property
+    def tan_half(self) -> float:
+        """tan(fov_x / 2): the half-width of the image plane at unit depth."""
+        return math.tan(math.radians(self.fov_x) / 2)
+
+    def world_to_camera(self) -> np.ndarray:
+        """4x4 column-vector matrix from world to Mitsuba's local camera frame (x left, y up, z forward)."""
+        return np.linalg.inv(self.camera_to_world)
+
+
+def look_at(origin, target, up) -> np.ndarray:
+    """Mitsuba's ``look_at`` as a 4x4 camera_to_world: forward towards ``target``, left = up x forward."""
+    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+    forward = target - origin
+    forward /= np.linalg.norm(forward)
+    left = np.cross(up, forward)
+    if np.linalg.norm(left) < 1e-12:
+        raise ValueError("look_at: up is parallel to the view direction")
+    left /= np.linalg.norm(left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, np.cross(forward, left), forward, origin
+    return m
+
+
+# ---- projection ------------------------------------------------------------------------------
+
+def pixel_centres(width: int, height: int) -> np.ndarray:
+    """[H, W, 2] float64 pixel coordinates (x, y) of every pixel centre: (i + 0.5, j + 0.5)."""
+    y, x = np.mgrid[0:height, 0:width].astype(np.float64) + 0.5
+    return np.stack([x, y], axis=-1)
+
+
+def project(points_world: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """World points [..., 3] -> (pixel coordinates [..., 2], camera-space z [...]), float64.
+
+    Points with z <= 0 (behind the camera) get non-finite or meaningless pixel coordinates: test z."""
+    p = np.asarray(points_world, dtype=np.float64)
+    m = cam.world_to_camera()
+    local = p @ m[:3, :3].T + m[:3, 3]
+    z = local[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sx = local[..., 0] / (z * cam.tan_half)
+        sy = local[..., 1] / (z * cam.tan_half)
+    xy = np.stack([cam.width / 2 * (1 - sx), cam.height / 2 - cam.width / 2 * sy], axis=-1)
+    return xy, z
+
+
+def unproject(depth: np.ndarray, cam: Camera, xy: np.ndarray | None = None) -> np.ndarray:
+    """World points [H, W, 3] float64 seen at each pixel centre (or at ``xy`` [..., 2]) at camera-space
+    z = ``depth`` ([H, W] or [H, W, 1], the store's depth buffer); NaN where depth <= 0 (background)."""
+    z = np.asarray(depth, dtype=np.float64)
+    if z.ndim == 3 and z.shape[2] == 1:
+        z = z[..., 0]
+    if xy is None:
+        if z.shape != (cam.height, cam.width):
+            raise ValueError(f"depth is {z.shape}, the camera's image {cam.height}x{cam.width}")
+        xy = pixel_centres(cam.width, cam.height)
+    t = cam.tan_half
+    x_over_z = (1 - 2 * xy[..., 0] / cam.width) * t
+    y_over_z = (cam.height / 2 - xy[..., 1]) * 2 / cam.width * t
+    local = np.stack([x_over_z * z, y_over_z * z, z], axis=-1)
+    m = cam.camera_to_world
+    world = local @ m[:3, :3].T + m[:3, 3]
+    world[~(z > 0)] = np.nan
+    return world
+
+
+# ---- bilinear footprints ---------------------------------------------------------------------
+
+def _footprint(xy: np.ndarray, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The four bilinear taps (row, column, weight) around each of ``xy`` [N, 2] (finite), clamped at the
+    border; weights below TAP_EPS set to 0 and the rest renormalised to sum 1."""
+    u = np.clip(xy[:, 0] - 0.5, 0, width - 1)
+    v = np.clip(xy[:, 1] - 0.5, 0, height - 1)
+    i0 = np.minimum(np.floor(u).astype(np.int64), max(width - 2, 0))
+    j0 = np.minimum(np.floor(v).astype(np.int64), max(height - 2, 0))
+    fx, fy = u - i0, v - j0
+    i1, j1 = np.minimum(i0 + 1, width - 1), np.minimum(j0 + 1, height - 1)
+    taps = [(j0, i0, (1 - fx) * (1 - fy)), (j0, i1, fx * (1 - fy)), (j1, i0, (1 - fx) * fy), (j1, i1, fx * fy)]
+    weights = np.stack([w for _, _, w in taps])
+    weights[weights < TAP_EPS] = 0.0
+    weights /= weights.sum(axis=0, keepdims=True)
+    return [(j, i, w) for (j, i, _), w in zip(taps, weights)]
+
+
+def _read(image: np.ndarray, taps) -> np.ndarray:
+    """Bilinear read of ``image`` [H, W, C] over ``taps``: [N, C] float64."""
+    return sum(w[:, None] * image[j, i].astype(np.float64) for j, i, w in taps)
+
+
+def _channels(a: np.ndarray | None) -> np.ndarray | None:
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return a[..., None] if a.ndim == 2 else a
+
+
+# ---- reprojection and warping ----------------------------------------------------------------
+
+def reproject(depth_t: np.ndarray, cam_t: Camera, cam_prev: Camera, depth_prev: np.ndarray | None = None,
+              normal_t: np.ndarray | None = None, normal_prev: np.ndarray | None = None,
+              depth_tolerance: float = DEPTH_TOLERANCE, normal_threshold: float = NORMAL_THRESHOLD
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel of frame t was in frame t-1: (xy_prev [H, W, 2] float32 pixel coordinates of t-1,
+    valid [H, W] bool). xy_prev is NaN on the background of t; its value elsewhere is where the point
+    projects even when invalid. The tests that make a pixel invalid: module docstring."""
+    z_t = _channels(depth_t)[..., 0].astype(np.float64)
+    world = unproject(z_t, cam_t)
+    xy, z = project(world, cam_prev)
+    valid = (z_t > 0) & (z > cam_prev.near) & np.isfinite(xy).all(axis=-1)
+    valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= cam_prev.width) & (xy[..., 1] >= 0) & (xy[..., 1] <= cam_prev.height)
+    idx = np.nonzero(valid)
+    if idx[0].size and (depth_prev is not None or normal_prev is not None):
+        taps = _footprint(xy[idx], cam_prev.width, cam_prev.height)
+        keep = np.ones(idx[0].size, dtype=bool)
+        if depth_prev is not None:
+            d_prev = _channels(depth_prev).astype(np.float64)
+            if d_prev.shape[:2] != (cam_prev.height, cam_prev.width):
+                raise ValueError(f"depth_prev is {d_prev.shape[:2]}, the camera's image {cam_prev.height}x{cam_prev.width}")
+            background = np.zeros_like(keep)
+            for j, i, w in taps:
+                background |= (w > 0) & ~(d_prev[j, i, 0] > 0)
+            with np.errstate(divide="ignore"):
+                inverse = np.where(d_prev > 0, 1.0 / d_prev, 0.0)
+            seen = _read(inverse, taps)[:, 0]
+            keep &= ~background & (np.abs(z[idx] * seen - 1) <= depth_tolerance)
+        if normal_t is not None and normal_prev is not None:
+            n_prev = _read(np.asarray(normal_prev), taps)
+            n_t = np.asarray(normal_t, dtype=np.float64)[idx]
+            norms = np.linalg.norm(n_prev, axis=-1) * np.linalg.norm(n_t, axis=-1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cos = np.where(norms > 0, (n_prev * n_t).sum(axis=-1) / norms, -1.0)
+            keep &= cos >= normal_threshold
+        valid[idx] = keep
+    xy = xy.astype(np.float32)
+    xy[~(z_t > 0)] = np.nan
+    return xy, valid
+
+
+def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``image_prev`` [H', W', C] read bilinearly at ``xy_prev`` [H, W, 2] (pixel coordinates of that image):
+    [H, W, C] in its dtype, 0 where not ``valid``. Footprints: module docstring."""
+    img = _channels(image_prev)
+    valid = np.asarray(valid, dtype=bool)
+    out = np.zeros(valid.shape + (img.shape[2],), dtype=img.dtype)
+    idx = np.nonzero(valid)
+    if idx[0].size:
+        xy = np.asarray(xy_prev, dtype=np.float64)[idx]
+        if not np.all(np.isfinite(xy)):
+            raise ValueError("xy_prev is not finite on a valid pixel")
+        out[idx] = _read(img, _footprint(xy, img.shape[1], img.shape[0])).astype(img.dtype)
+    return out
+
+
+# ---- the cameras in files --------------------------------------------------------------------
+
+def camera_record(cam: Camera) -> dict:
+    """The camera fields of a frame's ``frame.json`` besides ``camera_to_world``, width and height."""
+    return {"fov_x": float(cam.fov_x), "near_clip": float(cam.near), "far_clip": float(cam.far)}
+
+
+def camera_from_record(record: dict, where: str = "frame.json") -> Camera:
+    """The camera of a frame record (``frame.json``); StoreError naming ``where`` and what is missing
+    (frames rendered before the field of view was recorded have ``camera_to_world`` but no ``fov_x``)."""
+    missing = [k for k in ("camera_to_world", "fov_x", "width", "height") if k not in record]
+    if missing:
+        raise StoreError(f"{where}: no camera: key {', '.join(map(repr, missing))} missing (frames rendered before "
+                         "cameras were recorded lack 'fov_x'; render the frame again)")
+    try:
+        return Camera(np.asarray(record["camera_to_world"], dtype=np.float64), float(record["fov_x"]),
+                      record["width"], record["height"], float(record.get("near_clip", 1e-3)),
+                      float(record.get("far_clip", 1e4)))
+    except (TypeError, ValueError) as exc:
+        raise StoreError(f"{where}: the recorded camera is not usable ({exc})") from None
+
+
+def exr_matrices(cam: Camera) -> dict[str, np.ndarray]:
+    """The OpenEXR header attributes ``worldToCamera`` and ``worldToNDC`` of ``cam``: float32 4x4 in Imath's
+    row-vector convention (p' = p M), i.e. the transposes of the column-vector matrices."""
+    world_to_camera = cam.world_to_camera()
+    # C order: OpenEXR's binding copies the buffer as it lies in memory, whatever the strides say.
+    return {"worldToCamera": np.ascontiguousarray((_FLIP_X @ world_to_camera).T, dtype=np.float32),
+            "worldToNDC": np.ascontiguousarray((_ndc_projection(cam) @ world_to_camera).T, dtype=np.float32)}
+
+
+def _ndc_projection(cam: Camera) -> np.ndarray:
+    """Column-vector matrix from Mitsuba's local camera frame to homogeneous NDC (w = z)."""
+    t, aspect = cam.tan_half, cam.width / cam.height
+    near, far = cam.near, cam.far
+    a, b = (1.0, -near) if math.isinf(far) else (far / (far - near), -near * far / (far - near))
+    return np.array([[-0.5 / t, 0, 0.5, 0], [0, -0.5 * aspect / t, 0.5, 0], [0, 0, a, b], [0, 0, 1, 0]])
+
+
+def camera_from_exr(world_to_camera, world_to_ndc, width: int, height: int, where: str = "EXR header") -> Camera:
+    """The camera of an image whose header has ``worldToCamera`` and ``worldToNDC`` (row-vector 4x4, as
+    ``exr_matrices`` writes them) and whose display window is ``width`` x ``height``. StoreError naming
+    ``where`` when the matrices are not a rigid camera with a centred pinhole projection of square pixels.
+    near and far come from NDC z when it maps them to 0 and 1 (as written here), else 0 and infinity."""
+    wtc = np.asarray(world_to_camera, dtype=np.float64).T
+    wtn = np.asarray(world_to_ndc, dtype=np.float64).T
+    if wtc.shape != (4, 4) or wtn.shape != (4, 4) or not (np.isfinite(wtc).all() and np.isfinite(wtn).all()):
+        raise StoreError(f"{where}: worldToCamera and worldToNDC must be finite 4x4 matrices")
+    try:
+        c2w = np.linalg.inv(wtc) @ _FLIP_X
+    except np.linalg.LinAlgError:
+        raise StoreError(f"{where}: worldToCamera is singular") from None
+    if not np.allclose(c2w[:3, :3].T @ c2w[:3, :3], np.eye(3), atol=1e-4) or not np.allclose(c2w[3], [0, 0, 0, 1], atol=1e-5):
+        raise StoreError(f"{where}: worldToCamera is not a rigid transform (rotation and translation)")
+    p = wtn @ c2w                       # homogeneous NDC from Mitsuba's local frame
+    if abs(p[3, 2]) < 1e-12:
+        raise StoreError(f"{where}: worldToNDC is not a perspective projection (w does not depend on z)")
+    p = p / p[3, 2]
+    scale = 1e-4 * max(1.0, float(np.abs(p[:2, :3]).max()))
+    t = -0.5 / p[0, 0] if p[0, 0] < 0 else math.nan
+    expect = np.array([[-0.5 / t, 0, 0.5], [0, -0.5 * (width / height) / t, 0.5]]) if t > 0 else None
+    if (expect is None or not np.allclose(p[:2, :3], expect, atol=scale) or not np.allclose(p[:2, 3], 0, atol=scale)
+            or not np.allclose(p[3], [0, 0, 1, 0], atol=1e-6)):
+        raise StoreError(f"{where}: worldToNDC is not a centred pinhole projection with square pixels of a "
+                         f"{width}x{height} image (the only cameras supported)")
+    a, b = p[2, 2], p[2, 3]
+    near = -b / a if a > 0 else math.nan
+    far = b / (1 - a) if a < 1 else math.inf
+    if not (near >= 0 and far > near):
+        near, far = 0.0, math.inf
+    try:
+        return Camera(c2w, math.degrees(2 * math.atan(t)), width, height, float(near), float(far))
+    except ValueError as exc:
+        raise StoreError(f"{where}: {exc}") from None

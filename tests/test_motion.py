@@ -1,0 +1,284 @@
+"""pipeline.motion: projection, reprojection and warping against analytic answers; the cameras in
+frame.json and in the EXR headers; warping real renders of the tiny store."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mcdenoise.pipeline import motion
+from mcdenoise.pipeline.errors import StoreError
+from mcdenoise.pipeline.exr import read_camera, scan_exr, write_image
+from mcdenoise.pipeline.motion import Camera, look_at, project, reproject, unproject, warp
+
+W, H = 64, 48
+FOV = 50.0
+
+
+def camera(origin=(0, 0, 0), target=(0, 0, -1), up=(0, 1, 0), fov=FOV, width=W, height=H) -> Camera:
+    return Camera(look_at(origin, target, up), fov, width, height)
+
+
+def plane_depth(cam: Camera, normal, offset) -> np.ndarray:
+    """Camera-space z at every pixel centre of the plane normal . X = offset, by intersecting each pixel
+    centre's ray (direction per unit z, from the pinhole model of the module docstring) with the plane."""
+    j, i = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+    t = math.tan(math.radians(cam.fov_x) / 2)
+    local = np.stack([(1 - 2 * i / cam.width) * t, (cam.height / 2 - j) * 2 / cam.width * t, np.ones_like(i)], -1)
+    d = local @ cam.camera_to_world[:3, :3].T
+    o = cam.camera_to_world[:3, 3]
+    n = np.asarray(normal, float)
+    return (offset - n @ o) / (d @ n)
+
+
+def pixel_of_direction(local_dir: np.ndarray, width=W, height=H, fov=FOV) -> np.ndarray:
+    """Pixel coordinates of a direction in a camera's local frame (x left, y up, z forward)."""
+    t = math.tan(math.radians(fov) / 2)
+    x, y, z = local_dir[..., 0], local_dir[..., 1], local_dir[..., 2]
+    return np.stack([width / 2 * (1 - x / (z * t)), height / 2 - width / 2 * y / (z * t)], -1)
+
+
+def test_round_trip_project_unproject():
+    cam = camera(origin=(0.3, 1.2, 4.0), target=(0, 0.5, 0))
+    depth = np.random.default_rng(0).uniform(0.5, 20, (H, W))
+    xy, z = project(unproject(depth, cam), cam)
+    # float64 throughout: a 4x4 inverse and a division, round-off of order 1e-15 relative.
+    np.testing.assert_allclose(xy, motion.pixel_centres(W, H), atol=1e-9)
+    np.testing.assert_allclose(z, depth, rtol=1e-12)
+
+
+def test_translation_over_a_fronto_parallel_plane_shifts_by_the_disparity():
+    """Camera moves by b to its left in front of a plane at distance D: every point moves by
+    b f / D pixels, f = W / (2 tan(fov/2)) the focal length in pixels, to the left in frame t-1."""
+    D, b = 5.0, 0.2
+    prev = camera(origin=(0, 0, 0), target=(0, 0, -1))
+    cur = camera(origin=(-b, 0, 0), target=(-b, 0, -1))   # looking down -z, left is -x
+    assert np.allclose(cur.camera_to_world[:3, 0], [-1, 0, 0])
+    depth = plane_depth(cur, (0, 0, 1), -D)
+    np.testing.assert_allclose(depth, D)
+    xy, valid = reproject(depth, cur, prev, depth_prev=plane_depth(prev, (0, 0, 1), -D))
+    shift = b * W / (2 * math.tan(math.radians(FOV) / 2)) / D
+    expected = motion.pixel_centres(W, H) - [shift, 0]
+    on = expected[..., 0] >= 0
+    assert np.abs(xy - expected)[on].max() < 0.01
+    # Off-screen: the columns that land left of frame t-1 are masked, and only they.
+    np.testing.assert_array_equal(valid, on)
+    assert (~on).sum() == H * math.ceil(shift - 0.5)
+
+
+def test_rotation_over_a_slanted_plane():
+    """Camera turns by 6 degrees about its up axis in front of a slanted plane: a pure rotation maps
+    directions, so frame t-1's pixel is the direction rotated back, whatever the depth."""
+    theta = math.radians(6)
+    prev = camera()
+    target = (math.sin(theta), 0, -math.cos(theta))       # turned to the right (towards +x)
+    cur = camera(target=target)
+    normal = np.array([0.3, 0.8, 1.0]) / np.linalg.norm([0.3, 0.8, 1.0])
+    depth = plane_depth(cur, normal, -6.0)
+    assert (depth > 0).all()
+    xy, valid = reproject(depth, cur, prev, depth_prev=plane_depth(prev, normal, -6.0))
+    j, i = np.mgrid[0:H, 0:W] + 0.5
+    t = math.tan(math.radians(FOV) / 2)
+    local_t = np.stack([(1 - 2 * i / W) * t, (H / 2 - j) * 2 / W * t, np.ones_like(i)], -1)
+    world_dir = local_t @ cur.camera_to_world[:3, :3].T
+    expected = pixel_of_direction(world_dir @ prev.camera_to_world[:3, :3])
+    inside = (expected[..., 0] >= 0) & (expected[..., 0] <= W) & (expected[..., 1] >= 0) & (expected[..., 1] <= H)
+    err = np.abs(xy - expected)[inside].max()
+    assert err < 0.01, err
+    np.testing.assert_array_equal(valid, inside)
+    assert 0 < (~inside).sum() < W * H / 4
+
+
+def box_scene(cam: Camera, box_z=-4.0, plane_z=-10.0, half=(0.6, 0.5)) -> np.ndarray:
+    """Depth of a fronto-parallel square (|x| <= half[0], |y| <= half[1] at z = box_z) in front of the
+    plane z = plane_z, for a camera looking down -z."""
+    near = plane_depth(cam, (0, 0, 1), box_z)
+    j, i = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+    t = math.tan(math.radians(cam.fov_x) / 2)
+    local = np.stack([(1 - 2 * i / cam.width) * t, (cam.height / 2 - j) * 2 / cam.width * t, np.ones_like(i)], -1)
+    hit = cam.camera_to_world[:3, 3] + near[..., None] * (local @ cam.camera_to_world[:3, :3].T)
+    on_box = (np.abs(hit[..., 0]) <= half[0]) & (np.abs(hit[..., 1]) <= half[1])
+    return np.where(on_box, near, plane_depth(cam, (0, 0, 1), plane_z)), on_box
+
+
+def test_disocclusion_behind_a_box_is_masked():
+    """A box 4 in front of a plane 10 away; the camera moves 0.5 to the right. The plane points frame t
+    sees that the box hid from frame t-1 must be invalid; every other point is valid, except those
+    whose bilinear footprint in t-1 straddles the box's silhouette (within a pixel of it)."""
+    b = 0.5
+    prev = camera(origin=(0, 0, 0), target=(0, 0, -1))
+    cur = camera(origin=(b, 0, 0), target=(b, 0, -1))
+    depth_t, box_t = box_scene(cur)
+    depth_p, _ = box_scene(prev)
+    xy, valid = reproject(depth_t, cur, prev, depth_prev=depth_p)
+    # Analytic occlusion: the plane point X is hidden from the t-1 camera (at the origin) when the
+    # segment to it crosses z = -4 inside the box: at X * 4 / 10.
+    world = unproject(depth_t, cur)
+    crossing = world * (4.0 / 10.0)
+    hidden = ~box_t & (np.abs(crossing[..., 0]) <= 0.6) & (np.abs(crossing[..., 1]) <= 0.5)
+    assert hidden.sum() > 20
+    assert not valid[hidden].any()
+    # The box's silhouette in t-1: |x| = 0.6, |y| = 0.5 at depth 4, in pixels.
+    f = W / (2 * math.tan(math.radians(FOV) / 2))
+    edges_x = W / 2 + np.array([-0.6, 0.6]) / 4 * f
+    edges_y = H / 2 + np.array([-0.5, 0.5]) / 4 * f
+    near_edge = ((np.abs(xy[..., 0, None] - edges_x) < 1).any(-1) & (xy[..., 1] > edges_y[0] - 1)
+                 & (xy[..., 1] < edges_y[1] + 1)) | ((np.abs(xy[..., 1, None] - edges_y) < 1).any(-1)
+                                                     & (xy[..., 0] > edges_x[0] - 1) & (xy[..., 0] < edges_x[1] + 1))
+    on_screen = (xy[..., 0] >= 0) & (xy[..., 0] <= W)
+    must_be_valid = on_screen & ~hidden & ~near_edge
+    assert must_be_valid.sum() > 0.8 * W * H
+    assert valid[must_be_valid].all()
+    # The band left out along the silhouette is at most the footprint's width: fewer pixels than
+    # 2 pixels along the perimeter.
+    assert (on_screen & ~hidden & ~valid).sum() <= 2 * 2 * (np.ptp(edges_x) + np.ptp(edges_y))
+
+
+def test_background_and_disagreeing_normals_are_invalid():
+    cam = camera()
+    depth = plane_depth(cam, (0, 0, 1), -5.0)
+    depth[:, :10] = 0                                      # background
+    normal = np.broadcast_to(np.array([0, 0, 1.0]), (H, W, 3)).copy()
+    other = normal.copy()
+    other[20:30] = [1.0, 0, 0]                             # frame t-1 sees another orientation there
+    xy, valid = reproject(depth, cam, cam, depth_prev=depth, normal_t=normal, normal_prev=other)
+    assert np.isnan(xy[:, :10]).all() and not valid[:, :10].any()
+    assert not valid[20:30].any()
+    # Rows 19 and 30 land on pixel centres: their footprints hold only their own row.
+    assert valid[:20, 10:].all() and valid[30:, 10:].all()
+
+
+def test_identity_warp_returns_the_image_exactly():
+    cam = camera(origin=(1, 2, 3), target=(0, 0, 0))
+    depth = plane_depth(cam, (0, 1, 0), -1.0)
+    depth[depth < 0] = 0
+    image = np.random.default_rng(1).random((H, W, 3)).astype(np.float32)
+    xy, valid = reproject(depth, cam, cam, depth_prev=depth)
+    assert valid[depth > 0].all()
+    out = warp(image, xy, valid)
+    np.testing.assert_array_equal(out[valid], image[valid])
+    assert (out[~valid] == 0).all()
+
+
+def test_warp_is_bilinear_and_clamped_at_the_border():
+    image = np.arange(4 * 5, dtype=np.float64).reshape(4, 5, 1)     # value = 5 row + column
+    xy = np.array([[[1.75, 2.25], [0.1, 0.2], [4.9, 3.9]]])
+    out = warp(image, xy, np.ones((1, 3), bool))
+    # A linear image is reproduced by bilinear interpolation; the border clamps to the edge centres.
+    np.testing.assert_allclose(out[0, :, 0], [5 * 1.75 + 1.25, 0.0, 5 * 3 + 4])
+
+
+# ---- the cameras in files -----------------------------------------------------------------------
+
+def test_header_matrices_map_a_world_point_to_its_pixel(tmp_path):
+    """worldToNDC in the header (row vectors, p' = p M, then the homogeneous divide) sends a world
+    point to the pixel project() gives; worldToCamera to RenderMan's camera space (x right)."""
+    cam = camera(origin=(2.0, 1.5, 4.0), target=(0.2, 0.3, -0.5))
+    black = np.zeros((H, W, 3), np.float32)
+    write_image(tmp_path / "a.exr", {"color": black, "color.variance": black}, camera=cam)
+    info = scan_exr(tmp_path / "a.exr")
+    points = np.random.default_rng(2).uniform(-1, 1, (50, 3))
+    xy, z = project(points, cam)
+    homog = np.c_[points, np.ones(len(points))]
+    ndc = homog @ info["matrices"]["worldToNDC"]
+    pix = ndc[:, :2] / ndc[:, 3:] * [W, H]
+    # float32 matrix entries (relative 6e-8) on coordinates of a few units: 1e-4 pixel is ample.
+    np.testing.assert_allclose(pix, xy, atol=1e-4)
+    cam_space = homog @ info["matrices"]["worldToCamera"]
+    np.testing.assert_allclose(cam_space[:, 2], z, rtol=1e-5)
+    right = W / 2 + cam_space[:, 0] / cam_space[:, 2] * W / (2 * cam.tan_half)
+    np.testing.assert_allclose(right, xy[:, 0], atol=1e-4)   # x right in the image
+    back = read_camera(tmp_path / "a.exr")
+    np.testing.assert_allclose(back.camera_to_world, cam.camera_to_world, atol=1e-5)
+    assert back.fov_x == pytest.approx(FOV, abs=1e-4) and (back.width, back.height) == (W, H)
+    assert back.near == pytest.approx(cam.near, rel=1e-3)
+
+
+def test_header_pixel_matches_mitsuba(tmp_path):
+    """A small emitter at a known world point, rendered by Mitsuba through make_sensor: the centroid
+    of its image is where the header matrix puts it (the conventions are Mitsuba's)."""
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+    from mcdenoise.render.buffers import make_sensor
+    from mcdenoise.render.frame import sensor_camera
+    mi = import_mitsuba("llvm_ad_rgb")
+    to_world = look_at((1.0, 0.7, 5.0), (0.1, 0.0, 0.0), (0, 1, 0))
+    sensor = make_sensor(mi, mi.ScalarTransform4f(to_world), 40.0, W, H)
+    cam = sensor_camera(mi, sensor)
+    point = np.array([0.9, 0.45, 0.3])
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
+                          "ball": {"type": "sphere", "center": point.tolist(), "radius": 0.08,
+                                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}})
+    img = np.asarray(mi.render(scene, sensor=sensor, spp=64), np.float64)[..., 0]
+    j, i = np.mgrid[0:H, 0:W] + 0.5
+    centroid = np.array([(img * i).sum(), (img * j).sum()]) / img.sum()
+    xy, _ = project(point, cam)
+    # The sphere's image is a disc of ~1.3 pixels radius, sampled at 64 spp with edge pixels partly
+    # covered: its centroid lies within 0.05 pixel of the projected centre (a sphere's perspective
+    # image is an ellipse whose centre is offset from the projected centre by r^2/d^2 terms, < 1e-3 px).
+    assert np.abs(centroid - xy).max() < 0.05, (centroid, xy)
+
+
+def test_camera_record_round_trip_and_old_frames():
+    cam = camera(origin=(1, 2, 3), target=(0, 0, 0))
+    record = {"camera_to_world": np.round(cam.camera_to_world, 6).tolist(), "width": W, "height": H,
+              **motion.camera_record(cam)}
+    back = motion.camera_from_record(json.loads(json.dumps(record)))
+    np.testing.assert_allclose(back.camera_to_world, cam.camera_to_world, atol=1e-6)
+    assert (back.fov_x, back.near, back.far) == (cam.fov_x, cam.near, cam.far)
+    del record["fov_x"]
+    with pytest.raises(StoreError, match=r"^x/frame.json: no camera: key 'fov_x' missing") as err:
+        motion.camera_from_record(record, "x/frame.json")
+    assert "\n" not in str(err.value)
+
+
+def test_image_without_camera_says_so(tmp_path):
+    black = np.zeros((4, 4, 3), np.float32)
+    write_image(tmp_path / "old.exr", {"color": black, "color.variance": black})
+    assert scan_exr(tmp_path / "old.exr")["matrices"] == {}
+    with pytest.raises(StoreError, match="no camera: header attribute 'worldToCamera' and 'worldToNDC' missing"):
+        read_camera(tmp_path / "old.exr")
+
+
+def test_bad_camera_attributes_are_refused(tmp_path):
+    import OpenEXR
+    chans = {"R": np.zeros((4, 4), np.float32), "G": np.zeros((4, 4), np.float32), "B": np.zeros((4, 4), np.float32)}
+    bad = np.eye(4, dtype=np.float32)
+    bad[0, 0] = np.inf
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "worldToCamera": bad}, chans) as f:
+        f.write(str(tmp_path / "inf.exr"))
+    with pytest.raises(StoreError, match="'worldToCamera' has values that are not finite"):
+        scan_exr(tmp_path / "inf.exr")
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "worldToNDC": np.eye(3, dtype=np.float32)}, chans) as f:
+        f.write(str(tmp_path / "m33.exr"))
+    with pytest.raises(StoreError, match="'worldToNDC' is 'm33f' of 36 bytes, expected 'm44f'"):
+        scan_exr(tmp_path / "m33.exr")
+    # A non-rigid worldToCamera: one line naming the file.
+    m = motion.exr_matrices(camera())
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "worldToCamera": 2 * m["worldToCamera"],
+                       "worldToNDC": m["worldToNDC"]}, chans) as f:
+        f.write(str(tmp_path / "scaled.exr"))
+    with pytest.raises(StoreError, match=r"scaled.exr: worldToCamera is not a rigid transform"):
+        read_camera(tmp_path / "scaled.exr")
+
+
+# ---- real renders -------------------------------------------------------------------------------
+
+def test_warped_previous_frame_matches_on_the_tiny_store(tiny_store):
+    """GT1 of frame 0 warped into frame 1 (depth and normal tests on) matches frame 1's GT1 on the
+    valid pixels far better than frame 0 unwarped: on the tiny store (3 scenes, 32x24, the camera
+    moves by a quarter of its distance between the two frames) 30.3, 40.9 and 33.4 dB warped against
+    18.9, 27.3 and 22.6 dB unwarped, 52-70 % of the pixels valid (measured; the bound leaves a margin)."""
+    from mcdenoise.pipeline import metrics
+    from mcdenoise.pipeline.store import Store
+    store = Store(tiny_store[0])
+    for scene in store.scenes():
+        cams = [store.camera(scene, f) for f in (0, 1)]
+        prev, cur = (store.read_image(scene, f, "gt1", ["color", "depth", "normal"])[0] for f in (0, 1))
+        xy, valid = reproject(cur["depth"], cams[1], cams[0], depth_prev=prev["depth"], normal_t=cur["normal"],
+                              normal_prev=prev["normal"])
+        assert valid.mean() > 0.3, (scene, valid.mean())
+        warped = warp(prev["color"], xy, valid)
+        psnr_warped = metrics.psnr(warped[valid], cur["color"][valid])
+        psnr_still = metrics.psnr(prev["color"][valid], cur["color"][valid])
+        print(f"{scene}: valid {valid.mean():.2f}, warped {psnr_warped:.1f} dB, unwarped {psnr_still:.1f} dB")
+        assert psnr_warped > psnr_still + 6, (scene, psnr_warped, psnr_still)
