@@ -17,6 +17,10 @@
 - ``evaluate.uncertainty``: how well a denoiser's own per-pixel spread (``ours_kN``) predicts its
   error: rank correlation and calibration.
 - ``evaluate.run``: the evaluation loop (``make eval``).
+- ``evaluate.sequence``: every scene along its camera move: frames in order, the temporal filter
+  baseline (``oidn_prefilter_temporal``), per-frame metrics and temporal instability.
+- ``evaluate.sequence_report``: the sequence page (``sequence.md``): tables with frame 1 apart,
+  per-frame curves, an animated strip.
 - ``evaluate.report``: tables (Markdown, CSV, JSON), the error-vs-time plot, the crop grids.
 - ``evaluate.stability``: every method on synthetic inputs that break denoisers (``make stability``).
 

@@ -36,7 +36,7 @@ from .harness import finite_output, run_method
 from .methods import Loader, MethodUnavailable, check_names, curve_kind, label
 from .montecarlo import equal_time_images, mc_curve, mean_curve
 from .scoring import NOT_COMPUTED, check_metrics, score, usable_metrics
-from .sequence import camera_for, check_sequence_names, evaluate_sequences, sequences
+from .sequence import check_sequence_names, evaluate_sequences, sequences
 from .sequence_report import write_sequence_page
 from .timing import equal_time_spp, psnr_to_mse, render_cost, spp_equivalent
 
@@ -365,7 +365,7 @@ def evaluate_sequence_groups(cfg: Config, store: Store, groups: dict, spps: list
             continue
         try:
             for k in keys:
-                camera_for(store, k)
+                store.camera(k.scene, k.frame)
         except StoreError as exc:
             out[group] = {"skipped": str(exc)}
             print(f"note: no sequence page for {group}: {exc}", flush=True)

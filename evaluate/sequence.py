@@ -66,22 +66,11 @@ class Frame:
     geometry: dict = field(default_factory=dict)       # "input" / "gt1": (depth, normal)
 
 
-def camera_for(store: Store, key: FrameKey) -> motion.Camera:
-    """The frame's camera from its record; a generated scene's frames rendered before the field of view was
-    recorded take it from the scene's description (``render.camera``: every frame's pose and fov)."""
-    record = store.frame_record(key.scene, key.frame) or {}
-    if "fov_x" not in record:
-        frames = store.scene_manifest(key.scene).get("description", {}).get("camera", {}).get("frames", [])
-        if key.frame < len(frames) and "fov" in frames[key.frame]:
-            record = {**record, "fov_x": frames[key.frame]["fov"]}
-    return motion.camera_from_record(record, str(store.frame_dir(key.scene, key.frame) / "frame.json"))
-
-
 def read_frame(store: Store, key: FrameKey, spp: int, stacks: list[int], ref_name: str) -> Frame:
     buffers = store.read(key.scene, key.frame, spp, stacks=stacks)
     reference = store.read_image(key.scene, key.frame, ref_name, ["color"])[0]["color"]
     gt = store.read_image(key.scene, key.frame, "gt1", ["depth", "normal"])[0]
-    return Frame(key, buffers, reference, camera_for(store, key),
+    return Frame(key, buffers, reference, store.camera(key.scene, key.frame),
                  {"input": (buffers["depth"][..., 0], buffers["normal"]), "gt1": (gt["depth"][..., 0], gt["normal"])})
 
 

@@ -17,6 +17,8 @@ torch load on demand.
 - ``pipeline.store``: the on-disk store (manifests, frames, stacks): the one reader/writer API.
 - ``pipeline.motion``: a frame's camera (from frame.json or an EXR header), projection, and the
   reprojection and warping of one frame onto the next.
+- ``pipeline.temporal``: along a sequence: the classic temporal filter (a per-frame output blended with
+  its warped, clamped history) and the temporal instability metric.
 - ``pipeline.weights``: weight files: OIDN's Tensor Archive (TZA), safetensors with a CRC-32, and model
   folders (format tags, save, load, the checks of what they were built on).
 - ``pipeline.checkpoint``: a training run's resumable state (``last.safetensors``).
@@ -27,7 +29,7 @@ torch load on demand.
 - ``pipeline.numerics``: non-finite repair, constant detection, the variance of a pixel mean.
 - ``pipeline.metrics``: the tonemaps (Reinhard, log, gamma) with their inverses, and the image metrics
   shared by training and evaluation.
-- ``pipeline.figures``: the crop grid the reports share, and training curves.
+- ``pipeline.figures``: the crop grid the reports share, training curves, a sequence's animated strip.
 - ``pipeline.progress``, ``pipeline.timing``, ``pipeline.versions``: progress bars, wall-clock
   timing for the benchmarks, package versions and the machine for provenance.
 """

@@ -184,12 +184,18 @@ class Store:
 
     def camera(self, scene: str, frame: int):
         """The frame's ``pipeline.motion.Camera`` from its ``frame.json``; StoreError in one line naming the
-        file and what is missing (no record yet, or a frame rendered before cameras were recorded)."""
+        file and what is missing (no record yet, or a frame rendered before cameras were recorded). A
+        generated scene's frame rendered before its field of view was recorded takes it from the scene's
+        description (``render.camera`` writes every frame's pose and fov there)."""
         from .motion import camera_from_record
         path = self.frame_dir(scene, frame) / "frame.json"
         record = self.frame_record(scene, frame)
         if record is None:
             raise StoreError(f"{path}: frame record is missing: the frame is not rendered, so it has no camera")
+        if "fov_x" not in record:
+            described = self.scene_manifest(scene).get("description", {}).get("camera", {}).get("frames", [])
+            if frame < len(described) and "fov" in described[frame]:
+                record = {**record, "fov_x": described[frame]["fov"]}
         return camera_from_record(record, str(path))
 
     def write_frame_record(self, scene: str, frame: int, data: dict) -> None:

@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from mcdenoise.evaluate.run import run_eval
-from mcdenoise.evaluate.sequence import camera_for, check_sequence_names, sequences
+from mcdenoise.evaluate.sequence import check_sequence_names, sequences
 from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.pipeline.store import FrameKey, Store
@@ -71,11 +71,11 @@ def test_the_camera_of_an_old_frame_comes_from_its_scene_description(report, tmp
     shutil.copytree(cfg.store, root)
     store = Store(root)
     key = FrameKey(sorted({k.scene for k in store.frames("test")})[0], 1)
-    recorded = camera_for(store, key)
+    recorded = store.camera(key.scene, key.frame)
     record = store.frame_record(key.scene, key.frame)
     record.pop("fov_x", None)                           # a frame rendered before the fov was recorded
     store.write_frame_record(key.scene, key.frame, record)
-    old = camera_for(store, key)
+    old = store.camera(key.scene, key.frame)
     fov = store.scene_manifest(key.scene)["description"]["camera"]["frames"][1]["fov"]
     assert old.fov_x == fov and np.array_equal(old.camera_to_world, recorded.camera_to_world)
     assert abs(recorded.fov_x - fov) < 1e-3            # the recorded fov is the described one (rounded to 1e-4)
