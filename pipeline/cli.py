@@ -249,7 +249,14 @@ def _inference_commands(sub) -> None:
                                                  "the command that denoises what it rendered)")
     p.add_argument("--store", default=None, help="the store --frame reads (default: the config's store)")
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
-    p.add_argument("--out", required=True, help="output EXR")
+    p.add_argument("--sequence", default=None, metavar="PATTERN",
+                   help="a rendered sequence, e.g. 'in/frame_####.exr' (# the zero-padded frame number): every frame "
+                        "denoised (--method ours or oidn_prefilter) and blended with its warped history, using the "
+                        "EXR headers' worldToCamera/worldToNDC and the depth channel Z (without them, frame by frame, "
+                        "said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
+    p.add_argument("--temporal-weight", type=float, default=None,
+                   help="--sequence: the new frame's share of the blend (1: no history; default eval.temporal_weight)")
+    p.add_argument("--out", required=True, help="output EXR (with --sequence: a pattern with one run of #)")
     p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
     p.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's)")
     p.add_argument("--samples", type=int, default=None,
@@ -359,12 +366,19 @@ def _denoise(args) -> int:
     from mcdenoise.train.model import SHIPPED_MODEL
     if args.store is not None:
         args.overrides = [*args.overrides, f"store={args.store}"]
-    if args.method != "ours" or args.oidn_weights:
-        return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
-                                spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
     # without a config (or a runs folder) the shipped model, whatever a runs folder here holds
     own_runs = args.config is not None or any(o.startswith("runs=") for o in args.overrides)
     model = None if own_runs else SHIPPED_MODEL
+    if args.sequence is not None:
+        from mcdenoise.train.sequence import cmd_denoise_sequence
+        if args.exr is not None or args.frame is not None:
+            raise ConfigError("give one of --sequence PATTERN, --exr FILE or --frame SCENE/FRAME")
+        return cmd_denoise_sequence(config(args), args.sequence, args.out, args.spp, method=args.method,
+                                    weight=args.temporal_weight, quiet=args.quiet, model=model, device=args.device,
+                                    precision=args.precision, seed=args.seed)
+    if args.method != "ours" or args.oidn_weights:
+        return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,
+                                spp=args.spp, quiet=args.quiet, ensemble=args.ensemble)
     return cmd_denoise(config(args), args.spp, args.frame, args.exr, args.out, args.skip, args.seed,
                        base_only=args.base_only, quiet=args.quiet, steps=args.steps, samples=args.samples,
                        ensemble=args.ensemble, strength=args.strength, device=args.device, precision=args.precision,

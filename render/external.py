@@ -202,6 +202,10 @@ def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size
         notes = result.get("scene_notes", notes)
     for note in notes:
         print(f"render-scene: {sid}: note: {note}")
-    print(f"render-scene: denoise it: python -m pipeline denoise --store {store_path} --frame {sid}/000 "
-          f"--spp {record['stack_spp']} --out {sid}.exr")
+    if frames > 1:
+        print(f"render-scene: denoise it: python -m pipeline denoise --sequence '{store.scene_dir(sid)}/###/s00.exr' "
+              f"--spp {record['stack_spp']} --out '{sid}_###.exr'")
+    else:
+        print(f"render-scene: denoise it: python -m pipeline denoise --store {store_path} --frame {sid}/000 "
+              f"--spp {record['stack_spp']} --out {sid}.exr")
     return stats

@@ -1,0 +1,75 @@
+"""``denoise --sequence``: the file pattern, the outputs, the history from the headers' cameras, and frame by
+frame (said in one line) where the EXRs carry no camera."""
+import shutil
+
+import numpy as np
+import pytest
+
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.exr import read_header, read_layers
+from mcdenoise.train.sequence import output_path, sequence_files
+
+from .helpers import TINY, cli, write_rgb_exr
+from .test_camera_path import SCENE
+
+
+def test_the_pattern_finds_the_frames_in_order(tmp_path):
+    for n in (12, 3, 7):
+        (tmp_path / f"shot_{n:04d}.exr").write_bytes(b"")
+    (tmp_path / "shot_12.exr").write_bytes(b"")                        # not four digits: not a frame
+    (tmp_path / "other_0001.exr").write_bytes(b"")
+    assert sequence_files(str(tmp_path / "shot_####.exr")) == [(n, tmp_path / f"shot_{n:04d}.exr") for n in (3, 7, 12)]
+    (tmp_path / "005").mkdir()
+    (tmp_path / "005" / "s00.exr").write_bytes(b"")
+    assert sequence_files(str(tmp_path / "###" / "s00.exr")) == [(5, tmp_path / "005" / "s00.exr")]
+    assert output_path("out/f_####.exr", 7) == output_path("out/f_####.exr", 7) and \
+        str(output_path("out/f_####.exr", 7)) == "out/f_0007.exr"
+    with pytest.raises(TrainError, match="expected one run of #"):
+        sequence_files(str(tmp_path / "a_##_##.exr"))
+    with pytest.raises(TrainError, match="no file matches"):
+        sequence_files(str(tmp_path / "none_####.exr"))
+
+
+def test_outputs_that_would_overwrite_an_input_are_refused_in_one_line(tmp_path):
+    for n in range(2):
+        write_rgb_exr(tmp_path / f"f_{n:02d}.exr", np.ones((8, 8, 3), np.float32))
+    proc = cli("denoise", "--sequence", tmp_path / "f_##.exr", "--out", tmp_path / "f_##.exr", check=False)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "is one of the inputs" in proc.stderr
+
+
+@pytest.mark.slow
+def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_path):
+    xml = tmp_path / "s.xml"
+    xml.write_text(SCENE.format(second=""))
+    proc = cli("render-scene", xml, "--frames", "3", "--move", "orbit:10", "--store", tmp_path / "st", "--config",
+               TINY, "dataset.stacks=1")
+    frames = str(tmp_path / "st" / "scenes" / "ext_s" / "###" / "s00.exr")
+    assert f"denoise --sequence '{frames}' --spp 4" in proc.stdout          # what render-scene says to run
+    proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "out" / "f_###.exr", "--method", "oidn_prefilter",
+               "--spp", "4", "--quiet")
+    assert "history on 2 of 2 frames" in proc.stdout, proc.stdout
+    records = [read_header(tmp_path / "out" / f"f_{n:03d}.exr") for n in range(3)]
+    assert records[0]["temporal"]["history_fraction"] is None
+    assert all(r["temporal"]["history_fraction"] > 0.5 for r in records[1:])
+    # weight 1 keeps no history: each frame is OIDN's final-frame output alone, as denoise --exr writes it
+    cli("denoise", "--sequence", frames, "--out", tmp_path / "one" / "f_###.exr", "--method", "oidn_prefilter",
+        "--spp", "4", "--temporal-weight", "1", "--quiet")
+    single = tmp_path / "single.exr"
+    cli("denoise", "--exr", frames.replace("###", "001"), "--out", single, "--method", "oidn_prefilter", "--quiet")
+    colour = lambda path: read_layers(path)["color"]                  # noqa: E731
+    assert np.array_equal(colour(tmp_path / "one" / "f_001.exr"), colour(single))
+    assert not np.array_equal(colour(tmp_path / "out" / "f_001.exr"), colour(single))
+    # the same frames as plain R, G, B files: no camera, no depth, so frame by frame, said once
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for n in range(3):
+        layers = read_layers(frames.replace("###", f"{n:03d}"))
+        write_rgb_exr(plain / f"p_{n}.exr", layers["color"])
+    proc = cli("denoise", "--sequence", plain / "p_#.exr", "--out", tmp_path / "po" / "p_#.exr", "--method",
+               "oidn_prefilter", "--spp", "4", "--quiet", check=False)
+    assert proc.returncode == 2 and "prefilters albedo and normal" in proc.stderr   # OIDN's mode needs aux
+    proc = cli("denoise", "--sequence", plain / "p_#.exr", "--out", tmp_path / "po" / "p_#.exr", "--spp", "4",
+               "--quiet")
+    assert proc.stdout.count("no motion for that frame") == 1 and "history on 0 of 2 frames" in proc.stdout
+    shutil.rmtree(plain)
