@@ -264,25 +264,26 @@ def _furnish(rng, plan, mats, layout: Layout) -> _Room:
                 room.add(chair, seat, "chair")
     extras = [fu.shelf, fu.cabinet, fu.plant, fu.shelf, fu.cabinet]
     for make in extras[: int(rng.integers(2, 6))]:
-        it = make(rng)
-        pose = on_wall(rng, it, plan, layout, 0)
-        if pose:
-            room.add(it, pose, "wall")
+        _wall_piece(rng, make, plan, layout, room, 0, "wall")
     if any(q["room"] == 1 for q in plan["rects"]):
         for make in (fu.cabinet, fu.shelf, fu.plant)[: int(rng.integers(1, 4))]:
-            it = make(rng)
-            pose = on_wall(rng, it, plan, layout, 1)
-            if pose:
-                room.add(it, pose, "next")
+            _wall_piece(rng, make, plan, layout, room, 1, "next")
     return room
 
 
+def _wall_piece(rng, make, plan, layout, room: _Room, where: int, tag: str) -> tuple:
+    """(item, pose) of an item made by ``make`` and put against a wall of room ``where``; pose None if it fits nowhere."""
+    it = make(rng)
+    pose = on_wall(rng, it, plan, layout, where)
+    if pose:
+        room.add(it, pose, tag)
+    return it, pose
+
+
 def _living(rng, plan, layout, room: _Room) -> None:
-    sofa = fu.sofa(rng)
-    pose = on_wall(rng, sofa, plan, layout, 0)
+    sofa, pose = _wall_piece(rng, fu.sofa, plan, layout, room, 0, "sofa")
     if pose is None:
         return
-    room.add(sofa, pose, "sofa")
     coffee = fu.table(rng, fu.u(rng, 0.8, 1.2), fu.u(rng, 0.5, 0.7), fu.u(rng, 0.35, 0.45))
     offset = [0, 0, sofa["size"][2] / 2 + 0.4 + coffee["size"][2] / 2]
     at, _ = _beside(coffee, pose, offset, 0, plan, layout, 0)
@@ -312,11 +313,9 @@ def _dining(rng, plan, layout, room: _Room) -> None:
 
 
 def _bedroom(rng, plan, layout, room: _Room) -> None:
-    bed = fu.bed(rng)
-    pose = on_wall(rng, bed, plan, layout, 0)
+    bed, pose = _wall_piece(rng, fu.bed, plan, layout, room, 0, "bed")
     if pose is None:
         return
-    room.add(bed, pose, "bed")
     stand = fu.cabinet(rng, tall=False)
     stand["size"] = [min(stand["size"][0], 0.55), min(stand["size"][1], 0.6), min(stand["size"][2], 0.45)]
     stand = fu.item(stand["size"], {"wood": [fu.part("box", [stand["size"][0], stand["size"][1] - 0.06, stand["size"][2]],

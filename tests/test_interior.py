@@ -211,3 +211,16 @@ def test_hidden_lights_are_not_seen_by_the_camera(mi):
             assert _render(mi, alone, frame, spp=4, max_depth=1, size=48).max() == 0
         assert _render(mi, alone, 0, spp=8).mean() > 1e-3
     assert found == 3
+
+
+def test_surface_textures_in_range_and_deterministic():
+    from mcdenoise.render.textures import SURFACE_KINDS, make_texture, surface_texture_params
+
+    rng = np.random.default_rng(0)
+    for kind in SURFACE_KINDS:
+        p = surface_texture_params(rng, kind, [[0.1, 0.05, 0.02], [0.5, 0.3, 0.2], [0.8, 0.8, 0.8]], 4, 1.0, size=64)
+        a = make_texture(p)
+        assert a.shape == (64, 64, 3) and np.array_equal(a, make_texture(p)) and 0 <= a.min() and a.max() <= 1
+        assert a.std() > 0.005, kind
+    with pytest.raises(ValueError, match="wood"):
+        surface_texture_params(rng, "marble", [[0, 0, 0]], 4, 1.0)
