@@ -29,7 +29,7 @@ MAKE_VARS  := CONFIG SPP SHARD VENV PYTHON_SYS MODEL SCENES DEFINES TEST_WORKERS
 OVERRIDES  := $(strip $(filter-out $(DEFINES),$(foreach a,$(MAKEOVERRIDES),$(if $(findstring =,$(a)),$(if $(filter $(MAKE_VARS),$(firstword $(subst =, ,$(a)))),,$(a))))))
 RUN        := $(PY) -m pipeline
 
-.PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect verify plan bench test test-fast clean distclean
+.PHONY: help setup llvm demo dataset render gt-clean clean-report train eval stability inspect verify plan bench contact-sheet test test-fast clean distclean
 
 help:
 	@sed -n '1,13p' Makefile
@@ -120,6 +120,10 @@ plan: setup
 bench: setup
 	$(RUN) bench --config $(CONFIG) $(OVERRIDES)
 	$(RUN) bench-denoise --config $(CONFIG) --spp $(SPP) $(OVERRIDES)
+
+# A grid of random interiors, product shots and open sets with their render times (docs/scenes.md), ~12 min on 2 cores.
+contact-sheet: setup
+	$(PY) -m tools.contact_sheet --out docs/figures/scenes.png
 
 # ---- tests --------------------------------------------------------------------------------
 test: setup

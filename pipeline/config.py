@@ -168,6 +168,15 @@ class SceneConfig(Section):
                                        "the sun lights of Blender, Houdini and USD throw, instead of a 3-8 degree "
                                        "blob in the sky map (soft shadows) with the same irradiance; 0: blob suns only "
                                        "(the scenes made before this key existed).", 0.0)
+    interior_probability: float = doc("Probability that a scene is a furnished interior (render/interior.py, "
+                                      "docs/scenes.md): a room of varied plan with furniture and props, lit by "
+                                      "shaded lamps, daylight through windows, hidden cove or recessed lights, or "
+                                      "only from a neighbouring room; the camera inside at eye height. Drawn first; "
+                                      "0: none (the scenes made before this key existed).", 0.0)
+    product_probability: float = doc("Probability that a scene not drawn as an interior is a product shot "
+                                     "(render/product.py): glossy, metal and glass products on a sweep or a table "
+                                     "under softboxes and strip lights, a close tele camera; 0: none (the scenes "
+                                     "made before this key existed).", 0.0)
     group_probability: float = doc("Probability that an object is a grouped composition of primitives.", 0.2)
     materials: dict = doc("Relative weights of material families: principled, diffuse, plastic, roughplastic, "
                           "conductor, roughconductor, dielectric, roughdielectric.",

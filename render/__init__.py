@@ -8,6 +8,11 @@
   by target irradiance, a smooth camera move over the frames (and the orbit, dolly and
   camera-to-camera paths of a user's scene).
 - ``render.layout``: object placement, the ground and a room's walls, shared with the stress presets.
+- ``render.interior``: furnished interiors (``scene.interior_probability``): ``render.room`` draws
+  their floor plans and walls, ``render.furniture`` the furniture, lamps and props assembled from
+  primitives, ``render.palette`` the materials of rooms and products (wood, fabric, metal, glass).
+- ``render.product``: product shots (``scene.product_probability``): products on a sweep or a table
+  under softboxes and strip lights.
 - ``render.stress``: named extreme scenes in the same description format (``dataset.stress``).
 - ``render.integrator``: the split-buffer path tracer: every buffer of ``pipeline.schema`` in one pass.
 - ``render.buffers``: one image rendered into per-buffer means and variances of the mean; the

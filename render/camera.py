@@ -55,6 +55,13 @@ def random_camera(rng: np.random.Generator, center, radius: float, fov_range, mo
     t2 = center + rng.normal(size=3) * radius * 0.1
     t1 = (t0 + t2) / 2
     fov2 = float(np.clip(fov0 * rng.uniform(0.92, 1.08), *fov_range))
+    return bezier_camera((o0, o1, o2), (t0, t1, t2), (fov0, fov2), frames, dist + length)
+
+
+def bezier_camera(origins, targets, fovs, frames: int, max_distance: float) -> dict:
+    """The camera description of a move along quadratic Beziers through three ``origins`` and three
+    ``targets``, its field of view going linearly from ``fovs[0]`` to ``fovs[1]``: every frame's pose."""
+    (o0, o1, o2), (t0, t1, t2), (fov0, fov2) = origins, targets, fovs
     poses = []
     for i in range(frames):
         t = i / (frames - 1) if frames > 1 else 0.0
@@ -63,7 +70,7 @@ def random_camera(rng: np.random.Generator, center, radius: float, fov_range, mo
     return {"path": "quadratic_bezier",
             "keyframes": {"origin": [_vec(o0), _vec(o1), _vec(o2)], "target": [_vec(t0), _vec(t1), _vec(t2)],
                           "fov": [round(fov0, 4), round(fov2, 4)]},
-            "max_distance": round(float(dist + length), 5),
+            "max_distance": round(float(max_distance), 5),
             "frames": poses}
 
 

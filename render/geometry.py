@@ -15,6 +15,9 @@ import numpy as np
 import trimesh
 
 PRIMITIVES = ("box", "icosphere", "uv_sphere", "cylinder", "capsule", "cone", "torus", "vase")
+# Parts of assemblies only (render.furniture): random_primitive draws by index from PRIMITIVES, so new kinds
+# live apart to leave the draws of existing scenes as they were.
+PART_PRIMITIVES = ("frustum", "sweep")
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 MAX_FACES = 10_000          # load_dict time grows with triangles; ~10k per mesh is the budget
 SMOOTH_ANGLE_DEG = 35.0     # edges sharper than this stay hard (box edges, cylinder caps)
@@ -123,7 +126,28 @@ def _primitive_mesh(kind: str, p: dict) -> trimesh.Trimesh:
         m = c.revolve(profile, sections=int(p["sections"]))
         m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # z-up → y-up
         return m
-    raise ValueError(f"unknown primitive {kind!r} (known: {', '.join(PRIMITIVES)})")
+    if kind == "frustum":   # an open lamp shade: the side of a cone between two radii, no caps
+        profile = np.array([[float(p["bottom"]), 0.0], [float(p["top"]), float(p["height"])]])
+        m = c.revolve(profile, sections=int(p["sections"]))
+        m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+        return m
+    if kind == "sweep":
+        return _sweep(p)
+    raise ValueError(f"unknown primitive {kind!r} (known: {', '.join(PRIMITIVES + PART_PRIMITIVES)})")
+
+
+def _sweep(p: dict) -> trimesh.Trimesh:
+    """A photo backdrop: a floor of ``depth`` running into a wall of ``height`` through a quarter circle of
+    ``radius``, ``width`` wide along x (an open surface: render it two-sided)."""
+    w, h, d, r = (float(p[k]) for k in ("width", "height", "depth", "radius"))
+    a = np.linspace(0.0, np.pi / 2, int(p.get("sections", 16)))
+    # profile (z, y): the floor from the front edge to the curve, the curve, the wall up to the top
+    curve = np.column_stack([-(d - r) - r * np.sin(a), r - r * np.cos(a)])
+    profile = np.vstack([[0.0, 0.0], curve, [-d, h]])
+    k = len(profile)
+    v = np.vstack([np.column_stack([np.full(k, x), profile[:, 1], profile[:, 0]]) for x in (-w / 2, w / 2)])
+    f = [[i, i + 1, k + i + 1] for i in range(k - 1)] + [[i, k + i + 1, k + i] for i in range(k - 1)]
+    return trimesh.Trimesh(v, np.asarray(f), process=True)
 
 
 def _y_up(m: trimesh.Trimesh, kind: str) -> trimesh.Trimesh:
@@ -236,11 +260,35 @@ def base_mesh(shape: dict) -> trimesh.Trimesh:
             m.apply_translation(part["offset"])
             parts.append(m)
         return _normalize(trimesh.util.concatenate(parts))
+    if kind == "assembly":
+        return assembly_mesh(shape["parts"])
     if kind == "file":
         return _load_user_mesh(str(shape["path"])).copy()
     if kind == "raw":
         return trimesh.Trimesh(np.asarray(shape["vertices"], float), np.asarray(shape["faces"], int), process=False)
     raise ValueError(f"unknown shape kind {kind!r}")
+
+
+def _unit_box(m: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Centre the bounding box at the origin and scale every side to 1 (a flat side stays flat)."""
+    lo, hi = m.bounds
+    ext = np.where(hi - lo > 1e-9, hi - lo, 1.0)
+    m.apply_translation(-(lo + hi) / 2)
+    m.apply_transform(np.diag([*(1.0 / ext), 1.0]))
+    return m
+
+
+def assembly_mesh(parts: list) -> trimesh.Trimesh:
+    """Furniture and props: primitives each fitted to its own box (``size``, per axis), turned by
+    ``rotation_deg`` and put at ``position`` (its box's centre), in one mesh in the object's own units
+    (not normalized: a table is as large as its parts say)."""
+    meshes = []
+    for part in parts:
+        m = _unit_box(_y_up(_primitive_mesh(part["primitive"], part.get("params", {})), part["primitive"]))
+        m.apply_transform(transform_matrix({"scale": part["size"], "rotation_deg": part.get("rotation_deg", [0, 0, 0]),
+                                            "position": part["position"]}))
+        meshes.append(m)
+    return trimesh.util.concatenate(meshes)
 
 
 def transform_matrix(tf: dict) -> np.ndarray:

@@ -15,13 +15,15 @@ import numpy as np
 from mcdenoise.render import camera as cam, lights as lt
 from mcdenoise.render.buffers import make_sensor
 from mcdenoise.render.geometry import list_mesh_files, mesh_arrays
+from mcdenoise.render.interior import interior_scene
 from mcdenoise.render.layout import enclosed_room, ground, place_objects, room_walls, surface_material
 from mcdenoise.render.materials import TextureCache, bsdf_dict
+from mcdenoise.render.product import product_scene
 from mcdenoise.render.stress import STRESS_PRESETS, stress_description
 
 DESC_VERSION = 1
 
-__all__ = ["random_scene", "build_scene", "build_sensor", "STRESS_PRESETS", "stress_scene", "DESC_VERSION"]
+__all__ = ["random_scene", "scene_kind", "build_scene", "build_sensor", "STRESS_PRESETS", "stress_scene", "DESC_VERSION"]
 
 
 def _r(x: float, nd: int = 4) -> float:
@@ -31,8 +33,14 @@ def _r(x: float, nd: int = 4) -> float:
 def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     """The description of random scene ``index`` of a dataset with master ``seed``.
 
-    Deterministic in (seed, index, cfg, frames): its own ``np.random.default_rng([seed, index])``.
+    Deterministic in (seed, index, cfg, frames): its own ``np.random.default_rng([seed, index])``. A furnished
+    interior with ``interior_probability``, else a product shot with ``product_probability`` (render.interior,
+    render.product), else objects on a ground.
     """
+    kind = scene_kind(cfg, seed, index)
+    if kind != "objects":
+        desc = (interior_scene if kind == "interior" else product_scene)(cfg, seed, index, frames)
+        return {**desc, "version": DESC_VERSION}
     rng = np.random.default_rng([int(seed), int(index)])
     mesh_files = list_mesh_files(tuple(str(d) for d in cfg.mesh_dirs)) if cfg.mesh_dirs else ()
     n_obj = int(rng.integers(int(cfg.objects[0]), int(cfg.objects[1]) + 1))
@@ -56,6 +64,18 @@ def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
         "objects": objects, "ground": floor, "walls": walls, "lights": lights, "environment": environment,
         "camera": camera,
     }
+
+
+def scene_kind(cfg, seed: int, index: int) -> str:
+    """"interior", "product" or "objects": which generator draws scene ``index``."""
+    # A stream of its own, drawn from only when a kind is asked for: configs without the keys (both 0) draw
+    # exactly the scenes they drew before the keys existed.
+    if cfg.interior_probability <= 0 and cfg.product_probability <= 0:
+        return "objects"
+    draw = np.random.default_rng([int(seed), int(index), 3]).uniform(size=2)
+    if draw[0] < cfg.interior_probability:
+        return "interior"
+    return "product" if draw[1] < cfg.product_probability else "objects"
 
 
 def _random_lights(rng, cfg, camera, center, c, radius, room_half) -> tuple:
@@ -167,7 +187,8 @@ def _rect_dict(mi, r: dict, tex: TextureCache) -> dict:
     c, n = np.asarray(r["center"], float), np.asarray(r["normal"], float)
     w, h = r["size"]
     to_world = T().look_at(origin=c.tolist(), target=(c + n).tolist(), up=r["up"]) @ T().scale([w / 2, h / 2, 1.0])
-    d = {"type": "rectangle", "to_world": to_world, "bsdf": bsdf_dict(r["material"], tex)}
+    # Inner walls between two rooms are seen from both sides (two_sided); older descriptions lack the key.
+    d = {"type": "rectangle", "to_world": to_world, "bsdf": bsdf_dict(r["material"], tex, bool(r.get("two_sided")))}
     if r.get("emitter"):
         d["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": r["emitter"]["radiance"]}}
     return d

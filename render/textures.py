@@ -12,6 +12,8 @@ import numpy as np
 from mcdenoise.pipeline.metrics import srgb_to_linear
 
 KINDS = ("checker", "stripes", "noise", "cells", "dots", "gradient")
+# Surfaces of furnished rooms (render.interior); apart from KINDS, which random_texture_params draws by index.
+SURFACE_KINDS = ("wood", "tile", "fabric", "plaster")
 DEFAULT_SIZE = 256
 
 
@@ -20,8 +22,12 @@ def random_color(rng: np.random.Generator, saturation: float | None = None, valu
     h = rng.uniform()
     s = rng.uniform(0.1, 0.9) if saturation is None else saturation
     v = rng.uniform(0.25, 0.95) if value is None else value
-    i = int(h * 6) % 6
-    f = h * 6 - int(h * 6)
+    return hsv_color(h, s, v)
+
+
+def hsv_color(h: float, s: float, v: float) -> list:
+    """The linear-RGB colour of an sRGB hue/saturation/value (all in [0, 1]), as a plain list."""
+    i, f = int(h * 6) % 6, h * 6 - int(h * 6)
     p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
     rgb = [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
     return [round(float(x), 4) for x in srgb_to_linear(np.asarray(rgb, dtype=np.float64))]
@@ -139,6 +145,73 @@ def make_texture(p: dict) -> np.ndarray:
         t = np.clip((0.3 - r) * size / n * 0.5, 0, 1)
     elif kind == "gradient":
         t = 0.5 + 0.5 * np.sin(2 * np.pi * (np.cos(a) * x + np.sin(a) * y) + 2 * np.pi * value_noise(size, seed, 2, 2))
+    elif kind in SURFACE_KINDS:
+        return np.clip(SURFACES[kind](p, x, y), 0, 1).astype(np.float32)
     else:
-        raise ValueError(f"unknown texture kind {kind!r} (known: {', '.join(KINDS)})")
+        raise ValueError(f"unknown texture kind {kind!r} (known: {', '.join(KINDS + SURFACE_KINDS)})")
     return np.clip(_mix(colors, t), 0, 1).astype(np.float32)
+
+
+def surface_texture_params(rng: np.random.Generator, kind: str, colors: list, frequency: float,
+                           uv_scale: float, size: int = DEFAULT_SIZE) -> dict:
+    """Parameters of a wood, tile, fabric or plaster texture in the given palette (JSON-serializable);
+    ``frequency``: planks, tiles or threads across the texture."""
+    if kind not in SURFACE_KINDS:
+        raise ValueError(f"unknown surface texture {kind!r} (known: {', '.join(SURFACE_KINDS)})")
+    return {"kind": kind, "seed": int(rng.integers(2**31)), "size": int(size), "colors": colors,
+            "frequency": round(float(frequency), 3), "angle_deg": 0.0, "uv_scale": round(float(uv_scale), 4)}
+
+
+def _lattice(size: int, rng: np.random.Generator, nx: int, ny: int) -> np.ndarray:
+    """One octave of tileable value noise with nx × ny lattice cells (stretched when they differ)."""
+    x, y = _grid(size)
+    lattice = rng.uniform(size=(ny, nx))
+    gx, gy = x * nx, y * ny
+    ix, iy = np.floor(gx).astype(int), np.floor(gy).astype(int)
+    fx, fy = _smooth(gx - ix), _smooth(gy - iy)
+    a = lattice[iy % ny, ix % nx] * (1 - fx) + lattice[iy % ny, (ix + 1) % nx] * fx
+    b = lattice[(iy + 1) % ny, ix % nx] * (1 - fx) + lattice[(iy + 1) % ny, (ix + 1) % nx] * fx
+    return a * (1 - fy) + b * fy
+
+
+def _wood(p: dict, x, y) -> np.ndarray:
+    # Planks along x: each its own tone and grain offset, long streaks of grain, dark seams between them.
+    rng = np.random.default_rng(int(p["seed"]))
+    n = max(1, int(round(float(p["frequency"]))))
+    row = np.floor(y * n).astype(int) % n
+    tone = rng.uniform(0.0, 1.0, n)[row]
+    grain = _lattice(len(x), rng, 2, 8 * n) * 0.6 + _lattice(len(x), rng, 4, 32 * n) * 0.4
+    rings = 0.5 + 0.5 * np.sin(2 * np.pi * (grain * 6 + rng.uniform(0, 1, n)[row]))
+    t = np.clip(0.55 * tone + 0.45 * rings, 0, 1)
+    seam = np.abs((y * n) % 1 - 0.5) > 0.47
+    return _mix(p["colors"], t) * np.where(seam, 0.45, 1.0)[..., None]
+
+
+def _tile(p: dict, x, y) -> np.ndarray:
+    # Square tiles, each a shade of the palette, in light grout lines.
+    rng = np.random.default_rng(int(p["seed"]))
+    n = max(1, int(round(float(p["frequency"]))))
+    ix, iy = np.floor(x * n).astype(int) % n, np.floor(y * n).astype(int) % n
+    shade = rng.uniform(0, 1, (n, n))[iy, ix] * 0.8 + 0.2 * _lattice(len(x), rng, 4 * n, 4 * n)
+    pal = p["colors"][:-1] if len(p["colors"]) > 2 else p["colors"]
+    grout = (np.abs((x * n) % 1 - 0.5) > 0.46) | (np.abs((y * n) % 1 - 0.5) > 0.46)
+    return np.where(grout[..., None], np.asarray(p["colors"][-1], float), _mix(pal, shade))
+
+
+def _fabric(p: dict, x, y) -> np.ndarray:
+    # A plain weave: warp and weft threads alternating over and under, with slow unevenness of the dye.
+    rng = np.random.default_rng(int(p["seed"]))
+    n = max(2, int(round(float(p["frequency"]))))
+    over = (np.floor(x * n) + np.floor(y * n)) % 2
+    across = np.where(over > 0, np.sin(np.pi * ((x * n) % 1)), np.sin(np.pi * ((y * n) % 1)))
+    t = 0.6 * across + 0.4 * _lattice(len(x), rng, 6, 6)
+    return _mix(p["colors"], t)
+
+
+def _plaster(p: dict, x, y) -> np.ndarray:
+    # Painted plaster: a flat colour with soft, low-contrast blotches.
+    t = value_noise(len(x), int(p["seed"]), max(2.0, float(p["frequency"])), octaves=5)
+    return _mix(p["colors"], 0.5 + 0.5 * (t - 0.5))
+
+
+SURFACES = {"wood": _wood, "tile": _tile, "fabric": _fabric, "plaster": _plaster}
