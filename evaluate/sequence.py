@@ -17,7 +17,8 @@ Two warps, for two purposes:
 Methods: every per-frame name of ``eval.methods`` (``evaluate.methods``), and
 ``oidn_prefilter_temporal``: ``oidn_prefilter``'s output blended with its own warped history
 (``pipeline.temporal.blend_history``, weight ``eval.temporal_weight`` on the new frame, history
-clamped to the new output's 3×3 range), the temporal filter a user could build in an afternoon.
+clamped to the new output's 3×3 range), the temporal filter a user could build in an afternoon;
+``ours_temporal``: the same filter on ``ours``' outputs (what ``denoise --sequence`` runs).
 Frame 1 of a temporal method is its per-frame method's output (no history yet), reported apart.
 """
 from __future__ import annotations
@@ -36,8 +37,9 @@ from .scoring import score
 
 # of eval.metrics, those the sequence tables show (PSNR always)
 SEQUENCE_METRICS = ("psnr", "l1", "hdr_flip")
-# temporal method -> the per-frame method whose outputs it filters
-TEMPORAL_FILTERS = {"oidn_prefilter_temporal": "oidn_prefilter"}
+# temporal method -> the per-frame method whose outputs it filters (``ours_temporal`` is what
+# ``denoise --sequence`` runs)
+TEMPORAL_FILTERS = {"oidn_prefilter_temporal": "oidn_prefilter", "ours_temporal": "ours"}
 
 
 def check_sequence_names(names: list[str]) -> None:

@@ -567,11 +567,13 @@ class EvalConfig(Section):
     crops: int = doc("Frames in the crop grid per spp.", 4)
     crop_size: int = doc("Side of each crop in pixels.", 64)
     sequence_methods: list = doc("Methods scored along each scene's camera move (the sequence page, scenes of at "
-                                 "least two frames): any per-frame method of eval.methods' names, and "
+                                 "least two frames): any per-frame method of eval.methods' names, "
                                  "oidn_prefilter_temporal (oidn_prefilter's output blended with its own warped "
-                                 "history: the classic temporal filter). Empty: no sequence page.",
-                                 factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours"])
-    temporal_weight: float = doc("Share of the new frame in oidn_prefilter_temporal's exponential blend (1: no "
+                                 "history: the classic temporal filter) and ours_temporal (the same filter on ours: "
+                                 "what denoise --sequence runs). Empty: no sequence page.",
+                                 factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours",
+                                                  "ours_temporal"])
+    temporal_weight: float = doc("Share of the new frame in the temporal filter's exponential blend (1: no "
                                  "history); the history is clamped to the new output's 3x3 range.", 0.5)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)

@@ -167,3 +167,19 @@ def cornell_box_aux(width: int = 61, height: int = 45, spp: int = 4, seed: int =
                        "integrator": {"type": "path", "max_depth": 8}}
     img = np.asarray(mi.render(mi.load_dict(d), spp=spp, seed=seed), np.float32)
     return {"color": img[..., :3].copy(), "albedo": img[..., 3:6].copy(), "normal": img[..., 6:9].copy()}
+
+
+# A checkered sphere before a checkered wall under a constant sky, 32x24: a scene to move a camera around
+# ({second}: a second sensor, or nothing).
+ORBIT_SCENE = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 0.5, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>
+  {second}
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+  <shape type="sphere"><bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
+    <transform name="to_uv"><scale x="6" y="6"/></transform></texture></bsdf></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="4"/><translate z="-2"/></transform>
+    <bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
+      <transform name="to_uv"><scale x="8" y="8"/></transform></texture></bsdf></shape>
+</scene>"""

@@ -11,7 +11,7 @@ from mcdenoise.pipeline.motion import look_at
 from mcdenoise.pipeline.store import Store
 from mcdenoise.render.camera import dolly_path, orbit_path, parse_move, rotation, sensor_path
 from mcdenoise.render.external import camera_move
-from tests.helpers import TINY, cli
+from tests.helpers import ORBIT_SCENE, TINY, cli
 
 
 def test_orbit_keeps_the_target_centred_and_the_distance():
@@ -88,23 +88,10 @@ def test_move_values():
         assert "\n" not in str(err.value)
 
 
-SCENE = """<scene version="3.0.0">
-  <sensor type="perspective"><float name="fov" value="45"/>
-    <transform name="to_world"><lookat origin="0, 0.5, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>
-  {second}
-  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
-  <shape type="sphere"><bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
-    <transform name="to_uv"><scale x="6" y="6"/></transform></texture></bsdf></shape>
-  <shape type="rectangle"><transform name="to_world"><scale value="4"/><translate z="-2"/></transform>
-    <bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
-      <transform name="to_uv"><scale x="8" y="8"/></transform></texture></bsdf></shape>
-</scene>"""
-
 
 def test_a_bad_move_is_one_line_on_the_command_line(tmp_path):
     xml = tmp_path / "s.xml"
-    xml.write_text(SCENE.format(second=""))
+    xml.write_text(ORBIT_SCENE.format(second=""))
     proc = cli("render-scene", xml, "--frames", "3", "--move", "orbit:x", "--store", tmp_path / "st", "--config",
                TINY, check=False)
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
@@ -122,7 +109,7 @@ def test_render_scene_orbits_and_the_frames_warp_onto_each_other(tmp_path):
     from mcdenoise.pipeline import metrics
     from mcdenoise.pipeline.motion import reproject, warp
     xml = tmp_path / "s.xml"
-    xml.write_text(SCENE.format(second=""))
+    xml.write_text(ORBIT_SCENE.format(second=""))
     cli("render-scene", xml, "--frames", "3", "--move", "orbit:30", "--store", tmp_path / "st", "--config", TINY)
     store = Store(tmp_path / "st")
     sm = store.scene_manifest("ext_s")
@@ -158,7 +145,7 @@ def test_render_scene_goes_from_the_first_camera_to_the_second(tmp_path):
     second = """<sensor type="perspective"><float name="fov" value="55"/>
     <transform name="to_world"><lookat origin="1, 0.5, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
     <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>"""
-    xml.write_text(SCENE.format(second=second))
+    xml.write_text(ORBIT_SCENE.format(second=second))
     cli("render-scene", xml, "--frames", "2", "--store", tmp_path / "st", "--config", TINY, "dataset.stacks=1")
     store = Store(tmp_path / "st")
     cams = [store.camera("ext_two", f) for f in range(2)]

@@ -9,8 +9,7 @@ from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import read_header, read_layers
 from mcdenoise.train.sequence import output_path, sequence_files
 
-from .helpers import TINY, cli, write_rgb_exr
-from .test_camera_path import SCENE
+from .helpers import ORBIT_SCENE, TINY, cli, write_rgb_exr
 
 
 def test_the_pattern_finds_the_frames_in_order(tmp_path):
@@ -41,7 +40,7 @@ def test_outputs_that_would_overwrite_an_input_are_refused_in_one_line(tmp_path)
 @pytest.mark.slow
 def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_path):
     xml = tmp_path / "s.xml"
-    xml.write_text(SCENE.format(second=""))
+    xml.write_text(ORBIT_SCENE.format(second=""))
     proc = cli("render-scene", xml, "--frames", "3", "--move", "orbit:10", "--store", tmp_path / "st", "--config",
                TINY, "dataset.stacks=1")
     frames = str(tmp_path / "st" / "scenes" / "ext_s" / "###" / "s00.exr")

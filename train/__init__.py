@@ -14,6 +14,8 @@ kit: one flat module per concern.
   step, EMA, validation, checkpoint); DDP under torchrun.
 - ``train.infer``: inference: ``denoise`` (a store frame or an EXR, with ours or OIDN itself), the
   self-ensemble, σ's calibration.
+- ``train.sequence``: ``denoise --sequence``: a rendered sequence, each frame blended with its warped
+  history (``pipeline.temporal``'s filter, the motion from the EXR headers' cameras and depth).
 - ``train.export``: a self-contained model folder (``train/shipped``) and changes to one after training;
   an oidn_ft run as a ``.tza`` OIDN loads.
 - ``train.bench``: ``bench-denoise``: seconds per frame of ours, its base and OIDN.

@@ -181,7 +181,7 @@ def load_denoiser(folder: str | Path, device: str = "auto", base_only: bool = Fa
 DEFAULT_EXR_SPP = 16
 
 
-def _exr_spp(path: Path) -> tuple[int, str]:
+def exr_spp(path: Path) -> tuple[int, str]:
     """The sample count an EXR's mcdenoise header records, else ``DEFAULT_EXR_SPP`` (the middle of 4..64)."""
     from mcdenoise.pipeline.exr import read_header
     try:
@@ -240,7 +240,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
         raise TrainError(f"--samples {samples}: expected at least 1")
     buffers, source = _read_input(cfg, frame, exr, spp)
     if spp is None:
-        spp, how = _exr_spp(Path(exr))
+        spp, how = exr_spp(Path(exr))
         if not quiet:
             print(f"{exr}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     folder = model or find_run(cfg, spp)

@@ -122,8 +122,8 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     if clash is not None:
         raise TrainError(f"--out {out_pattern}: {clash} is one of the inputs; name other files (the inputs stay)")
     if spp is None:
-        from .infer import _exr_spp
-        spp, how = _exr_spp(files[0][1])
+        from .infer import exr_spp
+        spp, how = exr_spp(files[0][1])
         if not quiet:
             print(f"{files[0][1]}: {spp} spp ({how}; pass --spp to say otherwise)", flush=True)
     first = read_layers(files[0][1])
