@@ -25,7 +25,8 @@ def test_sequence_config_renders_8_frame_sequences_into_its_own_store():
     from mcdenoise.pipeline.config import run_dir
     cfg = load_config(ROOT / "configs" / "sequence.yaml")
     d = cfg.dataset
-    assert (d.frames, d.scenes) == (8, 3) and d.resolution == [64, 48]
+    assert (d.frames, d.scenes) == (8, 24) and d.resolution == [64, 48]
+    assert cfg.scene.interior_probability == 0.4 and d.val_fraction == d.test_fraction == 0.25
     assert cfg.store == "data/sequence" and Path(run_dir(cfg, "cleaner")).parent == Path("runs/sequence")
     assert cfg.diffusion.crop % 16 == 0 and cfg.diffusion.crop <= min(d.resolution)
 
