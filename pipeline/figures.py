@@ -89,7 +89,7 @@ def contact_sheet(cells: list[tuple[str, np.ndarray]], path: Path, cols: int = 6
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    save_figure(fig, path, dpi=110)
+    save_figure(fig, path, dpi=90)
 
 
 def save_figure(fig, path: str | Path, **kwargs) -> None:
