@@ -5,7 +5,8 @@ the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row 
 ``size``² window of every image, picked where the row's reference image has the most gradient
 energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
 ``pipeline.metrics.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
-when every value is positive). ``animated_strip``: a sequence as an animated GIF, one column per method.
+when every value is positive). ``contact_sheet``: whole images in a labelled grid (e.g. every validation scene).
+``animated_strip``: a sequence as an animated GIF, one column per method.
 """
 from __future__ import annotations
 
@@ -65,6 +66,31 @@ def crop_grid(rows: list[tuple[str, list[np.ndarray | None]]], titles: list[str]
                 ax.set_ylabel(label, fontsize=8)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
+
+
+def contact_sheet(cells: list[tuple[str, np.ndarray]], path: Path, cols: int = 6, title: str | None = None) -> None:
+    """Save whole HDR images (H, W, 3) in a grid of ``cols`` columns, each under its label, gamma-tonemapped
+    as ``crop_grid`` (paper eq. 4) and shown pixel for pixel (no interpolation)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not cells:
+        return
+    rows = -(-len(cells) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.1 * cols, 2.3 * rows), squeeze=False)
+    for k, ax in enumerate(axes.ravel()):
+        ax.set_xticks([]), ax.set_yticks([])
+        if k >= len(cells):
+            ax.axis("off")
+            continue
+        label, img = cells[k]
+        ax.imshow(np.clip(gamma_compress(img), 0, 1), interpolation="nearest")
+        ax.set_title(label, fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=90)
 
 
 def save_figure(fig, path: str | Path, **kwargs) -> None:
