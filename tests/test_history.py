@@ -13,8 +13,17 @@ from mcdenoise.pipeline.store import FrameKey
 from mcdenoise.train.data import Crops
 from mcdenoise.train.history import previous_frames, warp_previous, with_history
 from mcdenoise.train.infer import load_denoiser
-from mcdenoise.train.model import (HISTORY_CHANNELS, SHIPPED_MODEL, ControlledOIDN, cond_names, inputs, load, save,
-                                   to_pu, widen_control)
+from mcdenoise.train.model import (
+    HISTORY_CHANNELS,
+    SHIPPED_MODEL,
+    ControlledOIDN,
+    cond_names,
+    inputs,
+    load,
+    save,
+    to_pu,
+    widen_control,
+)
 from mcdenoise.train.sampler import Formulation
 
 from .helpers import TINY, cli, train_tiny
@@ -219,7 +228,7 @@ def test_the_history_pack_holds_frames_after_the_first_with_their_warped_history
     assert frames == [f"{k.scene}/{k.frame}" for k in train if k.frame >= 1] and frames
     assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter"
     names = cond_names(True)
-    assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history")] == 1)
+    assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history"), :24, :32] == 1)
     valid = cond[:, names.index("history.valid"), :24, :32].float()
     assert 0.5 < float(valid.mean()) <= 1.0                        # a small camera move: most pixels seen before
     assert cond[:, [names.index(n) for n in HISTORY_CHANNELS[:3]], :24, :32].float().amax() > 0
@@ -245,3 +254,22 @@ def test_a_temporal_run_trains_and_denoise_sequence_feeds_it_its_own_history(tem
     out = cli("denoise", "--sequence", frames, "--spp", "4", "--device", "cpu",
               "--out", tmp_path / "old" / "f_###.exr")
     assert "ours + temporal filter, weight" in out.stdout and "train/shipped" in out.stdout, out.stdout
+
+
+@pytest.mark.slow
+def test_the_sequence_evaluation_runs_the_model_with_its_own_history_as_ours_temporal(temporal_run, tmp_path):
+    from mcdenoise.evaluate.run import run_eval
+    from mcdenoise.pipeline.config import load_config
+    store, runs, _ = temporal_run
+    cfg = load_config(TINY, [f"store={store}", f"runs={runs}", "eval.methods=[ours]", "eval.device=cpu",
+                             "eval.sequence_methods=[ours, ours_filter, ours_temporal]", "eval.metrics=[l1, psnr]",
+                             "eval.equal_time=none", "eval.spp=[4]", "eval.stress=false"])
+    rows = run_eval(cfg, out=str(tmp_path / "report"), quiet=True)["sequences"]["test"]["spp"]["4"]["methods"]
+    assert all(r["available"] for r in rows.values()), rows
+    assert "diffusion_sppany" in rows["ours_temporal"]["checkpoint"]
+    ours, learned, filtered = (rows[n]["per_frame"] for n in ("ours", "ours_temporal", "ours_filter"))
+    for a, b, c in zip(ours, learned, filtered):
+        if a["index"] == 0:                    # no history yet: the model's single-frame output
+            assert b["metrics"] == a["metrics"] == c["metrics"]
+        else:                                  # its own previous output, warped, changes what it makes
+            assert b["metrics"]["psnr"] != a["metrics"]["psnr"] and "instability" in b["metrics"]

@@ -28,7 +28,6 @@ from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.weights import save_safetensors
 
-from .history import previous_frames, store_history, with_history
 from .model import ALIGNMENT, GROUPS, cond_names, groups, inputs, to_pu
 
 # The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
@@ -77,7 +76,21 @@ def pack_path(runs: str | Path, split: str, clean_aux: bool = False, history: bo
 
 def pack_keys(keys: list[FrameKey], history: bool) -> list[FrameKey]:
     """The frames a pack holds: all of ``keys``, or with history those whose previous frame is among them."""
-    return list(previous_frames(keys)) if history else list(keys)
+    return list(_previous_frames(keys, history)) if history else list(keys)
+
+
+def _previous_frames(keys: list[FrameKey], history: bool) -> dict:
+    """``train.history.previous_frames`` with history, else {}: the motion code is read only where it is used."""
+    if not history:
+        return {}
+    from .history import previous_frames
+    return previous_frames(keys)
+
+
+def _store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, buffers_prev: dict) -> dict:
+    """``buffers`` with the history of ``key`` (``train.history.store_history``)."""
+    from .history import store_history, with_history
+    return with_history(buffers, store_history(store, key, prev, buffers, buffers_prev))
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
@@ -86,7 +99,7 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     ``history``: frames t ≥ 1 with their history (``train.history.store_history``, on the same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
-    prev_of = previous_frames(keys) if history else {}
+    prev_of = _previous_frames(keys, history)
     keys = pack_keys(keys, history)
     if not keys:
         raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
@@ -106,7 +119,7 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
                 buffers = combine_stacks([images[s] for s in stacks], n)
                 if prev is not None:
                     buffers_prev = combine_stacks([before[s] for s in stacks], n)
-                    buffers = with_history(buffers, store_history(store, key, prev, buffers, buffers_prev))
+                    buffers = _store_history(store, key, prev, buffers, buffers_prev)
                 x, cond, scale = inputs(buffers, spp, clean_aux=clean_aux, history=history)
                 xs.append(x.astype(np.float16))
                 conds.append(cond.astype(np.float16))
@@ -305,7 +318,7 @@ class StoreSource:
 
     def val_items(self, spps: list[int], frames: int) -> list[dict]:
         items = []
-        prev_of = previous_frames(self.val_keys) if self.history else {}
+        prev_of = _previous_frames(self.val_keys, self.history)
         for key in pack_keys(self.val_keys, self.history)[:frames]:
             ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
             for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
@@ -313,7 +326,7 @@ class StoreSource:
                 if key in prev_of:      # the first stacks of both frames, as a sequence is evaluated
                     prev = prev_of[key]
                     before = self.store.read(prev.scene, prev.frame, spp)
-                    buffers = with_history(buffers, store_history(self.store, key, prev, buffers, before))
+                    buffers = _store_history(self.store, key, prev, buffers, before)
                 x, cond, scale = inputs(buffers, spp, clean_aux=self.clean_aux, history=self.history)
                 items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                               "ref": ref, "spp": spp})

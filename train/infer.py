@@ -27,7 +27,6 @@ from mcdenoise.pipeline.exr import StoreError, write_output
 from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 
 from . import oidn
-from .history import with_history
 from .model import (
     NETWORK,
     ControlledOIDN,
@@ -112,11 +111,14 @@ class Denoiser:
         ``strength``: the fraction of the Control Module's change applied (default: the model's); ``history``:
         (the previous frame's output warped into this one (H, W, 3), its (H, W) validity), for a model that reads
         the past (``self.history``); None (a first frame, a single frame) is served as a frame without it."""
-        if history is not None and not self.history:
-            raise TrainError(f"{self.folder or 'this model'} does not read history (its model.json has no history)")
+        if history is not None:
+            if not self.history:
+                raise TrainError(f"{self.folder or 'this model'} does not read history (its model.json has no history)")
+            from .history import with_history  # the motion code is read only where there is a history
+            buffers = with_history(buffers, history)
         strength = self.strength if strength is None else check_strength(strength, "strength")
         t0 = time.perf_counter()
-        buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in with_history(buffers, history).items()}
+        buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
         self.last_repaired = sum(repair_nonfinite(buffers).values())
         self.last_clamped, self.last_base_only = 0, False
         self.last_shortened = shorten_normals(buffers["normal"]) if "normal" in buffers else 0
