@@ -20,7 +20,11 @@ PU(radiance × the same exposure), normals as stored, depth relative, the materi
 relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer group saying
 whether the input had it (``GROUPS``). A group an input lacks (an EXR from another renderer has no variances,
 no radiance split, no material buffers) is its background value, 0, with its presence map 0: the network is
-trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back.
+trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back. A model that reads
+the past (model.json ``history``) has one more group, ``history``: the previous frame's output warped into this
+one as PU(output × this frame's exposure), zero where the warp is invalid, the validity, and ``has.history``;
+absent (a first frame) it is zero like any other group. A model without it keeps its condition channel for
+channel (``cond_names()``; ``cond_names(True)`` is the longer one).
 
 **The base** is OIDN's UNet with OIDN's weights, or an ``oidn_ft`` run's; it never trains. It reads what OIDN
 reads and its output, decoded without help, is OIDN's own output: the first estimate.
