@@ -45,12 +45,13 @@ def repaired_inputs(buffers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarra
     return out, repair_nonfinite(out)
 
 
-def run_method(method: Method, buffers: dict[str, np.ndarray]) -> Outcome:
+def run_method(method: Method, buffers: dict[str, np.ndarray], history: tuple | None = None) -> Outcome:
+    """``history``: (the previous output warped into this frame, its validity) for a method that reads it."""
     clean, counts = repaired_inputs(buffers)
     shape = clean["color"].shape[:2] + (3,)
     t0 = time.perf_counter()
     try:
-        out = method.denoise(clean)
+        out = method.denoise(clean) if history is None else method.denoise(clean, history=history)
     except Exception as exc:  # a method's failure is a result to report, not a crash of the run
         return Outcome(None, time.perf_counter() - t0, counts, 0, f"{type(exc).__name__}: {exc}".strip())
     seconds = time.perf_counter() - t0

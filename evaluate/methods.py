@@ -276,10 +276,12 @@ class Diffusion(Method):
     def uncertainty(self):
         return self.last_std
 
-    def denoise(self, buffers):
+    def denoise(self, buffers, history=None):
+        """``history``: (previous output warped into this frame, validity), for a model that reads the past."""
         s = self.spec
         out, std = self.denoiser.denoise(buffers, spp=self.spp, skip=s.skip, seed=self.seed, steps=s.steps,
-                                         start=s.start, samples=s.samples, with_std=True, strength=s.strength)
+                                         start=s.start, samples=s.samples, with_std=True, strength=s.strength,
+                                         history=history)
         self.last_std = std if s.samples > 1 else None
         return np.asarray(out, dtype=np.float32)
 

@@ -18,8 +18,11 @@ Methods: every per-frame name of ``eval.methods`` (``evaluate.methods``), and
 ``oidn_prefilter_temporal``: ``oidn_prefilter``'s output blended with its own warped history
 (``pipeline.temporal.blend_history``, weight ``eval.temporal_weight`` on the new frame, history
 clamped to the new output's 3×3 range), the temporal filter a user could build in an afternoon;
-``ours_temporal``: the same filter on ``ours``' outputs (what ``denoise --sequence`` runs).
-Frame 1 of a temporal method is its per-frame method's output (no history yet), reported apart.
+``ours_filter``: the same filter on ``ours``' outputs (what ``denoise --sequence`` runs for a model that does
+not read the past); ``ours_temporal``: the model loaded for ``ours`` given its own previous output warped into
+this frame (``Denoiser.denoise(history=...)``, what ``denoise --sequence`` runs for it), available when that
+model reads the past (``diffusion.history``). Frame 1 of a temporal method is its per-frame method's output
+(no history yet), reported apart.
 """
 from __future__ import annotations
 
@@ -39,13 +42,16 @@ from .scoring import score
 SEQUENCE_METRICS = ("psnr", "l1", "hdr_flip")
 # temporal method -> the per-frame method whose outputs it filters (``ours_temporal`` is what
 # ``denoise --sequence`` runs)
-TEMPORAL_FILTERS = {"oidn_prefilter_temporal": "oidn_prefilter", "ours_temporal": "ours"}
+TEMPORAL_FILTERS = {"oidn_prefilter_temporal": "oidn_prefilter", "ours_filter": "ours"}
+# learned temporal method -> the per-frame method whose model reads its own warped previous output
+LEARNED = {"ours_temporal": "ours"}
+TEMPORAL = {**TEMPORAL_FILTERS, **LEARNED}
 
 
 def check_sequence_names(names: list[str]) -> None:
     """ConfigError naming an unknown method of ``eval.sequence_methods``."""
-    check_names([n for n in names if n not in TEMPORAL_FILTERS], "eval.sequence_methods")
-    dup = sorted({n for n in names if n in TEMPORAL_FILTERS and names.count(n) > 1})
+    check_names([n for n in names if n not in TEMPORAL], "eval.sequence_methods")
+    dup = sorted({n for n in names if n in TEMPORAL and names.count(n) > 1})
     if dup:
         raise ConfigError(f"eval.sequence_methods: {', '.join(dup)} listed twice")
 
@@ -113,6 +119,7 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
     frames: list[Frame] = []
     outputs: dict[str, list] = {n: [] for n in methods}
     outputs.update({n: [] for n in TEMPORAL_FILTERS if TEMPORAL_FILTERS[n] in methods})
+    outputs.update({n: [] for n, base in LEARNED.items() if reads_history(methods.get(base))})
     seconds: dict[str, list] = {n: [] for n in outputs}
     for t, key in enumerate(seq):
         fr = read_frame(store, key, spp, stacks_of(key), ref_name)
@@ -132,18 +139,40 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
                 xy, valid = motion_between(fr, frames[t - 1], "input")
                 outputs[name].append(temporal.blend_history(y, motion.warp(history, xy, valid), valid, weight))
             seconds[name].append(seconds[base][t])
+        for name, base in LEARNED.items():
+            if name not in outputs:
+                continue
+            history = outputs[name][t - 1] if t > 0 else None
+            if history is None:     # no history yet: the model's single-frame output, which ``base`` is
+                outputs[name].append(outputs[base][t])
+                seconds[name].append(seconds[base][t])
+                continue
+            xy, valid = motion_between(fr, frames[t - 1], "input")
+            oc = run_method(methods[base], fr.buffers, history=(motion.warp(history, xy, valid), valid))
+            outputs[name].append(finite_output(oc) if oc.output is not None else None)
+            seconds[name].append(oc.seconds)
     return outputs, seconds, frames
+
+
+def reads_history(method) -> bool:
+    """Whether a loaded method is a model that reads the past (``train.infer.Denoiser.history``)."""
+    return bool(getattr(getattr(method, "denoiser", None), "history", False))
 
 
 def load_sequence_methods(loader: Loader, names: list[str], spp: int) -> tuple[dict, dict]:
     """(per-frame methods that load, including those the temporal filters need; a row per name)."""
     methods, rows = {}, {}
     for name in names:
-        base = TEMPORAL_FILTERS.get(name, name)
+        base = TEMPORAL.get(name, name)
         try:
             if base not in methods:
                 methods[base] = loader.load(base, spp)
-            rows[name] = {"label": label(base) + (" + temporal filter" if name != base else ""), "available": True,
+            if name in LEARNED and not reads_history(methods[base]):
+                raise MethodUnavailable(f"the model of {base} ({methods[base].checkpoint}) does not read history: "
+                                        "train one with diffusion.history=true (ours_filter is the temporal filter "
+                                        "on it)")
+            suffix = " reading its previous output" if name in LEARNED else " + temporal filter" if name != base else ""
+            rows[name] = {"label": label(base) + suffix, "available": True,
                           "checkpoint": methods[base].checkpoint or None}
         except MethodUnavailable as exc:
             rows[name] = {"label": name, "available": False, "reason": str(exc)}

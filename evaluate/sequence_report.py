@@ -19,7 +19,7 @@ from .stats import paired_bootstrap, paired_values
 
 REFERENCE = "oidn_prefilter"
 COLUMNS = {"l1": "L1", "hdr_flip": "HDR-FLIP"}
-STRIP = ("noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours", "ours_temporal")
+STRIP = ("noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours", "ours_filter", "ours_temporal")
 
 
 def scene_means(row: dict, metric: str) -> dict[str, float]:
@@ -113,7 +113,7 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
 
 
 def write_strip(strip: dict, path: Path) -> None:
-    """The strip of one scene: noisy / OIDN / its temporal filter / ours / ours_temporal / reference."""
+    """The strip of one scene: noisy / OIDN / its temporal filter / ours / ours_filter / ours_temporal / reference."""
     columns = [m for m in STRIP if m in strip["outputs"]]
     frames = [[strip["outputs"][m][t] for m in columns] + [f.reference] for t, f in enumerate(strip["frames"])]
     animated_strip(columns + ["reference"], frames, path)

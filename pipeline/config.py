@@ -404,6 +404,15 @@ class DiffusionConfig(TrainingConfig):
                             "tonemapped MSE relative to OIDN's (what PSNR reads); train/loss.py.", 0.5)
     dropout: float = doc("Probability that a training crop lacks a buffer group (the variances, the radiance split, "
                          "the material buffers; each on its own), so one model serves inputs without them.", 0.15)
+    history: bool = doc("The model reads the past (docs/sequences.md): its condition gets the previous frame's "
+                        "output warped into this frame, its validity and has.history; it trains on frames 2.. of "
+                        "each scene, their history OIDN's final-frame output of the frame before, warped with the "
+                        "noisy input's depth and normal; its packs are <split>_oidn_base*_history. With init, a "
+                        "model without history starts with the new channels' weights zero (it starts as that "
+                        "model). false: the per-frame model, as before.", False)
+    history_dropout: float = doc("With history: probability that a training crop has no history (its history "
+                                 "channels and has.history zero, as on a sequence's first frame), so the model "
+                                 "keeps serving single frames.", 0.25)
     t_focus: float = doc("Probability that a training timestep is drawn from the timesteps the sampler visits with "
                          "one of train_steps steps (else uniform over 0..999).", 0.9)
     train_steps: list = doc("Step counts whose timesteps t_focus draws from (each count equally likely).",
@@ -424,6 +433,8 @@ class DiffusionConfig(TrainingConfig):
         super().check(bad)
         self.at_least(bad, 1, "crops_per_frame", "samples")
         self.at_least(bad, 0, "warmup_steps", "val_frames", "loader_workers")
+        if not 0.0 <= self.history_dropout <= 1.0:
+            bad("history_dropout", f"must be a probability in [0, 1], got {self.history_dropout}")
         if self.epoch_steps < 0:
             bad("epoch_steps", f"must be >= 0 (0: every crop), got {self.epoch_steps}")
         if self.crop % 16:
@@ -569,10 +580,12 @@ class EvalConfig(Section):
     sequence_methods: list = doc("Methods scored along each scene's camera move (the sequence page, scenes of at "
                                  "least two frames): any per-frame method of eval.methods' names, "
                                  "oidn_prefilter_temporal (oidn_prefilter's output blended with its own warped "
-                                 "history: the classic temporal filter) and ours_temporal (the same filter on ours: "
-                                 "what denoise --sequence runs). Empty: no sequence page.",
+                                 "history: the classic temporal filter), ours_filter (the same filter on ours: what "
+                                 "denoise --sequence runs for a model that does not read the past) and ours_temporal "
+                                 "(ours given its own warped previous output, where the model reads the past: "
+                                 "diffusion.history; else the row says it is unavailable). Empty: no sequence page.",
                                  factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours",
-                                                  "ours_temporal"])
+                                                  "ours_filter", "ours_temporal"])
     temporal_weight: float = doc("Share of the new frame in the temporal filter's exponential blend (1: no "
                                  "history); the history is clamped to the new output's 3x3 range.", 0.5)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)

@@ -148,6 +148,7 @@ TRAINER_KEYS = {
                        "extractor_channels", "blocks", "heads", "block_size", "halo", "critic_channels",
                        "critic_levels", "tile"},
     "diffusion": SHARED | {"base", "base_network", "extra_stores", "init", "crops_per_frame", "epoch_steps",
+                           "history", "history_dropout",
                            "weight_decay", "warmup_steps", "precision", "shipped", "name", "schedule",
                            "residual_scale", "snr_gamma", "snr_floor", "hdr_weight", "dropout", "t_focus",
                            "train_steps", "steps", "start", "samples", "skip", "ema", "val_frames", "loader_workers",

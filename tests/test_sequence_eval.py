@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from mcdenoise.evaluate.run import run_eval
-from mcdenoise.evaluate.sequence import check_sequence_names, sequences
+from mcdenoise.evaluate.sequence import check_sequence_names, load_sequence_methods, sequences
 from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.pipeline.store import FrameKey, Store
@@ -83,8 +83,33 @@ def test_the_camera_of_an_old_frame_comes_from_its_scene_description(report, tmp
 
 
 def test_sequence_method_names_are_checked():
-    check_sequence_names(["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours"])
+    check_sequence_names(["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours", "ours_filter", "ours_temporal"])
     with pytest.raises(ConfigError, match="eval.sequence_methods: unknown method 'blur'"):
         check_sequence_names(["blur"])
     with pytest.raises(ConfigError, match="eval.sequence_methods: oidn_prefilter_temporal listed twice"):
         check_sequence_names(["oidn_prefilter_temporal", "oidn_prefilter_temporal"])
+
+
+class _Model:
+    """A loaded ``ours`` as the sequence evaluation sees it: its denoiser reads history or not."""
+    def __init__(self, history: bool):
+        self.denoiser, self.checkpoint = type("Den", (), {"history": history})(), "runs/x"
+
+
+class _Loader:
+    def __init__(self, history: bool):
+        self.history = history
+
+    def load(self, name, spp):
+        return _Model(self.history)
+
+
+def test_ours_temporal_is_the_model_reading_its_history_and_ours_filter_the_filter_on_ours():
+    names = ["ours", "ours_filter", "ours_temporal"]
+    methods, rows = load_sequence_methods(_Loader(False), names, 4)
+    assert list(methods) == ["ours"] and rows["ours"]["available"] and rows["ours_filter"]["available"]
+    assert rows["ours_filter"]["label"].endswith("+ temporal filter")
+    assert not rows["ours_temporal"]["available"] and "does not read history" in rows["ours_temporal"]["reason"]
+    methods, rows = load_sequence_methods(_Loader(True), names, 4)
+    assert all(r["available"] for r in rows.values())
+    assert rows["ours_temporal"]["label"].endswith("reading its previous output")

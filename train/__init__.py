@@ -7,6 +7,8 @@ kit: one flat module per concern.
 - ``train.oidn``: OIDN, the library (``pyoidn``): the call every stage uses, and its built-in weights.
 - ``train.data``: training packs (the store decoded once) and augmented crops, the run's frames
   (``StoreSource``), ``pack``.
+- ``train.history``: the past a model that reads history is given: the previous output warped into this
+  frame (``diffusion.history``; in training OIDN's output of the frame before).
 - ``train.loss``: each crop's error relative to OIDN's.
 - ``train.sampler``: what is diffused and predicted (``Formulation``: the residual around OIDN's output, x0,
   the schedule), the timesteps training draws, the min-SNR weight; the reverse diffusion and the strength knob.

@@ -7,6 +7,10 @@ network's input encoding itself is ``train.model.inputs``.
 training items from it: a random crop, OIDN's augmentation (flips, transposes, one permutation
 of the colour channels for every colour-like channel and the target, one of the normal axes) and
 the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
+
+A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only frames t ≥ 1 of
+scenes with two or more frames, each with the history channels of ``train.history`` (OIDN's output of frame
+t−1 on the same stacks, warped into frame t); its crops lose the history with ``diffusion.history_dropout``.
 """
 from __future__ import annotations
 
@@ -24,13 +28,14 @@ from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.weights import save_safetensors
 
-from .model import ALIGNMENT, GROUPS, cond_names, inputs, to_pu
+from .model import ALIGNMENT, GROUPS, cond_names, groups, inputs, to_pu
 
 # The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
 if TYPE_CHECKING:
     from mcdenoise.pipeline.store import FrameKey, Store
 
 FORMAT = "mcdenoise-oidn-pack"
+HISTORY_SOURCE = "oidn_prefilter"   # what a history pack's previous outputs are (``train.history``)
 DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
 _COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
 # Noise realizations per frame in a pack, by spp: disjoint subsets of the store's stacks
@@ -62,16 +67,43 @@ def fit_variants(variants: dict[int, int], stack_spp: int, stacks: int) -> dict[
 # ---- the pack ----------------------------------------------------------------------------------
 
 
-def pack_path(runs: str | Path, split: str, clean_aux: bool = False) -> Path:
-    """``<runs>/pack/<split>_oidn_base[_calb].safetensors`` (``_calb``: OIDN's input with prefiltered aux, for a
-    ``_calb_cnrm`` base)."""
-    return Path(runs) / "pack" / f"{split}_oidn_base{'_calb' if clean_aux else ''}.safetensors"
+def pack_path(runs: str | Path, split: str, clean_aux: bool = False, history: bool = False) -> Path:
+    """``<runs>/pack/<split>_oidn_base[_calb][_history].safetensors`` (``_calb``: OIDN's input with prefiltered
+    aux, for a ``_calb_cnrm`` base; ``_history``: frames with their history, for a model that reads the past)."""
+    return (Path(runs) / "pack" /
+            f"{split}_oidn_base{'_calb' if clean_aux else ''}{'_history' if history else ''}.safetensors")
 
 
-def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
-    """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``."""
+def pack_keys(keys: list[FrameKey], history: bool) -> list[FrameKey]:
+    """The frames a pack holds: all of ``keys``, or with history those whose previous frame is among them."""
+    return list(_previous_frames(keys, history)) if history else list(keys)
+
+
+def _previous_frames(keys: list[FrameKey], history: bool) -> dict:
+    """``train.history.previous_frames`` with history, else {}: the motion code is read only where it is used."""
+    if not history:
+        return {}
+    from .history import previous_frames
+    return previous_frames(keys)
+
+
+def _store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, buffers_prev: dict) -> dict:
+    """``buffers`` with the history of ``key`` (``train.history.store_history``)."""
+    from .history import store_history, with_history
+    return with_history(buffers, store_history(store, key, prev, buffers, buffers_prev))
+
+
+def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
+               history: bool = False) -> Path:
+    """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
+    ``history``: frames t ≥ 1 with their history (``train.history.store_history``, on the same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
+    prev_of = _previous_frames(keys, history)
+    keys = pack_keys(keys, history)
+    if not keys:
+        raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
+                         "needs scenes of two or more frames with gt_clean)")
     xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
     for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
         sm = store.scene_manifest(key.scene)
@@ -79,10 +111,16 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
         variants = fit_variants(PACK_VARIANTS, n, total)
         need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
         images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
+        prev = prev_of.get(key)
+        before = {s: store.read_image(prev.scene, prev.frame, stack_name(s))[0] for s in need} if prev else {}
         for spp, count in sorted(variants.items()):
             for v in range(count):
-                x, cond, scale = inputs(combine_stacks([images[s] for s in variant_stacks(spp, n, v, total)], n), spp,
-                                        clean_aux=clean_aux)
+                stacks = variant_stacks(spp, n, v, total)
+                buffers = combine_stacks([images[s] for s in stacks], n)
+                if prev is not None:
+                    buffers_prev = combine_stacks([before[s] for s in stacks], n)
+                    buffers = _store_history(store, key, prev, buffers, buffers_prev)
+                x, cond, scale = inputs(buffers, spp, clean_aux=clean_aux, history=history)
                 xs.append(x.astype(np.float16))
                 conds.append(cond.astype(np.float16))
                 scales.append(scale)
@@ -99,8 +137,8 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
                "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(np.stack(targets))}
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
-            "cond": json.dumps(cond_names()), "sizes": json.dumps([list(s) for s in sizes]),
-            "aux": _aux_kind(clean_aux)}
+            "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(s) for s in sizes]),
+            "aux": _aux_kind(clean_aux), **({"history": HISTORY_SOURCE} if history else {})}
     save_safetensors(path, tensors, meta)
     return path
 
@@ -109,7 +147,8 @@ def _aux_kind(clean_aux: bool) -> str:
     return "prefiltered" if clean_aux else "rendered"
 
 
-def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False) -> Path:
+def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
+                history: bool = False) -> Path:
     """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout or
     other aux."""
     if path.exists():
@@ -117,11 +156,12 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
         if (meta.get("format") == FORMAT and meta.get("store") == str(store.root)
-                and json.loads(meta.get("cond", "[]")) == cond_names()
-                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in keys]
-                and meta.get("aux", "rendered") == _aux_kind(clean_aux)):
+                and json.loads(meta.get("cond", "[]")) == cond_names(history)
+                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in pack_keys(keys, history)]
+                and meta.get("aux", "rendered") == _aux_kind(clean_aux)
+                and meta.get("history") == (HISTORY_SOURCE if history else None)):
             return path
-    return build_pack(store, keys, path, quiet, clean_aux)
+    return build_pack(store, keys, path, quiet, clean_aux, history)
 
 
 def load_pack(path: Path) -> dict[str, torch.Tensor]:
@@ -142,13 +182,15 @@ def concat_packs(packs: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor
 # ---- training items ----------------------------------------------------------------------------
 
 
-def _channel_groups(aux: int) -> tuple[list[list[int]], list[list[int]]]:
+def _channel_groups(aux: int, history: bool = False) -> tuple[list[list[int]], list[list[int]]]:
     """(RGB triples of colour-like channels, XYZ triples of normals) as indices into x ⊕ cond."""
-    names = [f"x.{i}" for i in range(3 + 3 * aux)] + cond_names()
+    names = [f"x.{i}" for i in range(3 + 3 * aux)] + cond_names(history)
     colours = [[0, 1, 2]] + ([[3, 4, 5]] if aux >= 1 else [])
     normals = [[6, 7, 8]] if aux >= 2 else []
     for key in _COLOURS:
         colours.append([names.index(f"{key}.{c}") for c in "RGB"])
+    if history:     # the previous output is a colour: its channels are permuted with the others
+        colours.append([names.index(f"history.{c}") for c in "RGB"])
     normals.append([names.index(f"normal.{c}") for c in "XYZ"])
     return colours, normals
 
@@ -176,23 +218,26 @@ class EpochItems(Dataset):
 class Crops(EpochItems):
     """Random crops of a pack, augmented; item ``index`` of an epoch from ``default_rng([seed, epoch, index])``.
 
-    Items: ``x`` (OIDN's input), ``cond``, ``target`` (PU of GT_clean at the item's exposure), ``scale``, ``spp``."""
+    Items: ``x`` (OIDN's input), ``cond``, ``target`` (PU of GT_clean at the item's exposure), ``scale``, ``spp``.
+    A history pack's items lose their history with probability ``history_dropout``."""
 
     def __init__(self, pack: dict[str, torch.Tensor], crop: int, per_frame: int, seed: int, spps: list[int] | None = None,
-                 augment: bool = True, dropout: float = DROPOUT):
+                 augment: bool = True, dropout: float = DROPOUT, history_dropout: float = 0.0):
         self.pack, self.crop, self.per_frame, self.seed = pack, int(crop), int(per_frame), int(seed)
         self.augment, self.dropout, self.epoch = augment, float(dropout), 0
+        self.history = pack["cond"].shape[1] == len(cond_names(True))
+        self.drop = {g: float(history_dropout) if g == "history" else self.dropout for g in groups(self.history)}
         keep = torch.ones(len(pack["spp"]), dtype=torch.bool) if not spps else torch.isin(pack["spp"], torch.tensor(spps))
         self.items = torch.nonzero(keep).flatten().tolist()
         self.frames = sorted({int(pack["frame"][i]) for i in self.items})
         self.by_frame = {f: [i for i in self.items if int(pack["frame"][i]) == f] for f in self.frames}
         aux = (pack["x"].shape[1] - 3) // 3
-        self.colours, self.normals = _channel_groups(aux)
-        names = cond_names()
+        self.colours, self.normals = _channel_groups(aux, self.history)
+        names = cond_names(self.history)
         nx = pack["x"].shape[1]
         self.groups = {g: [nx + names.index(f"has.{g}")] + [nx + j for j, n in enumerate(names)
                                                             if n.split(".")[0] in GROUPS[g] or n in GROUPS[g]]
-                       for g in GROUPS}
+                       for g in groups(self.history)}
         H, W = pack["x"].shape[-2:]
         if self.crop > min(H, W) or self.crop % ALIGNMENT:
             raise StoreError(f"diffusion.crop {self.crop}: must be a multiple of {ALIGNMENT} up to the frames' "
@@ -212,7 +257,7 @@ class Crops(EpochItems):
         if self.augment:
             full, target = self._augment(full, target, rng)
         for g, idx in self.groups.items():
-            if rng.random() < self.dropout:
+            if rng.random() < self.drop[g]:
                 full[idx] = 0.0
         nx = p["x"].shape[1]
         scale = float(p["scale"][i])
@@ -245,13 +290,15 @@ class StoreSource:
     """The data of a config's store: the train split as the pack (``train.data``), the first
     ``val_frames`` val frames whole, each at the run's smallest, middle and largest sample count."""
 
-    def __init__(self, cfg: Config, network: str | None = None):
-        """``network``: the base's (default ``diffusion.base_network``); a ``_calb_cnrm`` one reads prefiltered aux."""
+    def __init__(self, cfg: Config, network: str | None = None, history: bool | None = None):
+        """``network``: the base's (default ``diffusion.base_network``); a ``_calb_cnrm`` one reads prefiltered aux.
+        ``history`` (default ``diffusion.history``): packs and val frames with their history."""
         from mcdenoise.pipeline.store import Store
 
         self.cfg, self.store = cfg, Store(cfg.store)
         from .oidn import clean_aux
         self.clean_aux = clean_aux(network or cfg.diffusion.base_network)
+        self.history = cfg.diffusion.history if history is None else bool(history)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 
@@ -259,20 +306,28 @@ class StoreSource:
         return self.store.spp_choices(spp)
 
     def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
-        packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux))]
+        packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux,
+                                       self.history))]
         for i, (store, keys) in enumerate(self.extra):
-            packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux)))
+            packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux,
+                                               self.history)))
         return concat_packs(packs)
 
     def pack_path(self, split: str) -> Path:
-        return pack_path(self.cfg.runs, split, self.clean_aux)
+        return pack_path(self.cfg.runs, split, self.clean_aux, self.history)
 
     def val_items(self, spps: list[int], frames: int) -> list[dict]:
         items = []
-        for key in self.val_keys[:frames]:
+        prev_of = _previous_frames(self.val_keys, self.history)
+        for key in pack_keys(self.val_keys, self.history)[:frames]:
             ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
             for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
-                x, cond, scale = inputs(self.store.read(key.scene, key.frame, spp), spp, clean_aux=self.clean_aux)
+                buffers = self.store.read(key.scene, key.frame, spp)
+                if key in prev_of:      # the first stacks of both frames, as a sequence is evaluated
+                    prev = prev_of[key]
+                    before = self.store.read(prev.scene, prev.frame, spp)
+                    buffers = _store_history(self.store, key, prev, buffers, before)
+                x, cond, scale = inputs(buffers, spp, clean_aux=self.clean_aux, history=self.history)
                 items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                               "ref": ref, "spp": spp})
         return items
@@ -285,6 +340,6 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
         keys = source.store.frames_with(split)
         if not keys:
             raise StoreError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
-        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux)
+        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux, source.history)
         print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0

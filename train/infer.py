@@ -3,6 +3,7 @@
     den = load_denoiser(find_run(cfg, 4))                  # or base_only=True: the ablation row
     hdr = den.denoise(store.read(scene, frame, 4), spp=4, seed=0)          # (H, W, 3) float32
     hdr, std = den.denoise(buffers, spp=4, samples=8, with_std=True)       # mean of 8 and their std
+    hdr = den.denoise(buffers, spp=4, history=(warped_prev_output, valid))  # a model that reads the past
 
 What the model cannot represent is said, not hidden: non-finite input values are replaced by 0
 (``last_repaired``), an all-black input is returned black (``last_black``), an input without albedo
@@ -26,7 +27,18 @@ from mcdenoise.pipeline.exr import StoreError, write_output
 from mcdenoise.pipeline.numerics import repair_nonfinite, shorten_normals
 
 from . import oidn
-from .model import NETWORK, ControlledOIDN, clean_aux, find_run, inputs, load, network_output, oidn_ft_blob, present
+from .model import (
+    NETWORK,
+    ControlledOIDN,
+    clean_aux,
+    find_run,
+    inputs,
+    load,
+    network_output,
+    oidn_ft_blob,
+    present,
+    reads_history,
+)
 from .sampler import Formulation, check_strength, sample, with_strength
 
 if TYPE_CHECKING:   # the store is imported where a store frame is read: ``denoise --exr`` needs none
@@ -79,6 +91,8 @@ class Denoiser:
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
+        # model.json ``history``: the model reads the previous output warped into this frame (``denoise(history=)``)
+        self.history = reads_history(meta)
         # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
         # EXR from another renderer) the base runs alone, where validation found the Control Module worse
         self.control_without_groups = bool(meta.get("control_without_groups", True))
@@ -92,9 +106,16 @@ class Denoiser:
 
     def denoise(self, buffers: dict[str, np.ndarray], spp: int, skip: int | None = None, seed: int = 0,
                 steps: int | None = None, start: str | None = None, samples: int = 1, with_std: bool = False,
-                strength: float | None = None):
+                strength: float | None = None, history: tuple[np.ndarray, np.ndarray] | None = None):
         """HDR (H, W, 3) float32 (and the per-pixel std of ``samples`` samples with ``with_std``);
-        ``strength``: the fraction of the Control Module's change applied (default: the model's)."""
+        ``strength``: the fraction of the Control Module's change applied (default: the model's); ``history``:
+        (the previous frame's output warped into this one (H, W, 3), its (H, W) validity), for a model that reads
+        the past (``self.history``); None (a first frame, a single frame) is served as a frame without it."""
+        if history is not None:
+            if not self.history:
+                raise TrainError(f"{self.folder or 'this model'} does not read history (its model.json has no history)")
+            from .history import with_history  # the motion code is read only where there is a history
+            buffers = with_history(buffers, history)
         strength = self.strength if strength is None else check_strength(strength, "strength")
         t0 = time.perf_counter()
         buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
@@ -130,7 +151,7 @@ class Denoiser:
     def _sample(self, buffers, spp, skip, seed, steps, start, samples, strength=1.0):
         # off the CPU, OIDN's aux prefilter runs on the device too (its PyTorch twin)
         x, cond, scale = inputs(buffers, int(spp), clean_aux=self.clean_aux,
-                                aux_device=None if self.device.type == "cpu" else str(self.device))
+                                aux_device=None if self.device.type == "cpu" else str(self.device), history=self.history)
         H, W = buffers["color"].shape[:2]
         control = self.model.control
         if self.last_base_only:

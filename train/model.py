@@ -20,7 +20,11 @@ PU(radiance × the same exposure), normals as stored, depth relative, the materi
 relative-variance channel per buffer), the spp map log2(spp)/6, and one constant map per buffer group saying
 whether the input had it (``GROUPS``). A group an input lacks (an EXR from another renderer has no variances,
 no radiance split, no material buffers) is its background value, 0, with its presence map 0: the network is
-trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back.
+trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back. A model that reads
+the past (model.json ``history``) has one more group, ``history``: the previous frame's output warped into this
+one as PU(output × this frame's exposure), zero where the warp is invalid, the validity, and ``has.history``;
+absent (a first frame) it is zero like any other group. A model without it keeps its condition channel for
+channel (``cond_names()``; ``cond_names(True)`` is the longer one).
 
 **The base** is OIDN's UNet with OIDN's weights, or an ``oidn_ft`` run's; it never trains. It reads what OIDN
 reads and its output, decoded without help, is OIDN's own output: the first estimate.
@@ -221,12 +225,24 @@ def _aux_net(kind: str, device: str):
 
 
 # ---- the network's input: OIDN's, and the condition ------------------------------------------------
-# Buffer groups an input may lack, each with a presence map in the condition.
+# Buffer groups an input may lack, each with a presence map in the condition. ``history`` is read only by
+# a model that reads the past (model.json ``history``): the previous frame's output warped into this one
+# (``history``, (H, W, 3) HDR) and where that warp is valid (``history_valid``, (H, W) or (H, W, 1)).
+HISTORY_BUFFERS = ("history", "history_valid")
 GROUPS = {
     "variance": tuple(schema.variance_name(b.name) for b in schema.BUFFERS),
     "components": schema.RADIANCE_COMPONENTS,
     "materials": ("depth", "roughness", "metallic", "transmission"),
+    "history": HISTORY_BUFFERS,
 }
+# The history's condition channels: PU(history × this frame's exposure) × valid, then valid.
+HISTORY_CHANNELS = ("history.R", "history.G", "history.B", "history.valid")
+
+
+def groups(history: bool = False) -> list[str]:
+    """The groups of ``GROUPS`` a model's condition has: all but ``history`` unless it reads the past
+    (a model without it keeps the condition layout it was trained with, channel for channel)."""
+    return [g for g in GROUPS if history or g != "history"]
 
 
 def _pu(x: np.ndarray, scale: float) -> np.ndarray:
@@ -237,9 +253,11 @@ def _encoding(scale: float) -> schema.Encoding:
     return schema.Encoding(radiance=functools.partial(_pu, scale=scale), spp=True)
 
 
-def cond_names() -> list[str]:
-    """One name per condition channel: the feature table, ``spp``, then ``has.<group>``."""
-    return schema.names(_encoding(1.0)) + [f"has.{g}" for g in GROUPS]
+def cond_names(history: bool = False) -> list[str]:
+    """One name per condition channel: the feature table, ``spp``, the history's channels (a model that reads
+    the past), then ``has.<group>``."""
+    return (schema.names(_encoding(1.0)) + (list(HISTORY_CHANNELS) if history else [])
+            + [f"has.{g}" for g in groups(history)])
 
 
 def present(buffers: dict) -> dict[str, bool]:
@@ -248,14 +266,18 @@ def present(buffers: dict) -> dict[str, bool]:
 
 
 def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("albedo", "normal"),
-           clean_aux: bool = False, aux_device: str | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+           clean_aux: bool = False, aux_device: str | None = None, history: bool = False
+           ) -> tuple[np.ndarray, np.ndarray, float]:
     """(OIDN's input (3 + 3·len(aux), H', W'), the condition (C, H', W'), the exposure): float32, padded
     at the bottom and right to a multiple of 16 as OIDN pads. A group the input lacks is dropped whole.
     ``clean_aux``: OIDN's input has albedo and normal prefiltered by OIDN's aux networks (the base is a
     ``_calb_cnrm`` network), on the torch device ``aux_device`` if given (else pyoidn's); the condition keeps
-    them as rendered."""
-    have = present(buffers)
-    keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())}
+    them as rendered. ``history``: the condition of a model that reads the past (``cond_names(True)``), its
+    history channels from ``buffers``' ``history``/``history_valid`` (``history_channels``); without it the
+    history buffers are ignored."""
+    have = {g: h for g, h in present(buffers).items() if g in groups(history)}
+    keep = {k: v for k, v in buffers.items() if not any(k in GROUPS[g] and not h for g, h in have.items())
+            and (history or k not in HISTORY_BUFFERS)}
     scale = autoexposure(keep["color"])
     missing = [a for a in aux if a not in keep]
     if missing:
@@ -268,12 +290,26 @@ def inputs(buffers: dict[str, np.ndarray], spp: int, aux: tuple[str, ...] = ("al
         net_aux = list(prefilter_aux_twin(keep["albedo"], keep["normal"], aux_device))
     x = network_input(keep["color"], *net_aux, scale=scale)[0].numpy()
     cond = schema.encode(keep, _encoding(scale), spp)
+    if history:
+        cond = np.concatenate([cond, history_channels(keep.get("history"), keep.get("history_valid"), scale,
+                                                      cond.shape[1:])], 0)
     flags = np.broadcast_to(np.array([float(h) for h in have.values()], np.float32)[:, None, None],
-                            (len(GROUPS), *cond.shape[1:]))
+                            (len(have), *cond.shape[1:]))
     cond = np.concatenate([cond, flags], 0)
     H, W = cond.shape[1:]
     cond = np.pad(cond, ((0, 0), (0, -H % ALIGNMENT), (0, -W % ALIGNMENT)))
     return x, cond.astype(np.float32), scale
+
+
+def history_channels(history: np.ndarray | None, valid: np.ndarray | None, scale: float,
+                     size: tuple[int, int]) -> np.ndarray:
+    """(4, H, W) float32: the warped previous output encoded as the other radiance conditions (PU of it at
+    this frame's exposure ``scale``, so the network compares it with this frame's colour in one space), zero
+    where it is not valid, then the validity; all zero without a history (the first frame)."""
+    if history is None:
+        return np.zeros((len(HISTORY_CHANNELS), *size), np.float32)
+    keep = (np.asarray(valid, np.float32).reshape(size) > 0).astype(np.float32)
+    return np.concatenate([np.moveaxis(_pu(history, scale), 2, 0) * keep, keep[None]], 0).astype(np.float32)
 
 
 # ---- OIDN's UNet ----------------------------------------------------------------------------------
@@ -504,10 +540,11 @@ class ControlledOIDN(nn.Module):
 
     multiple = ALIGNMENT
 
-    def __init__(self, base: UNet, cond_channels: int, control: bool = True):
+    def __init__(self, base: UNet, cond_channels: int, control: bool = True, history: bool = False):
+        """``history``: the condition is ``cond_names(True)`` (the model reads the past)."""
         super().__init__()
         self.base = base.requires_grad_(False).eval()
-        self.cond_channels = int(cond_channels)
+        self.cond_channels, self.history = int(cond_channels), bool(history)
         self.control = ControlModule(base, self.cond_channels + 3) if control else None
 
     def train(self, mode: bool = True):
@@ -613,9 +650,11 @@ def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, network: s
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
         atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
+    # ``history`` only where true: the model.json of a model that does not read the past stays as it was
     weights.save(folder, "oidn_control", model.control.state_dict(), {
         "base": "base.tza", "base_network": network, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
-        "cond_channels": cond_names(), "spp": spps, "formulation": form.record(), **record}, weights="control.safetensors")
+        "cond_channels": cond_names(model.history), **({"history": True} if model.history else {}), "spp": spps,
+        "formulation": form.record(), **record}, weights="control.safetensors")
 
 
 def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
@@ -624,9 +663,38 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
     meta = weights.read_record(folder, "oidn_control", "run `make train SPP=any`")
     blob = (folder / meta["base"]).read_bytes()
     weights.check_sha256(blob, meta["base_sha256"], f"{folder / meta['base']}: the base", "restore it or retrain")
-    if meta["cond_channels"] != cond_names():
+    history = reads_history(meta)
+    if meta["cond_channels"] != cond_names(history):
         raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
-                              f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names())}); retrain")
-    model = ControlledOIDN(UNet.from_tza(read_tza(blob, str(folder / meta["base"]))), len(cond_names()))
+                              f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names(history))}); "
+                              "retrain")
+    model = ControlledOIDN(UNet.from_tza(read_tza(blob, str(folder / meta["base"]))), len(cond_names(history)),
+                           history=history)
     model.control.load_state_dict({k: v.float() for k, v in weights.load_tensors(folder / "control.safetensors").items()})
     return model.to(device).eval(), meta
+
+
+def reads_history(meta: dict) -> bool:
+    """Whether a model (its model.json) reads the past: its condition has the history channels."""
+    return bool(meta.get("history", False))
+
+
+def widen_control(state: dict[str, torch.Tensor], layout: Layout, x_channels: int, old: list[str], new: list[str]
+                  ) -> dict[str, torch.Tensor]:
+    """A Control Module's weights trained on the condition ``old`` (channel names) for the condition ``new`` (a
+    superset): its first convolution's column of each input channel moved to where ``new`` puts it, the new
+    channels' columns zero, so the module's output is what it was whatever the new channels hold (a warm start
+    that begins at the model it starts from). The first convolution reads x ⊕ cond ⊕ z_t."""
+    gone = [n for n in old if n not in new]
+    if gone:
+        raise CheckpointError(f"the new condition lacks channels the model reads: {', '.join(gone[:4])}")
+    key = f"encoder.{layout.first}.weight"
+    w = state[key]
+    z = w.shape[1] - x_channels - len(old)
+    cols = lambda names: [f"x.{i}" for i in range(x_channels)] + list(names) + [f"z.{i}" for i in range(z)]  # noqa: E731
+    before, after = cols(old), cols(new)
+    wide = w.new_zeros(w.shape[0], len(after), *w.shape[2:])
+    for j, name in enumerate(after):
+        if name in before:
+            wide[:, j] = w[:, before.index(name)]
+    return {**state, key: wide}

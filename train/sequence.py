@@ -10,6 +10,10 @@ temporal filter of ``pipeline.temporal`` blends it with the previous output brou
     out_t = w · y_t + (1 − w) · clamp(warp(out_{t−1}))        (w: ``--temporal-weight``, default
                                                               ``eval.temporal_weight``)
 
+A model folder that reads the past (its model.json ``history``, ``diffusion.history``) needs no filter: it
+is given its own previous output warped into this frame, with the validity mask, as condition channels
+(``Denoiser.denoise(history=...)``), and its output is the frame's output. The summary line says which ran.
+
 The motion needs, in every EXR, the standard header attributes ``worldToCamera`` and ``worldToNDC``
 (``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes) and a depth
 channel ``Z`` (camera-space z). A frame without them is denoised alone, and the command says so in one
@@ -81,31 +85,45 @@ def frame_geometry(path: Path, buffers: dict) -> tuple[motion.Camera | None, str
         return None, str(exc).removeprefix(f"{path}: ")
 
 
-def blend(y: np.ndarray, cam, buffers: dict, prev: Seen | None, weight: float) -> tuple[np.ndarray, float | None]:
-    """(this frame's output, the fraction of its pixels that took history; None without history)."""
+def history_of(cam, buffers: dict, prev: Seen | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the previous output warped into this frame, its validity), None without a previous frame or motion."""
     if prev is None or cam is None or prev.camera is None:
-        return y, None
+        return None
     xy, valid = motion.reproject(buffers["depth"][..., 0], cam, prev.camera, depth_prev=prev.depth,
                                  normal_t=buffers.get("normal"), normal_prev=prev.normal)
-    return temporal.blend_history(y, motion.warp(prev.output, xy, valid), valid, weight), float(valid.mean())
+    return motion.warp(prev.output, xy, valid), valid
+
+
+def blend(y: np.ndarray, history: tuple[np.ndarray, np.ndarray] | None, weight: float
+          ) -> tuple[np.ndarray, float | None]:
+    """(this frame's output, the fraction of its pixels that took history; None without history)."""
+    if history is None:
+        return y, None
+    warped, valid = history
+    return temporal.blend_history(y, warped, valid, weight), float(valid.mean())
 
 
 def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, device: str | None, precision: str,
                        seed: int | None):
-    """(buffers -> HDR, the weights' name) of ``method``: ours (the model folder), or OIDN's final-frame mode."""
+    """((buffers, history) -> HDR, the weights' name, whether it reads the history itself) of ``method``: ours
+    (the model folder; it reads the history where its model.json says so), or OIDN's final-frame mode."""
     from . import oidn
     from .infer import load_denoiser, weights_text
     from .model import find_run
 
     if method == "oidn_prefilter":
-        return (lambda b: oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True),
-                "pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN")
+        return (lambda b, _: oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True),
+                "pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN", False)
     if method != "ours":
         raise TrainError(f"--sequence runs --method ours or oidn_prefilter, not {method}")
     folder = model or find_run(cfg, spp)
     den = load_denoiser(folder, device or cfg.diffusion.device, False, precision)
-    return (lambda b: den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed),
-            weights_text(folder, den.meta))
+    learned = den.history
+
+    def run(b, history):
+        return den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed,
+                           history=history if learned else None)
+    return run, weights_text(folder, den.meta), learned
 
 
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
@@ -130,24 +148,31 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     if method == "oidn_prefilter" and not {"albedo", "normal"} <= first.keys():
         raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {files[0][1]} has only "
                          f"{', '.join(sorted(first))}; use --method ours")
-    run, weights = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
+    run, weights, learned = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     prev, took, alone, t0 = None, [], "", time.perf_counter()
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
         buffers = read_layers(path)
-        y = run(buffers)
         cam, why = frame_geometry(path, buffers)
         alone = alone or (f"{path}: {why}" if cam is None else "")
-        hdr, valid = blend(y, cam, buffers, prev, weight)
+        history = history_of(cam, buffers, prev)
+        if learned:     # the model reads its own previous output: no filter after it
+            hdr = run(buffers, history)
+            valid = None if history is None else float(history[1].mean())
+        else:
+            hdr, valid = blend(run(buffers, None), history, weight)
         if valid is not None:
             took.append(valid)
         out.parent.mkdir(parents=True, exist_ok=True)
+        temporal_record = {"learned": True} if learned else {"weight": weight}
         write_output(out, hdr, {"image": "denoised", "source": str(path), "spp": int(spp), "method": method,
-                                "weights": weights, "temporal": {"weight": weight, "history_fraction": valid}})
+                                "weights": weights, "temporal": {**temporal_record, "history_fraction": valid}})
         prev = Seen(hdr, cam, buffers["depth"][..., 0] if cam is not None else None,
                     buffers.get("normal") if cam is not None else None)
     if alone:
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
-    print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {method} + temporal filter, weight {weight:g}; "
+    how = (f"{method} reading its own warped previous output (learned history)" if learned
+           else f"{method} + temporal filter, weight {weight:g}")
+    print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "
           f"history on {len(took)} of {len(files) - 1} frames"
           + (f", {100 * float(np.mean(took)):.0f} % of their pixels" if took else "")
           + f") with {weights} in {time.perf_counter() - t0:.1f} s -> {out_pattern}", flush=True)

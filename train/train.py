@@ -43,9 +43,21 @@ from mcdenoise.pipeline.store import sha256
 from mcdenoise.pipeline.weights import read_tza
 
 from . import oidn
-from .data import Crops, StoreSource
+from .data import Crops, StoreSource, pack_keys
 from .loss import relative_loss
-from .model import FORMAT, NETWORK, ControlledOIDN, UNet, cond_names, load, network_output, run_dir, save
+from .model import (
+    FORMAT,
+    NETWORK,
+    ControlledOIDN,
+    UNet,
+    cond_names,
+    load,
+    network_output,
+    reads_history,
+    run_dir,
+    save,
+    widen_control,
+)
 from .sampler import Formulation, sample, snr_weight
 
 # The σ scales a fit may find: the samples' spread within a factor 100 of the error either way (the shipped
@@ -202,9 +214,11 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
     d = cfg.diffusion
     init = Path(d.init) if d.init else None
     # the base's network: a warm start keeps its model's
-    network = (weights.read_record(init, "oidn_control", "").get("base_network", NETWORK) if init is not None
-               else d.base_network)
-    source = StoreSource(cfg, network)
+    init_meta = weights.read_record(init, "oidn_control", "") if init is not None else {}
+    network = init_meta.get("base_network", NETWORK) if init is not None else d.base_network
+    # a model that reads the past keeps reading it: a warm start from one needs no diffusion.history
+    history = d.history or reads_history(init_meta)
+    source = StoreSource(cfg, network, history)
     spps = source.spps(spp)
     rank, world = dist_info()
     folder = run_dir(cfg, spp)
@@ -212,9 +226,13 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
     says = not quiet and rank == 0
     start, blob, base_what, base_blend, form, train_steps, kept = base_and_start(cfg, init, device, says)
     torch.manual_seed(cfg.seed)         # the Control Module's initial weights
-    model = ControlledOIDN(UNet.from_tza(read_tza(blob, base_what)), len(cond_names())).to(device)
+    model = ControlledOIDN(UNet.from_tza(read_tza(blob, base_what)), len(cond_names(history)),
+                           history=history).to(device)
     if start is not None:
-        model.control.load_state_dict(start.control.state_dict())
+        state = start.control.state_dict()
+        if history and not start.history:   # the history's columns start at zero: epoch 0 is the start's model
+            state = widen_control(state, model.control.layout, model.base.in_channels, cond_names(), cond_names(True))
+        model.control.load_state_dict(state)
     params = model.trainable_parameters()
     opt = torch.optim.AdamW(params, lr=d.lr, weight_decay=d.weight_decay)
     fingerprint = {"spp": str(spp), "seed": cfg.seed, "base_sha256": hashlib.sha256(blob).hexdigest(),
@@ -222,7 +240,9 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
                    **({"init": str(init), "init_sha256": sha256(init / "control.safetensors")} if init is not None
                       else {}),
                    "formulation": form.record(), "train_steps": train_steps,
-                   **{k: getattr(d, k) for k in FINGERPRINT_KEYS}}
+                   **{k: getattr(d, k) for k in FINGERPRINT_KEYS},
+                   # only with history: the fingerprint of a run without it stays what it was (it still resumes)
+                   **({"history": True, "history_dropout": d.history_dropout} if history else {})}
     return Run(cfg, folder.name, folder, source, spps, device, rank, world, says, autocast_dtype(d.precision, device),
                model, blob, base_what, network, base_blend, form, train_steps, kept, params, opt,
                make_ema(model.control, d.ema), fingerprint)
@@ -307,10 +327,12 @@ def load_data(run: Run) -> Data:
     model wrapped in DDP under torchrun."""
     t = time.perf_counter()
     d = run.cfg.diffusion
-    frames = len(run.source.train_keys) + sum(len(keys) for _, keys in run.source.extra)
+    frames = (len(pack_keys(run.source.train_keys, run.source.history))
+              + sum(len(pack_keys(keys, run.source.history)) for _, keys in run.source.extra))
     check_steps(frames * d.crops_per_frame // run.world, d.batch_size, frames, d.crops_per_frame)
     pack = run.source.train_pack(not run.says)
-    crops = Crops(pack, d.crop, d.crops_per_frame, run.cfg.seed, run.spps, dropout=d.dropout)
+    crops = Crops(pack, d.crop, d.crops_per_frame, run.cfg.seed, run.spps, dropout=d.dropout,
+                  history_dropout=d.history_dropout)
     per_rank = len(crops) // run.world
     check_steps(per_rank, d.batch_size, len(crops.frames), d.crops_per_frame)
     steps_per_epoch = per_rank // d.batch_size

@@ -1,0 +1,275 @@
+"""The model reads the past: the history condition (the previous output warped into this frame, its
+validity, ``has.history``), old models unchanged, the warm start from a model without it, and the packs."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.pipeline import motion, schema
+from mcdenoise.pipeline.errors import TrainError
+from mcdenoise.pipeline.store import FrameKey
+from mcdenoise.train.data import Crops
+from mcdenoise.train.history import previous_frames, warp_previous, with_history
+from mcdenoise.train.infer import load_denoiser
+from mcdenoise.train.model import (
+    HISTORY_CHANNELS,
+    SHIPPED_MODEL,
+    ControlledOIDN,
+    cond_names,
+    inputs,
+    load,
+    save,
+    to_pu,
+    widen_control,
+)
+from mcdenoise.train.sampler import Formulation
+
+from .helpers import TINY, cli, train_tiny
+
+# train/shipped's output on ``fixed_frame`` at 4 spp (seed 0, fp32 on the CPU), saved by the code before the
+# history condition existed (torch 2.13.0+cpu): a model without history must still give exactly this.
+SHIPPED_OUTPUT = Path(__file__).parent / "data" / "shipped_fixed_output.npy"
+
+
+def fixed_frame(seed: int = 3, size: tuple[int, int] = (24, 32)) -> dict[str, np.ndarray]:
+    """Every schema buffer of a (24, 32) frame from a seeded generator: a fixed input for comparisons."""
+    rng = np.random.default_rng(seed)
+    H, W = size
+    yy, xx = np.mgrid[0:H, 0:W] / max(H, W)
+    truth = np.stack([0.5 + 0.4 * np.sin(6 * xx), 0.5 + 0.4 * np.cos(4 * yy), 0.3 + 0.2 * xx * yy], -1)
+    out = {}
+    for b in schema.BUFFERS:
+        if b.name == "color":
+            v = truth * rng.gamma(2.0, 0.5, truth.shape)
+        elif b.radiance:
+            v = 0.2 * truth * rng.gamma(2.0, 0.5, truth.shape)
+        elif b.name == "normal":
+            v = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (H, W, 3))
+        elif b.name == "depth":
+            v = 1.0 + truth[..., :1]
+        else:
+            v = np.clip(truth[..., :b.size] + 0.1 * rng.standard_normal((H, W, b.size)), 0, 1)
+        out[b.name] = np.ascontiguousarray(v, dtype=np.float32)
+        out[schema.variance_name(b.name)] = np.full(v.shape, 0.01, np.float32)
+    return out
+
+
+def shifted_history(frame: dict, valid_rows: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """A history for ``fixed_frame``: its colour × 0.9, valid on the first ``valid_rows`` rows only."""
+    valid = np.zeros(frame["color"].shape[:2], bool)
+    valid[:valid_rows] = True
+    return frame["color"] * 0.9, valid
+
+
+def test_a_model_without_history_keeps_its_condition_and_its_output_bit_for_bit():
+    frame = fixed_frame()
+    assert len(cond_names()) == 44 and not any(n.startswith(("history", "has.history")) for n in cond_names())
+    den = load_denoiser(SHIPPED_MODEL, "cpu", precision="fp32")
+    assert not den.history and not den.model.history
+    np.testing.assert_array_equal(den.denoise(frame, spp=4, seed=0), np.load(SHIPPED_OUTPUT))
+    # history buffers in the input change nothing for a condition without history
+    plain = inputs(frame, 4, clean_aux=False)
+    given = inputs(with_history(frame, shifted_history(frame)), 4, clean_aux=False)
+    for a, b in zip(plain, given):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(TrainError, match="does not read history"):
+        den.denoise(frame, spp=4, history=shifted_history(frame))
+
+
+def test_the_history_channels_are_the_warped_output_at_this_frames_exposure_and_the_flag():
+    frame = fixed_frame()
+    names = cond_names(True)
+    assert names[-8:] == [*HISTORY_CHANNELS, "has.variance", "has.components", "has.materials", "has.history"]
+    history = shifted_history(frame)
+    x0, plain, scale = inputs(frame, 4)
+    x, cond, s = inputs(with_history(frame, history), 4, history=True)
+    _, alone, _ = inputs(frame, 4, history=True)
+    assert s == scale and np.array_equal(x, x0) and cond.shape == (len(names), 32, 32)
+    idx = [names.index(n) for n in HISTORY_CHANNELS]
+    hist, valid = history
+    expected = to_pu(torch.from_numpy(hist * scale)).numpy() * valid[..., None]
+    np.testing.assert_array_equal(cond[idx[:3], :24, :32], np.moveaxis(expected, 2, 0))
+    np.testing.assert_array_equal(cond[idx[3], :24, :32], valid.astype(np.float32))
+    assert np.all(cond[names.index("has.history"), :24, :32] == 1)
+    # the first frame (no history): history channels and flag zero, every other channel as without history
+    assert not alone[idx + [names.index("has.history")]].any()
+    others = [j for j, n in enumerate(names) if n not in (*HISTORY_CHANNELS, "has.history")]
+    np.testing.assert_array_equal(alone[others], plain)
+    np.testing.assert_array_equal(cond[others], plain)
+
+
+def warm_started(folder: Path) -> Path:
+    """train/shipped widened to read history (the history's weights zero), saved as a model folder."""
+    shipped, meta = load(SHIPPED_MODEL)
+    model = ControlledOIDN(shipped.base, len(cond_names(True)), history=True)
+    model.control.load_state_dict(widen_control(shipped.control.state_dict(), model.control.layout,
+                                                model.base.in_channels, cond_names(), cond_names(True)))
+    blob = (SHIPPED_MODEL / meta["base"]).read_bytes()
+    save(folder, model, blob, meta["base_what"], meta["base_network"], Formulation.from_record(meta["formulation"]),
+         meta["spp"], {k: meta[k] for k in ("strength", "control_without_groups", "sigma")})
+    return folder
+
+
+def test_a_warm_start_from_a_model_without_history_begins_at_that_model(tmp_path):
+    folder = warm_started(tmp_path / "temporal")
+    record = json.loads((folder / "model.json").read_text())
+    assert record["history"] is True and record["cond_channels"] == cond_names(True)
+    temporal = load_denoiser(folder, "cpu", precision="fp32")
+    shipped = load_denoiser(SHIPPED_MODEL, "cpu", precision="fp32")
+    assert temporal.history and temporal.model.history
+    frame = fixed_frame()
+    reference = shipped.denoise(frame, spp=4, seed=0)
+    # zero weights on the new columns: the history cannot move the output, and it is train/shipped's up to the
+    # order of the first convolution's float32 sums, which changes with its width (measured: 1.6e-6 relative at
+    # most, after the inverse PU transfer, whose slope grows with the radiance, amplified it; 1e-5 is that
+    # round-off with margin, far below any learned effect)
+    outputs = [temporal.denoise(frame, spp=4, seed=0, history=h)
+               for h in (None, shifted_history(frame), shifted_history(frame, 24))]
+    for out in outputs:
+        np.testing.assert_allclose(out, reference, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(out, outputs[0], rtol=1e-6, atol=1e-7)
+
+
+def test_widening_moves_each_column_to_its_name_and_zeroes_the_new_ones():
+    layout_first = "enc_conv1a"
+    old, new = ["a", "b"], ["a", "h", "b", "has.h"]
+    w = torch.arange(2 * (1 + 2 + 3) * 9, dtype=torch.float32).reshape(2, 6, 3, 3)
+    layout = type("L", (), {"first": layout_first})()
+    out = widen_control({f"encoder.{layout_first}.weight": w, "other": torch.ones(1)}, layout, 1, old, new)
+    wide = out[f"encoder.{layout_first}.weight"]
+    assert wide.shape == (2, 8, 3, 3) and torch.equal(out["other"], torch.ones(1))
+    for j_new, j_old in ((0, 0), (1, 1), (3, 2), (5, 3), (6, 4), (7, 5)):    # x.0, a, b, z.0..z.2
+        assert torch.equal(wide[:, j_new], w[:, j_old])
+    assert not wide[:, 2].any() and not wide[:, 4].any()                   # h, has.h
+
+
+def test_previous_frames_pair_consecutive_frames_of_a_scene():
+    keys = [FrameKey("a", 0), FrameKey("a", 1), FrameKey("a", 2), FrameKey("b", 0), FrameKey("c", 1)]
+    assert previous_frames(keys) == {FrameKey("a", 1): FrameKey("a", 0), FrameKey("a", 2): FrameKey("a", 1)}
+
+
+def test_a_still_camera_warps_the_previous_output_onto_itself():
+    cam = motion.Camera(motion.look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
+    frame = fixed_frame()
+    frame["depth"][:] = 3.0
+    frame["depth"][:, :4] = 0.0                                    # background: no history there
+    prev_out = np.random.default_rng(0).random((24, 32, 3)).astype(np.float32)
+    warped, valid = warp_previous(prev_out, frame, frame, cam, cam)
+    assert valid.dtype == bool and not valid[:, :4].any() and valid[:, 4:].all()
+    np.testing.assert_array_equal(warped[valid], prev_out[valid])   # pixel centres land on pixel centres
+    assert not warped[~valid].any()
+
+
+def synthetic_pack(frame: dict, history) -> dict[str, torch.Tensor]:
+    x, cond, scale = inputs(with_history(frame, history), 4, history=True)
+    target = np.pad(np.moveaxis(frame["color"], 2, 0), ((0, 0), (0, 8), (0, 0)))
+    return {"x": torch.from_numpy(x)[None].half(), "cond": torch.from_numpy(cond)[None].half(),
+            "scale": torch.tensor([scale]), "spp": torch.tensor([4], dtype=torch.int32),
+            "frame": torch.tensor([0], dtype=torch.int32), "target": torch.from_numpy(target)[None].float()}
+
+
+def test_history_crops_augment_it_as_a_colour_and_drop_it_whole():
+    frame = fixed_frame()
+    valid = np.ones((24, 32), bool)
+    pack = synthetic_pack(frame, (frame["color"], valid))           # the history is this frame's colour
+    names = cond_names(True)
+    idx = [names.index(n) for n in HISTORY_CHANNELS]
+    flag = names.index("has.history")
+    keep, drop = (Crops(pack, 16, 8, seed=1, dropout=0.0, history_dropout=p) for p in (0.0, 1.0))
+    for i in range(len(keep)):
+        a, b = keep[i], drop[i]
+        # flips, transposes and the colour permutation move the history with OIDN's colour input
+        np.testing.assert_array_equal(a["cond"][idx[:3]].numpy(), a["x"][:3].numpy())
+        # valid wherever the frame is (the padding to 32 rows is 0 in every channel, the flag's too)
+        assert torch.equal(a["cond"][idx[3]], a["cond"][flag]) and a["cond"][flag].max() == 1
+        assert not b["cond"][idx + [flag]].any()
+        others = [j for j in range(len(names)) if j not in idx + [flag]]
+        assert torch.equal(a["cond"][others], b["cond"][others]) and torch.equal(a["x"], b["x"])
+
+
+def test_a_pack_without_history_has_no_history_group():
+    frame = fixed_frame()
+    x, cond, scale = inputs(frame, 4)
+    pack = {"x": torch.from_numpy(x)[None].half(), "cond": torch.from_numpy(cond)[None].half(),
+            "scale": torch.tensor([scale]), "spp": torch.tensor([4], dtype=torch.int32),
+            "frame": torch.tensor([0], dtype=torch.int32), "target": torch.zeros(1, 3, 32, 32)}
+    crops = Crops(pack, 16, 2, seed=0, history_dropout=1.0)
+    assert not crops.history and set(crops.groups) == {"variance", "components", "materials"}
+    assert crops[0]["cond"].shape[0] == len(cond_names())
+
+
+# ---- on the tiny store: the history pack, a temporal run through the command line, its sequence --------
+
+
+@pytest.fixture(scope="module")
+def temporal_run(cleaned, tmp_path_factory):
+    store, _ = cleaned
+    runs = tmp_path_factory.mktemp("temporal") / "runs"
+    proc = train_tiny("diffusion", store, runs, "diffusion.history=true", f"diffusion.init={SHIPPED_MODEL}",
+                      "diffusion.epochs=1", "diffusion.val_frames=1", "diffusion.batch_size=2",
+                      "diffusion.crops_per_frame=4", "diffusion.device=cpu", "diffusion.ema=0")
+    return store, runs, proc
+
+
+@pytest.mark.slow
+def test_the_history_pack_holds_frames_after_the_first_with_their_warped_history(temporal_run):
+    from safetensors import safe_open
+
+    from mcdenoise.pipeline.store import Store
+    store, runs, _ = temporal_run
+    path = runs / "pack" / "train_oidn_base_calb_history.safetensors"
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+        cond = f.get_tensor("cond")
+    frames = json.loads(meta["frames"])
+    train = Store(store).frames_with("train")
+    assert frames == [f"{k.scene}/{k.frame}" for k in train if k.frame >= 1] and frames
+    assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter"
+    names = cond_names(True)
+    assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history"), :24, :32] == 1)
+    valid = cond[:, names.index("history.valid"), :24, :32].float()
+    assert 0.5 < float(valid.mean()) <= 1.0                        # a small camera move: most pixels seen before
+    assert cond[:, [names.index(n) for n in HISTORY_CHANNELS[:3]], :24, :32].float().amax() > 0
+
+
+@pytest.mark.slow
+def test_a_temporal_run_trains_and_denoise_sequence_feeds_it_its_own_history(temporal_run, tmp_path):
+    from mcdenoise.pipeline.exr import read_header
+    store, runs, proc = temporal_run
+    run = runs / "diffusion_sppany"
+    record = json.loads((run / "model.json").read_text())
+    assert record["history"] is True and record["cond_channels"] == cond_names(True)
+    scene = sorted(p.name for p in (Path(store) / "scenes").iterdir())[0]
+    frames = str(Path(store) / "scenes" / scene / "###" / "s00.exr")
+    out = cli("denoise", "--sequence", frames, "--spp", "4", "--device", "cpu",
+              "--out", tmp_path / "out" / "f_###.exr", "--config", TINY, f"store={store}", f"runs={runs}")
+    assert "reading its own warped previous output (learned history)" in out.stdout, out.stdout
+    assert "history on 1 of 1 frames" in out.stdout, out.stdout
+    records = [read_header(tmp_path / "out" / f"f_{n:03d}.exr") for n in range(2)]
+    assert records[0]["temporal"] == {"learned": True, "history_fraction": None}
+    assert records[1]["temporal"]["learned"] and records[1]["temporal"]["history_fraction"] > 0.5
+    # the same command on a model without history: the per-frame model and the filter, as before
+    out = cli("denoise", "--sequence", frames, "--spp", "4", "--device", "cpu",
+              "--out", tmp_path / "old" / "f_###.exr")
+    assert "ours + temporal filter, weight" in out.stdout and "train/shipped" in out.stdout, out.stdout
+
+
+@pytest.mark.slow
+def test_the_sequence_evaluation_runs_the_model_with_its_own_history_as_ours_temporal(temporal_run, tmp_path):
+    from mcdenoise.evaluate.run import run_eval
+    from mcdenoise.pipeline.config import load_config
+    store, runs, _ = temporal_run
+    cfg = load_config(TINY, [f"store={store}", f"runs={runs}", "eval.methods=[ours]", "eval.device=cpu",
+                             "eval.sequence_methods=[ours, ours_filter, ours_temporal]", "eval.metrics=[l1, psnr]",
+                             "eval.equal_time=none", "eval.spp=[4]", "eval.stress=false"])
+    rows = run_eval(cfg, out=str(tmp_path / "report"), quiet=True)["sequences"]["test"]["spp"]["4"]["methods"]
+    assert all(r["available"] for r in rows.values()), rows
+    assert "diffusion_sppany" in rows["ours_temporal"]["checkpoint"]
+    ours, learned, filtered = (rows[n]["per_frame"] for n in ("ours", "ours_temporal", "ours_filter"))
+    for a, b, c in zip(ours, learned, filtered):
+        if a["index"] == 0:                    # no history yet: the model's single-frame output
+            assert b["metrics"] == a["metrics"] == c["metrics"]
+        else:                                  # its own previous output, warped, changes what it makes
+            assert b["metrics"]["psnr"] != a["metrics"]["psnr"] and "instability" in b["metrics"]
