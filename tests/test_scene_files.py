@@ -73,23 +73,46 @@ def test_readme_lists_every_validation_scene():
         assert f"configs/scenes/{path.name}" in command.group(1), f"README: {path.name} not in the validation command"
 
 
+# Loads every scene in a fresh process, as render-scene does (its frames render in worker processes): Mitsuba's
+# own OpenEXR thread pool, which reads metal_dome's texture, can deadlock in a process whose earlier tests
+# used other EXR and OIDN threads.
+_LOAD = """
+import json, sys
+import numpy as np
+from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+from mcdenoise.render.frame import external_sensor, load_external_scene
+mi = import_mitsuba("llvm_ad_rgb")
+out = {}
+for path in sys.argv[1:]:
+    scene = load_external_scene(mi, path)
+    mats = [np.asarray(mi.traverse(c)["to_world"].matrix.numpy()).reshape(4, 4).tolist() for c in scene.sensors()]
+    ours = external_sensor(mi, scene, None, None)
+    out[path] = {"sensors": mats, "ours": np.asarray(mi.traverse(ours)["to_world"].matrix.numpy()).reshape(4, 4).tolist(),
+                 "film": list(ours.film().size())}
+print(json.dumps(out))
+"""
+
+
 @pytest.mark.slow
 def test_every_scene_loads_and_render_scene_uses_the_first_sensor():
-    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
-    from mcdenoise.render.frame import external_sensor, load_external_scene
+    import json
+    import subprocess
+    import sys
 
-    mi = import_mitsuba("llvm_ad_rgb")
+    proc = subprocess.run([sys.executable, "-c", _LOAD, *map(str, ALL)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    loaded = json.loads(proc.stdout.strip().splitlines()[-1])
     for path in ALL:
-        scene = load_external_scene(mi, str(path))
-        cams = scene.sensors()
+        got = loaded[str(path)]
+        cams = [np.asarray(m) for m in got["sensors"]]
         assert len(cams) == len(sensors(path)), path.name
         if not path.name.startswith("val_"):
             continue
-        start, end = (np.asarray(mi.traverse(c)["to_world"].matrix.numpy()).reshape(4, 4) for c in cams)
+        start, end = cams
         origin = vec(sensors(path)[0].find("transform/lookat").get("origin"))
         assert np.allclose(start[:3, 3], origin, atol=1e-4), f"{path.name}: scene.sensors()[0] is not the first sensor"
         assert not np.allclose(start, end), path.name
-        ours = external_sensor(mi, scene, None, None)
-        matrix = np.asarray(mi.traverse(ours)["to_world"].matrix.numpy()).reshape(4, 4)
+        matrix = np.asarray(got["ours"])
         assert np.allclose(matrix[:3, 3], origin, atol=1e-4), f"{path.name}: render-scene does not render the start pose"
-        assert tuple(ours.film().size()) == (128, 128)
+        assert tuple(got["film"]) == (128, 128)
