@@ -84,7 +84,7 @@ def test_inputs_pad_like_oidn_and_mark_missing_groups():
     ref = network_input(buffers["color"], buffers["albedo"], buffers["normal"], scale=scale)[0].numpy()
     np.testing.assert_array_equal(x, ref)
     names = tmodel.cond_names()
-    for g in tmodel.GROUPS:
+    for g in tmodel.groups():
         assert float(cond[names.index(f"has.{g}")].max()) == 0.0
     assert float(cond[names.index("spp"), 0, 0]) == pytest.approx(2 / 6)
     buffers["color.variance"] = np.ones((21, 35, 3), np.float32)   # a partial group counts as missing
@@ -213,7 +213,7 @@ def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
             assert torch.allclose(full_a[rgb].double().sum((1, 2))[perm], full_b[rgb].double().sum((1, 2)), rtol=1e-5)
     dropped = data.Crops(pack, 16, 4, 0, augment=False, dropout=1.0)[0]
     names_c = tmodel.cond_names()
-    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in tmodel.GROUPS)
+    assert all(float(dropped["cond"][names_c.index(f"has.{g}")].max()) == 0 for g in tmodel.groups())
     assert float(dropped["cond"][names_c.index("color.variance")].abs().max()) == 0
     assert float(dropped["cond"][names_c.index("color.R")].abs().max()) > 0
 

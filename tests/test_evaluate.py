@@ -78,7 +78,8 @@ class FakeDiffusion:
         self.folder, self.device, self.base_only = Path(folder), device, base_only
         self.formulation, self.meta = Formulation(steps=27), {"base_what": "a box blur"}
 
-    def denoise(self, buffers, spp, skip, seed, steps=None, start=None, samples=1, with_std=False, strength=None):
+    def denoise(self, buffers, spp, skip, seed, steps=None, start=None, samples=1, with_std=False, strength=None,
+                history=None):
         FakeDiffusion.calls.append({"spp": spp, "skip": skip, "seed": seed, "base_only": self.base_only,
                                     "start": start, "keys": sorted(buffers)})
         time.sleep(FAKE_DENOISE_SECONDS * (27 - (skip or 0)) / 27)
