@@ -344,13 +344,15 @@ def write_image(path: Path, arrays: dict[str, np.ndarray], constants: dict[str, 
     return record
 
 
-def write_output(path: Path, hdr: np.ndarray, meta: dict, layers: dict[str, np.ndarray] | None = None) -> dict:
+def write_output(path: Path, hdr: np.ndarray, meta: dict, layers: dict[str, np.ndarray] | None = None,
+                 camera=None) -> dict:
     """Write an image for people (a denoiser's HDR result, with its zero variance and ``layers``): every
     channel stored whatever its values, ZIP, the exact encoding, so that any EXR tool (OpenEXR 2.x and
     later, OpenImageIO, Blender, Nuke) shows R, G, B, even of a black frame; this project reads it as any
-    of its images."""
+    of its images. ``camera``: the input's, kept as ``worldToCamera``/``worldToNDC`` so that a compositor
+    (or the next ``denoise --sequence``) can still reproject the result."""
     return write_image(path, {"color": hdr, "color.variance": np.zeros_like(hdr)}, meta=meta, omit_constant=False,
-                       layers=layers, encoding="exact")
+                       layers=layers, encoding="exact", camera=camera)
 
 
 def beauty_view(color: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.exr import read_header, read_layers
+from mcdenoise.pipeline.exr import read_camera, read_header, read_layers
+from mcdenoise.pipeline.motion import exr_matrices
 from mcdenoise.train.sequence import output_path, sequence_files
 
 from .helpers import ORBIT_SCENE, TINY, cli, write_rgb_exr
@@ -59,6 +60,12 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     colour = lambda path: read_layers(path)["color"]                  # noqa: E731
     assert np.array_equal(colour(tmp_path / "one" / "f_001.exr"), colour(single))
     assert not np.array_equal(colour(tmp_path / "out" / "f_001.exr"), colour(single))
+    # the outputs keep the input's camera: a compositor (or another pass) can still reproject them
+    for result in (tmp_path / "out" / "f_002.exr", single):
+        source = frames.replace("###", "002" if result.name == "f_002.exr" else "001")
+        kept, given = exr_matrices(read_camera(result)), exr_matrices(read_camera(source))
+        for name in kept:       # read back from float32, rebuilt in float64, written as float32: a few ulps
+            np.testing.assert_allclose(kept[name], given[name], rtol=1e-5, atol=1e-6)
     # the same frames as plain R, G, B files: no camera, no depth, so frame by frame, said once
     plain = tmp_path / "plain"
     plain.mkdir()

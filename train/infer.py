@@ -259,7 +259,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
     samples = cfg.diffusion.samples if samples is None else int(samples)
     if samples < 1:
         raise TrainError(f"--samples {samples}: expected at least 1")
-    buffers, source = _read_input(cfg, frame, exr, spp)
+    buffers, source, camera = _read_input(cfg, frame, exr, spp)
     if spp is None:
         spp, how = exr_spp(Path(exr))
         if not quiet:
@@ -277,7 +277,7 @@ def cmd_denoise(cfg: Config, spp: int, frame: str | None, exr: str | None, out: 
             "weights": weights_text(folder, den.meta), "skip": den.formulation.skip if skip is None else skip,
             "steps": steps, "samples": samples, **_outcome(den), "ensemble": ensemble,
             "strength": den.strength if strength is None else strength, "seconds": round(seconds, 3)}
-    write_output(Path(out), hdr, meta, layers={"std": std})
+    write_output(Path(out), hdr, meta, layers={"std": std}, camera=camera)
     if not quiet:
         print(_denoised_line(den, buffers, meta, hdr.shape, out), flush=True)
     return 0
@@ -340,7 +340,7 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     if (frame is None) == (exr is None):
         raise TrainError("give exactly one of --frame SCENE/FRAME or --exr FILE")
     check_output(out, exr)
-    buffers, source = _read_input(cfg, frame, exr, spp)
+    buffers, source, camera = _read_input(cfg, frame, exr, spp)
     # OIDN spreads a NaN/Inf over its receptive field: lost samples count as 0, as in every denoiser here
     buffers = {k: np.array(v, dtype=np.float32, copy=True) for k, v in buffers.items()}
     repaired = sum(repair_nonfinite(buffers).values())
@@ -374,7 +374,7 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     meta = {"image": "denoised", "source": source, "method": method, "weights": origin,
             "inputs": ["color", *layers], "ensemble": ensemble, "repaired_nonfinite": repaired,
             "seconds": round(seconds, 3)}
-    write_output(Path(out), hdr, meta)
+    write_output(Path(out), hdr, meta, camera=camera)
     if not quiet:
         print(f"denoised {source} ({hdr.shape[1]}x{hdr.shape[0]}; {', '.join(['colour', *layers])}) with OIDN "
               f"({origin}) in {seconds:.2f} s -> {out}"
@@ -382,22 +382,32 @@ def cmd_denoise_oidn(cfg: Config, frame: str | None, exr: str | None, out: str, 
     return 0
 
 
-def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None) -> tuple[dict, str]:
-    """The buffers of ``--frame SCENE/FRAME`` (at ``spp``) or ``--exr FILE``, and how to name the source."""
+def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None) -> tuple[dict, str, object]:
+    """The buffers of ``--frame SCENE/FRAME`` (at ``spp``) or ``--exr FILE``, how to name the source, and its
+    camera (None where it records none), which the output keeps."""
     if exr is not None:
-        from mcdenoise.pipeline.exr import read_layers
+        from mcdenoise.pipeline.exr import read_camera, read_layers
         aliased: dict = {}
         buffers = read_layers(Path(exr), aliased)
         for name, channels in aliased.items():
             print(f"{exr}: {name} from {channels[0].rsplit('.', 1)[0]!r} ({', '.join(channels)})", flush=True)
         _warn_if_correlated(exr, buffers["color"])
-        return buffers, exr
+        try:
+            camera = read_camera(Path(exr))
+        except StoreError:      # most EXRs have no camera attributes: nothing to keep
+            camera = None
+        return buffers, exr, camera
     if spp is None:
         raise TrainError("--frame needs --spp (which of the store's sample counts to denoise)")
     from mcdenoise.pipeline.store import Store
 
     store, key = Store(cfg.store), _frame_key(frame)
-    return store.read(key.scene, key.frame, int(spp)), f"{store.root}/{frame}"
+    buffers = store.read(key.scene, key.frame, int(spp))
+    try:
+        camera = store.camera(key.scene, key.frame)
+    except StoreError:
+        camera = None
+    return buffers, f"{store.root}/{frame}", camera
 
 
 def _frame_key(frame: str) -> FrameKey:

@@ -165,7 +165,8 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         out.parent.mkdir(parents=True, exist_ok=True)
         temporal_record = {"learned": True} if learned else {"weight": weight}
         write_output(out, hdr, {"image": "denoised", "source": str(path), "spp": int(spp), "method": method,
-                                "weights": weights, "temporal": {**temporal_record, "history_fraction": valid}})
+                                "weights": weights, "temporal": {**temporal_record, "history_fraction": valid}},
+                     camera=cam)
         prev = Seen(hdr, cam, buffers["depth"][..., 0] if cam is not None else None,
                     buffers.get("normal") if cam is not None else None)
     if alone:
