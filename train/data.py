@@ -28,7 +28,7 @@ from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.weights import save_safetensors
 
-from .model import ALIGNMENT, GROUPS, cond_names, groups, inputs, to_pu
+from .model import ALIGNMENT, GROUPS, cond_layout, cond_names, groups, inputs, reads_history, to_pu
 
 # The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
 if TYPE_CHECKING:
@@ -225,7 +225,7 @@ class Crops(EpochItems):
                  augment: bool = True, dropout: float = DROPOUT, history_dropout: float = 0.0):
         self.pack, self.crop, self.per_frame, self.seed = pack, int(crop), int(per_frame), int(seed)
         self.augment, self.dropout, self.epoch = augment, float(dropout), 0
-        self.history = pack["cond"].shape[1] == len(cond_names(True))
+        self.history = reads_history(cond_layout(pack["cond"].shape[1]))
         self.drop = {g: float(history_dropout) if g == "history" else self.dropout for g in groups(self.history)}
         keep = torch.ones(len(pack["spp"]), dtype=torch.bool) if not spps else torch.isin(pack["spp"], torch.tensor(spps))
         self.items = torch.nonzero(keep).flatten().tolist()
