@@ -341,5 +341,5 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
         if not keys:
             raise StoreError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
         path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux, source.history)
-        print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
+        print(f"pack {split}: {len(pack_keys(keys, source.history))} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0
