@@ -599,8 +599,9 @@ class EvalConfig(Section):
         if self.bootstrap_resamples < 100:
             bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
         self.one_of(bad, "equal_time", ("render", "pool", "none"))
-        if not 0.0 < self.temporal_weight <= 1.0:
-            bad("temporal_weight", f"must be in (0, 1] (1: no history), got {self.temporal_weight}")
+        from .temporal import weight_problem  # the filter's own range and text, as its other entry points say it
+        if (why := weight_problem(self.temporal_weight)) is not None:
+            bad("temporal_weight", why)
         if self.sequence_fps <= 0:
             bad("sequence_fps", f"must be > 0, got {self.sequence_fps}")
 

@@ -11,7 +11,7 @@ from mcdenoise.pipeline import motion, schema
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.store import FrameKey
 from mcdenoise.train.data import Crops
-from mcdenoise.train.history import previous_frames, warp_previous, with_history
+from mcdenoise.train.history import previous_frames, with_history
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import (
     HISTORY_CHANNELS,
@@ -156,7 +156,7 @@ def test_a_still_camera_warps_the_previous_output_onto_itself():
     frame["depth"][:] = 3.0
     frame["depth"][:, :4] = 0.0                                    # background: no history there
     prev_out = np.random.default_rng(0).random((24, 32, 3)).astype(np.float32)
-    warped, valid = warp_previous(prev_out, frame, frame, cam, cam)
+    warped, valid = motion.warp_previous(prev_out, motion.View.of(cam, frame), motion.View.of(cam, frame))
     assert valid.dtype == bool and not valid[:, :4].any() and valid[:, 4:].all()
     np.testing.assert_array_equal(warped[valid], prev_out[valid])   # pixel centres land on pixel centres
     assert not warped[~valid].any()
