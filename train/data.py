@@ -8,9 +8,10 @@ training items from it: a random crop, OIDN's augmentation (flips, transposes, o
 of the colour channels for every colour-like channel and the target, one of the normal axes) and
 the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
 
-A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only frames t ≥ 1 of
-scenes with two or more frames, each with the history channels of ``train.history`` (OIDN's output of frame
-t−1 on the same stacks, warped into frame t); its crops lose the history with ``diffusion.history_dropout``.
+A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only the frames whose
+previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each with the history channels of
+``train.history`` (OIDN's output of frame t − 1 on the same stacks, warped into frame t); its crops lose the
+history with ``diffusion.history_dropout``.
 """
 from __future__ import annotations
 
@@ -96,7 +97,8 @@ def _store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, b
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
                history: bool = False) -> Path:
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
-    ``history``: frames t ≥ 1 with their history (``train.history.store_history``, on the same stacks)."""
+    ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), with their history
+    (``train.history.store_history``, on the same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
     prev_of = _previous_frames(keys, history)

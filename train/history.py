@@ -5,9 +5,10 @@ cameras, as a user's renderer would give them) with its validity mask; ``train.m
 In training the previous output is **OIDN's final-frame output** of frame t−1 (the same stacks as frame t's
 input), computed once when the pack is built. Why not the model's own output: that output depends on the
 weights being trained, so it would have to be recomputed every epoch (or the training unrolled over frames),
-and the pack could not be shared by runs; OIDN's output does not change, costs one OIDN pass per frame, and
-is what the model's output starts from (the Control Module corrects OIDN's estimate), so at inference, fed its
-own output, the model gets a history at least as good as the one it trained on. A frame without a previous
+and the pack could not be shared by runs; OIDN's output does not change, costs one OIDN pass per pack variant
+(``train.data.PACK_VARIANTS``: a (spp, stacks) input of the frame, up to 4 per frame) and two camera reads
+each, and is what the model's output starts from (the Control Module corrects OIDN's estimate), so at
+inference, fed its own output, the model gets a history at least as good as the one it trained on. A frame without a previous
 frame (t = 0) gets no history: its history channels and ``has.history`` are zero.
 """
 from __future__ import annotations
