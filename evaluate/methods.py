@@ -104,36 +104,37 @@ class Spec:
     strength: float | None = None     # percent in the name (strength50 = 0.5); None: the model's own
 
 
-def parse(name: str) -> Spec:
-    """``ours_large_skip1`` → Spec("ours", "large", skip=1); unknown names: ConfigError."""
+def parse(name: str, key: str = "eval.methods", also: tuple[str, ...] = ()) -> Spec:
+    """``ours_large_skip1`` → Spec("ours", "large", skip=1); unknown names: ConfigError naming the config ``key``
+    (and the names ``also`` valid there among the known ones)."""
     family = next((f for f in sorted(FAMILIES, key=len, reverse=True)
                    if name == f or name.startswith(f + "_")), None)
     if family is None:
-        raise ConfigError(f"eval.methods: unknown method {name!r} (known: {', '.join(FAMILIES)}, and "
+        raise ConfigError(f"{key}: unknown method {name!r} (known: {', '.join((*FAMILIES, *also))}, and "
                           "<ours|base_only>[_variant][_sN][_skipN][_kN][_noise|_render|_estimate][_strengthN])")
     tokens = [t for t in name[len(family):].split("_") if t]
     if family not in _DIFFUSION and any(not re.fullmatch(r"x\d+", t) for t in tokens):
-        raise ConfigError(f"eval.methods: {name!r}: only ours and base_only take options other than xN")
+        raise ConfigError(f"{key}: {name!r}: only ours and base_only take options other than xN")
     fields: dict = {}
     for i, tok in enumerate(tokens):
         m = _TOKEN.match(tok)
         if m is None:
             if i != 0 or not re.fullmatch(r"[a-z][a-z0-9-]*", tok):
-                raise ConfigError(f"eval.methods: {name!r}: unknown option {tok!r} (a run variant comes first; "
+                raise ConfigError(f"{key}: {name!r}: unknown option {tok!r} (a run variant comes first; "
                                   "options are sN, skipN, kN, noise, render, estimate, strengthN)")
             fields["variant"] = tok
             continue
-        for key, value in m.groupdict().items():
+        for option, value in m.groupdict().items():
             if value is not None:
-                fields[key] = (int(value) if key in ("steps", "skip", "samples", "ensemble")
-                               else int(value) / 100 if key == "strength" else value)
+                fields[option] = (int(value) if option in ("steps", "skip", "samples", "ensemble")
+                                  else int(value) / 100 if option == "strength" else value)
     spec = Spec(family, **fields)
     if spec.strength is not None and spec.strength > 1:
-        raise ConfigError(f"eval.methods: {name!r}: strengthN is a percentage from 0 to 100")
+        raise ConfigError(f"{key}: {name!r}: strengthN is a percentage from 0 to 100")
     if spec.samples < 1 or (spec.steps is not None and spec.steps < 1):
-        raise ConfigError(f"eval.methods: {name!r}: steps and samples must be at least 1")
+        raise ConfigError(f"{key}: {name!r}: steps and samples must be at least 1")
     if spec.ensemble not in infer.ENSEMBLE_SIZES or (spec.ensemble > 1 and tokens[-1] != f"x{spec.ensemble}"):
-        raise ConfigError(f"eval.methods: {name!r}: a self-ensemble xN comes last, N in {infer.ENSEMBLE_SIZES}")
+        raise ConfigError(f"{key}: {name!r}: a self-ensemble xN comes last, N in {infer.ENSEMBLE_SIZES}")
     return spec
 
 
@@ -426,13 +427,12 @@ def weights_name(path: Path) -> str:
         return str(path)
 
 
-def check_names(names: list[str], key: str = "eval.methods") -> None:
-    """ConfigError naming ``key`` for an unknown or repeated method name."""
+def check_names(names: list[str], key: str = "eval.methods", also: tuple[str, ...] = ()) -> None:
+    """ConfigError naming ``key`` for an unknown or repeated method name (``also``: names valid there besides
+    the per-frame methods)."""
     for name in names:
-        try:
-            parse(name)
-        except ConfigError as exc:
-            raise ConfigError(str(exc).replace("eval.methods:", f"{key}:", 1)) from None
+        if name not in also:
+            parse(name, key, also)
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ConfigError(f"{key}: {', '.join(dup)} listed twice")

@@ -128,12 +128,13 @@ def fmt_signed(key: str, v) -> str:
     return fmt(key, v) if v is None or not math.isfinite(v) else f"{v:+.{_DIGITS.get(key, 4)}f}"
 
 
-def fmt_diff(key: str, d: dict | None) -> str:
-    """"+0.52 [+0.21, +0.83]*": mean difference, bootstrap interval, * when it excludes 0."""
+def fmt_diff(key: str, d: dict | None, unit: str = "frames") -> str:
+    """"+0.52 [+0.21, +0.83]*": mean difference, bootstrap interval, * when it excludes 0; without an interval,
+    how many ``unit`` (what was resampled) there were."""
     if not d or d.get("diff") is None:
         return "–"
     if d.get("lo") is None:
-        return f"{fmt_signed(key, d['diff'])} (no interval: {d['n']} frames)"
+        return f"{fmt_signed(key, d['diff'])} (no interval: {d['n']} {unit})"
     return (f"{fmt_signed(key, d['diff'])} [{fmt_signed(key, d['lo'])}, {fmt_signed(key, d['hi'])}]"
             f"{'*' if significant(d) else ''}")
 

@@ -360,7 +360,7 @@ def evaluate_sequence_groups(cfg: Config, store: Store, groups: dict, spps: list
     if not cfg.eval.sequence_methods:
         return out, strips
     for group in (cfg.eval.split, EXTERNAL):
-        keys = [k for seq in sequences(store, groups.get(group, [])).values() for k in seq]
+        keys = [k for seq in sequences(groups.get(group, [])).values() for k in seq]
         if not keys:
             continue
         try:

@@ -1,11 +1,13 @@
 """The evaluation along camera moves: each scene of the evaluated split as a sequence of its frames.
 
-Per scene, spp and method (``eval.sequence_methods``), the frames are denoised in order, on the
+A sequence is a run of consecutive frames of one scene (``sequences``: each frame's previous frame is
+``FrameKey.previous``); a frame missing from the evaluated frames (no record, no GT_clean) cuts its scene
+in two. Per sequence, spp and method (``eval.sequence_methods``), the frames are denoised in order, on the
 first noise realization (the first stacks pooled to the spp; consecutive frames are separate
 renders, so their noise is independent). Per frame: PSNR, L1 and HDR-FLIP against the reference
-(GT_clean), and from the second frame on the temporal instability (``pipeline.temporal``): the
-output's frame-to-frame change against the reference's, over the pixels valid in both. Per scene:
-FovVideoVDP on the sequence as a video (``eval.sequence_fps``), when pyfvvdp is installed.
+(GT_clean), and from t = 1 on the temporal instability (``pipeline.temporal``): the output's
+frame-to-frame change against the reference's, over the pixels valid in both. Per sequence:
+FovVideoVDP on it as a video (``eval.sequence_fps``), when pyfvvdp is installed.
 
 Two warps, for two purposes:
 
@@ -21,18 +23,21 @@ clamped to the new output's 3×3 range), the temporal filter a user could build 
 ``ours_filter``: the same filter on ``ours``' outputs (what ``denoise --sequence`` runs for a model that does
 not read the past); ``ours_temporal``: the model loaded for ``ours`` given its own previous output warped into
 this frame (``Denoiser.denoise(history=...)``, what ``denoise --sequence`` runs for it), available when that
-model reads the past (``diffusion.history``). Frame 1 of a temporal method is its per-frame method's output
-(no history yet), reported apart.
+model reads the past (``diffusion.history``). Each frame of a temporal method is one ``pipeline.temporal.step``,
+as in ``denoise --sequence``; without a history (t = 0, or after a frame where the method failed) it is its
+per-frame method's output. t = 0 is reported apart. Only the methods listed run, with the per-frame methods
+their temporal ones build on.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mcdenoise.pipeline import motion, temporal
-from mcdenoise.pipeline.config import Config, ConfigError
-from mcdenoise.pipeline.store import FrameKey, Store
+from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.store import FrameKey, Store, frame_name
 
 from .harness import finite_output, run_method
 from .methods import Loader, MethodUnavailable, check_names, label
@@ -49,52 +54,55 @@ TEMPORAL = {**TEMPORAL_FILTERS, **LEARNED}
 
 
 def check_sequence_names(names: list[str]) -> None:
-    """ConfigError naming an unknown method of ``eval.sequence_methods``."""
-    check_names([n for n in names if n not in TEMPORAL], "eval.sequence_methods")
-    dup = sorted({n for n in names if n in TEMPORAL and names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"eval.sequence_methods: {', '.join(dup)} listed twice")
+    """ConfigError naming an unknown or repeated method of ``eval.sequence_methods``."""
+    check_names(names, "eval.sequence_methods", tuple(TEMPORAL))
 
 
-def sequences(store: Store, keys: list[FrameKey]) -> dict[str, list[FrameKey]]:
-    """{scene: its frames in order} for the scenes of ``keys`` with at least two frames."""
-    by_scene: dict[str, list[FrameKey]] = {}
+def sequences(keys: list[FrameKey]) -> dict[str, list[FrameKey]]:
+    """{name: frames} for the runs of ``keys`` of two or more frames, each frame after the first one the next of
+    its previous frame (``FrameKey.previous``): a frame missing from ``keys`` (not rendered, no gt_clean) cuts its
+    scene in two runs, so no frame is scored against one that is not its previous frame. A run is named by its
+    scene, or ``scene/first-last`` (frame numbers) where the scene has several."""
+    by_scene: dict[str, set[FrameKey]] = {}
     for k in keys:
-        by_scene.setdefault(k.scene, []).append(k)
-    return {s: sorted(ks, key=lambda k: k.frame) for s, ks in by_scene.items() if len(ks) > 1}
+        by_scene.setdefault(k.scene, set()).add(k)
+    out = {}
+    for scene, frames in by_scene.items():
+        found: list[list[FrameKey]] = []
+        for k in sorted(frames, key=lambda k: k.frame):
+            if found and found[-1][-1] == k.previous():
+                found[-1].append(k)
+            else:
+                found.append([k])
+        found = [run for run in found if len(run) > 1]
+        for run in found:
+            out[scene if len(found) == 1 else f"{run[0]}-{frame_name(run[-1].frame)}"] = run
+    return out
 
 
 @dataclass
 class Frame:
-    """What the sequence loop needs of one frame: its input, reference, camera and both warps' geometry."""
+    """What the sequence loop needs of one frame: its input, reference, and both warps' views."""
     key: FrameKey
     buffers: dict
     reference: np.ndarray
-    camera: motion.Camera
-    geometry: dict = field(default_factory=dict)       # "input" / "gt1": (depth, normal)
+    views: dict = field(default_factory=dict)       # "input" / "gt1": motion.View with that image's depth, normal
 
 
 def read_frame(store: Store, key: FrameKey, spp: int, stacks: list[int], ref_name: str) -> Frame:
     buffers = store.read(key.scene, key.frame, spp, stacks=stacks)
     reference = store.read_image(key.scene, key.frame, ref_name, ["color"])[0]["color"]
     gt = store.read_image(key.scene, key.frame, "gt1", ["depth", "normal"])[0]
-    return Frame(key, buffers, reference, store.camera(key.scene, key.frame),
-                 {"input": (buffers["depth"][..., 0], buffers["normal"]), "gt1": (gt["depth"][..., 0], gt["normal"])})
-
-
-def motion_between(cur: Frame, prev: Frame, which: str) -> tuple[np.ndarray, np.ndarray]:
-    """(positions in ``prev`` of ``cur``'s pixels, validity), from the ``which`` geometry of both frames."""
-    depth, normal = cur.geometry[which]
-    depth_prev, normal_prev = prev.geometry[which]
-    return motion.reproject(depth, cur.camera, prev.camera, depth_prev=depth_prev, normal_t=normal,
-                            normal_prev=normal_prev)
+    camera = store.camera(key.scene, key.frame)
+    return Frame(key, buffers, reference, {"input": motion.View.of(camera, buffers), "gt1": motion.View.of(camera, gt)})
 
 
 def score_sequence(frames_out: dict[str, list[np.ndarray | None]], frames: list[Frame], names: list[str],
                    opts: dict) -> dict:
-    """Per method: per-frame metrics ``names``, and from frame 2 on the temporal instability."""
+    """Per method: per-frame metrics ``names``, and from t = 1 on the temporal instability."""
     out: dict[str, list[dict]] = {}
-    warps = [None] + [motion_between(frames[t], frames[t - 1], "gt1") for t in range(1, len(frames))]
+    warps = [None] + [motion.reproject_view(frames[t].views["gt1"], frames[t - 1].views["gt1"])
+                      for t in range(1, len(frames))]
     for name, outputs in frames_out.items():
         recs = []
         for t, (fr, y) in enumerate(zip(frames, outputs)):
@@ -113,13 +121,12 @@ def score_sequence(frames_out: dict[str, list[np.ndarray | None]], frames: list[
     return out
 
 
-def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods: dict, ref_name: str,
-                 weight: float) -> tuple[dict, dict, list[Frame]]:
-    """Every method along one sequence: ({method: [output per frame]}, {method: [seconds per frame]}, frames)."""
+def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods: dict, temporal_names: list[str],
+                 ref_name: str, weight: float) -> tuple[dict, dict, list[Frame]]:
+    """Along one sequence, every per-frame method of ``methods`` and the temporal methods ``temporal_names`` (their
+    bases among ``methods``): ({method: [output per frame]}, {method: [seconds per frame]}, frames)."""
     frames: list[Frame] = []
-    outputs: dict[str, list] = {n: [] for n in methods}
-    outputs.update({n: [] for n in TEMPORAL_FILTERS if TEMPORAL_FILTERS[n] in methods})
-    outputs.update({n: [] for n, base in LEARNED.items() if reads_history(methods.get(base))})
+    outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
     for t, key in enumerate(seq):
         fr = read_frame(store, key, spp, stacks_of(key), ref_name)
@@ -129,45 +136,48 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
             oc = run_method(method, fr.buffers)
             outputs[name].append(finite_output(oc) if oc.output is not None else None)
             seconds[name].append(oc.seconds)
-        for name, base in TEMPORAL_FILTERS.items():
-            if name not in outputs:
-                continue
-            y, history = outputs[base][t], outputs[name][t - 1] if t > 0 else None
-            if y is None or history is None:
-                outputs[name].append(y)
-            else:
-                xy, valid = motion_between(fr, frames[t - 1], "input")
-                outputs[name].append(temporal.blend_history(y, motion.warp(history, xy, valid), valid, weight))
-            seconds[name].append(seconds[base][t])
-        for name, base in LEARNED.items():
-            if name not in outputs:
-                continue
-            history = outputs[name][t - 1] if t > 0 else None
-            if history is None:     # no history yet: the model's single-frame output, which ``base`` is
-                outputs[name].append(outputs[base][t])
-                seconds[name].append(seconds[base][t])
-                continue
-            xy, valid = motion_between(fr, frames[t - 1], "input")
-            oc = run_method(methods[base], fr.buffers, history=(motion.warp(history, xy, valid), valid))
-            outputs[name].append(finite_output(oc) if oc.output is not None else None)
-            seconds[name].append(oc.seconds)
+        for name in temporal_names:
+            base = TEMPORAL[name]
+            previous = (outputs[name][t - 1], frames[t - 1].views["input"]) if t > 0 else None
+            y, secs = temporal_frame(methods[base], outputs[base][t], seconds[base][t], fr, previous, weight,
+                                     name in LEARNED)
+            outputs[name].append(y)
+            seconds[name].append(secs)
     return outputs, seconds, frames
 
 
-def reads_history(method) -> bool:
-    """Whether a loaded method is a model that reads the past (``train.infer.Denoiser.history``)."""
-    return bool(getattr(getattr(method, "denoiser", None), "history", False))
+def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, fr: Frame, previous, weight: float,
+                   learned: bool) -> tuple[np.ndarray | None, float]:
+    """One frame of a temporal method on ``method`` (``temporal.step``, the history warped with the input's own
+    depth and normal), and its seconds: the step's own (reprojection, warp, blend) plus the method's, whose output
+    without history (``base_output``, ``base_seconds``) is reused rather than run again."""
+    inside = {"wall": 0.0, "method": 0.0}      # the time spent in ``denoise``, and the method's share of it
+
+    def denoise(buffers, history):
+        if history is None:
+            inside["method"] += base_seconds
+            return base_output
+        t0 = time.perf_counter()
+        oc = run_method(method, buffers, history=history)
+        inside["wall"] += time.perf_counter() - t0
+        inside["method"] += oc.seconds
+        return finite_output(oc) if oc.output is not None else None
+
+    t0 = time.perf_counter()
+    y, _ = temporal.step(denoise, fr.buffers, fr.views["input"], previous, weight, learned)
+    return y, time.perf_counter() - t0 - inside["wall"] + inside["method"]
 
 
 def load_sequence_methods(loader: Loader, names: list[str], spp: int) -> tuple[dict, dict]:
-    """(per-frame methods that load, including those the temporal filters need; a row per name)."""
+    """(the per-frame methods the available rows need: theirs or their temporal method's base; a row per name)."""
     methods, rows = {}, {}
     for name in names:
         base = TEMPORAL.get(name, name)
         try:
             if base not in methods:
                 methods[base] = loader.load(base, spp)
-            if name in LEARNED and not reads_history(methods[base]):
+            # the loaded model's condition has the history channels (``train.model.reads_history``)
+            if name in LEARNED and not getattr(getattr(methods[base], "denoiser", None), "history", False):
                 raise MethodUnavailable(f"the model of {base} ({methods[base].checkpoint}) does not read history: "
                                         "train one with diffusion.history=true (ours_filter is the temporal filter "
                                         "on it)")
@@ -176,11 +186,12 @@ def load_sequence_methods(loader: Loader, names: list[str], spp: int) -> tuple[d
                           "checkpoint": methods[base].checkpoint or None}
         except MethodUnavailable as exc:
             rows[name] = {"label": name, "available": False, "reason": str(exc)}
-    return methods, rows
+    needed = {TEMPORAL.get(n, n) for n, row in rows.items() if row["available"]}
+    return {n: m for n, m in methods.items() if n in needed}, rows
 
 
 def summarize(per_frame: list[dict], names: list[str]) -> dict:
-    """Means over frame 1 and over frames 2.. of the per-frame records of one method."""
+    """Means over t = 0 ("first") and over t ≥ 1 ("later") of the per-frame records of one method."""
     def mean(recs, key):
         vals = [r["metrics"][key] for r in recs if "metrics" in r and key in r["metrics"]]
         vals = [v for v in vals if np.isfinite(v)]
@@ -195,10 +206,10 @@ def summarize(per_frame: list[dict], names: list[str]) -> dict:
 def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name, spps: list[int],
                        loader: Loader, stacks_for, metric_names: list[str], bar=None) -> tuple[dict, dict]:
     """The sequence result of ``keys`` (frames of one group): per spp, per method, per-frame records,
-    per-scene video FovVideoVDP, and means over frame 1 and frames 2..; and per spp the first scene's frames
-    and outputs, to draw the strip from."""
+    per-sequence video FovVideoVDP, and means over t = 0 and t ≥ 1; and per spp the first sequence's frames and
+    outputs, to draw the strip from."""
     e = cfg.eval
-    seqs = sequences(store, keys)
+    seqs = sequences(keys)
     names = [m for m in SEQUENCE_METRICS if m in metric_names]
     result = {"scenes": {s: [str(k) for k in ks] for s, ks in seqs.items()}, "spp": {},
               "weight": e.temporal_weight, "metrics": names}
@@ -210,6 +221,7 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
         strip = None
         for scene, seq in seqs.items():
             outputs, seconds, frames = run_sequence(store, seq, spp, lambda k: stacks_for(k, spp), methods,
+                                                    [n for n in rows if n in TEMPORAL and rows[n]["available"]],
                                                     ref_name(seq[0]), e.temporal_weight)
             scored = score_sequence({n: outputs[n] for n in rows if rows[n]["available"]}, frames, names,
                                     {"display": e.fvvdp_display})

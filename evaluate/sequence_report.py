@@ -15,10 +15,11 @@ import numpy as np
 from mcdenoise.pipeline.figures import animated_strip, plot_curves
 
 from .report import fmt, fmt_diff, fmt_seconds, markdown_table, write_text
-from .stats import paired_bootstrap, paired_values
+from .scoring import METRICS
+from .sequence import SEQUENCE_METRICS
+from .stats import MIN_FRAMES, paired_bootstrap, paired_values
 
 REFERENCE = "oidn_prefilter"
-COLUMNS = {"l1": "L1", "hdr_flip": "HDR-FLIP"}
 STRIP = ("noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours", "ours_filter", "ours_temporal")
 
 
@@ -36,9 +37,10 @@ def sequence_table(entry: dict, resamples: int, seed: int) -> list[str]:
     rows = entry["methods"]
     ref = rows.get(REFERENCE, {})
     ref_instability = ref.get("mean", {}).get("later", {}).get("instability") if ref.get("available") else None
-    metrics = [m for m in ("l1", "hdr_flip") if m in entry["metrics"]]
+    # PSNR has columns of its own (frame 1, frames 2.., the paired difference)
+    metrics = [m for m in SEQUENCE_METRICS if m != "psnr" and m in entry["metrics"]]
     header = ["method", "PSNR frame 1", "PSNR frames 2..", f"Δ PSNR vs `{REFERENCE}` (2..)",
-              *[f"{COLUMNS[m]} (2..)" for m in metrics], "instability ↓ (2..)", f"÷ `{REFERENCE}`'s",
+              *[f"{METRICS[m].column} (2..)" for m in metrics], "instability ↓ (2..)", f"÷ `{REFERENCE}`'s",
               "FovVideoVDP (video)", "s/frame"]
     table = []
     for name, row in rows.items():
@@ -53,7 +55,7 @@ def sequence_table(entry: dict, resamples: int, seed: int) -> list[str]:
         ratio = (later["instability"] / ref_instability if ref_instability and later["instability"] is not None
                  else None)
         table.append([f"`{name}`", fmt("psnr", first["psnr"]), fmt("psnr", later["psnr"]),
-                      fmt_diff("psnr", diff).replace(" frames)", " scenes)") if diff else "", *[fmt(m, later[m]) for m in metrics],
+                      fmt_diff("psnr", diff, "scenes") if diff else "", *[fmt(m, later[m]) for m in metrics],
                       fmt("l1", later["instability"]), f"{ratio:.2f}" if ratio is not None else "",
                       fmt("fvvdp", float(np.mean(videos))) if videos else "–",
                       fmt_seconds(float(np.mean([r["seconds"] for r in row["per_frame"]])))])
@@ -76,16 +78,20 @@ def per_frame_curves(entry: dict, metric: str) -> dict[str, list[tuple[float, fl
 
 
 def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: int, seed: int) -> str:
-    """Write sequence.md with its figures; returns the page's text ('' when no group has a sequence)."""
+    """Write sequence.md with its figures; returns the page's text. Without a group (no sequence, or
+    ``eval.sequence_methods`` empty) '', and a sequence.md an earlier eval left in ``out_dir`` is removed: the
+    report folder describes this run."""
+    if not groups:
+        (out_dir / "sequence.md").unlink(missing_ok=True)
+        return ""
     lines = ["# Sequences: every scene along its camera move", "",
              "Frame 1 apart from frames 2.. (a temporal method has no history on frame 1). Δ: paired over scenes "
-             "(each scene's mean over its frames 2..), bootstrap 95 % interval, * when it excludes 0; needs 8 scenes "
-             "for an interval. Instability: mean |output's frame-to-frame change − the reference's| on x/(1+x), "
+             "(each scene's mean over its frames 2..), bootstrap 95 % interval, * when it excludes 0; needs "
+             f"{MIN_FRAMES} scenes for an interval. "
+             "Instability: mean |output's frame-to-frame change − the reference's| on x/(1+x), "
              "over pixels valid in both frames (`pipeline.temporal`); lower is steadier. FovVideoVDP: each sequence "
              "watched as a video, mean over scenes.", ""]
-    written = False
     for group, g in groups.items():
-        written = True
         if "skipped" in g:
             lines += [f"## {group}: no sequences ({g['skipped']})", ""]
             continue
@@ -105,8 +111,6 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
                 write_strip(strip, out_dir / name)
                 lines += ["", f"![{strip['scene']} at {spp} spp, frame by frame]({name})"]
             lines.append("")
-    if not written:
-        return ""
     text = "\n".join(lines) + "\n"
     write_text(out_dir / "sequence.md", text)
     return text

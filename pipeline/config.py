@@ -405,11 +405,11 @@ class DiffusionConfig(TrainingConfig):
     dropout: float = doc("Probability that a training crop lacks a buffer group (the variances, the radiance split, "
                          "the material buffers; each on its own), so one model serves inputs without them.", 0.15)
     history: bool = doc("The model reads the past (docs/sequences.md): its condition gets the previous frame's "
-                        "output warped into this frame, its validity and has.history; it trains on frames 2.. of "
-                        "each scene, their history OIDN's final-frame output of the frame before, warped with the "
-                        "noisy input's depth and normal; its packs are <split>_oidn_base*_history. With init, a "
+                        "output warped into this frame, its validity and has.history; it trains on the frames t >= 1 "
+                        "(0-based) of each scene, their history OIDN's final-frame output of frame t-1, warped with "
+                        "the noisy input's depth and normal; its packs are <split>_oidn_base*_history. With init, a "
                         "model without history starts with the new channels' weights zero (it starts as that "
-                        "model). false: the per-frame model, as before.", False)
+                        "model). false: the per-frame model (44 condition channels).", False)
     history_dropout: float = doc("With history: probability that a training crop has no history (its history "
                                  "channels and has.history zero, as on a sequence's first frame), so the model "
                                  "keeps serving single frames.", 0.25)
@@ -599,8 +599,9 @@ class EvalConfig(Section):
         if self.bootstrap_resamples < 100:
             bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
         self.one_of(bad, "equal_time", ("render", "pool", "none"))
-        if not 0.0 < self.temporal_weight <= 1.0:
-            bad("temporal_weight", f"must be in (0, 1] (1: no history), got {self.temporal_weight}")
+        from .temporal import weight_problem  # the filter's own range and text, as its other entry points say it
+        if (why := weight_problem(self.temporal_weight)) is not None:
+            bad("temporal_weight", why)
         if self.sequence_fps <= 0:
             bad("sequence_fps", f"must be > 0, got {self.sequence_fps}")
 

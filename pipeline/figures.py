@@ -141,18 +141,21 @@ def plot_curves(path: Path, curves: dict[str, list[tuple[float, float]]], title:
     atomic_write_bytes(path, lambda tmp: fig.savefig(tmp, format="png"))
 
 
-def animated_strip(titles: list[str], frames: list[list[np.ndarray | None]], path: Path, scale: int | None = None,
-                   ms_per_frame: int = 500) -> None:
+# how long the strip shows each frame: slow enough to compare the columns
+STRIP_MS_PER_FRAME = 500
+
+
+def animated_strip(titles: list[str], frames: list[list[np.ndarray | None]], path: Path) -> None:
     """An animated GIF that plays a sequence side by side: ``frames[t]`` holds frame t's HDR image (H, W, 3) per
-    column of ``titles`` (None: a grey cell), gamma-tonemapped, each pixel drawn ``scale`` x ``scale`` (default:
-    cells at least 160 pixels wide, room for a title), the column's title and the frame number above it.
-    Written atomically; loops forever."""
+    column of ``titles`` (None: a grey cell), gamma-tonemapped, each pixel drawn as a square block (cells at least
+    160 pixels wide, room for a title), the column's title and the frame number (1-based, as the report's tables)
+    above it. Written atomically; loops forever."""
     from PIL import Image, ImageDraw
 
     if not frames or not titles:
         return
     h, w = next(img.shape[:2] for row in frames for img in row if img is not None)
-    scale = scale or max(1, -(-160 // w))
+    scale = max(1, -(-160 // w))
     cell_w, cell_h, band = w * scale, h * scale, 14
     pictures = []
     for t, row in enumerate(frames):
@@ -169,6 +172,6 @@ def animated_strip(titles: list[str], frames: list[list[np.ndarray | None]], pat
         pictures.append(canvas)
 
     def write(tmp: str) -> None:
-        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], duration=ms_per_frame, loop=0)
+        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], duration=STRIP_MS_PER_FRAME, loop=0)
 
     atomic_write_bytes(Path(path), write)

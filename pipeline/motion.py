@@ -260,6 +260,34 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray) -> np.n
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class View:
+    """What reprojection needs of one frame: its camera, its depth (H, W) and its shading normal (H, W, 3)
+    (None: no normal test)."""
+    camera: Camera
+    depth: np.ndarray
+    normal: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, camera: Camera, buffers: dict[str, np.ndarray]) -> View:
+        """The view of a frame's buffers (``depth`` (H, W, 1), ``normal`` where present) seen by ``camera``."""
+        return cls(camera, buffers["depth"][..., 0], buffers.get("normal"))
+
+
+def reproject_view(view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:
+    """``reproject`` of ``view``'s pixels into ``view_prev``, with both frames' depth and normal."""
+    return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth, normal_t=view.normal,
+                     normal_prev=view_prev.normal)
+
+
+def warp_previous(image_prev: np.ndarray, view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:
+    """(``image_prev``, an image of the previous frame, brought into this one (H, W, C) float32, the (H, W) bool
+    validity): reprojected with both frames' depth and normal, 0 where invalid (disocclusions, silhouettes,
+    background, off screen)."""
+    xy, valid = reproject_view(view, view_prev)
+    return warp(np.asarray(image_prev, np.float32), xy, valid), valid
+
+
 # ---- the cameras in files --------------------------------------------------------------------
 
 def camera_record(cam: Camera) -> dict:

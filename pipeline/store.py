@@ -113,6 +113,11 @@ class FrameKey:
     def __str__(self) -> str:
         return f"{self.scene}/{frame_name(self.frame)}"
 
+    def previous(self) -> FrameKey | None:
+        """The frame before this one on its scene's camera move: frame − 1, the one rendered just before, whether
+        or not it is among the frames at hand (a frame before a gap has no previous frame there); None for 0."""
+        return FrameKey(self.scene, self.frame - 1) if self.frame > 0 else None
+
 
 class Store:
     """Reader/writer for one store directory."""

@@ -1,7 +1,8 @@
 """Time along a sequence: the classic temporal filter and the instability metric.
 
-Both work on images already brought into the current frame (``pipeline.motion.warp`` of the
-previous frame with its validity mask), so they know nothing about cameras.
+Both work on images already brought into the current frame (``pipeline.motion.warp_previous``: the
+previous frame's image with its validity mask), so they know nothing about cameras. ``step`` is one frame
+of a temporal method, the warp included: what ``denoise --sequence`` and the sequence evaluation both run.
 
 **The temporal filter** (``blend_history``) is what a renderer's TAA or a compositor's temporal
 denoise node does with a per-frame denoiser's outputs: an exponential moving average
@@ -26,9 +27,19 @@ own resampling), so a still, perfect sequence and a moving, perfect one both sco
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
+from . import motion
 from .metrics import reinhard
+
+
+def weight_problem(weight: float) -> str | None:
+    """Why ``weight`` cannot be the temporal filter's weight, or None: the one range every entry point checks."""
+    if 0.0 < weight <= 1.0:
+        return None
+    return f"expected the new frame's share of the blend, in (0, 1] (1: no history), got {weight}"
 
 
 def neighbourhood_range(image: np.ndarray, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -50,8 +61,8 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
     """One step of the temporal filter: ``current`` (H, W, C) blended with ``history`` (the filter's
     previous output warped into this frame) where ``valid``; ``weight`` is the new frame's share (1: no
     history). ``history`` None (the first frame) returns ``current`` unchanged."""
-    if not 0.0 < weight <= 1.0:
-        raise ValueError(f"blend weight must be in (0, 1], got {weight}")
+    if (why := weight_problem(weight)) is not None:
+        raise ValueError(f"blend weight: {why}")
     current = np.asarray(current, dtype=np.float32)
     if history is None:
         return current.copy()
@@ -66,6 +77,29 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
     keep = valid.astype(bool)
     out[keep] = weight * current[keep] + (1.0 - weight) * past[keep]
     return out
+
+
+def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: dict[str, np.ndarray],
+         view: motion.View | None, previous: tuple[np.ndarray | None, motion.View | None] | None, weight: float,
+         learned: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """One frame of a temporal method: (its output, None where ``denoise`` failed; the history's (H, W) validity,
+    None without a history).
+
+    ``previous``: (this method's output of the previous frame, that frame's view); the history is that output
+    warped into ``view`` (``motion.warp_previous``), none on a first frame, after a frame that failed or
+    where either frame has no view (no camera or depth). ``denoise(buffers, history)`` is the per-frame method;
+    ``learned``: it reads the history itself (a model with ``diffusion.history``) and its output is the frame's;
+    otherwise its output without history is blended with the history (``blend_history``, ``weight``)."""
+    history = None
+    if previous is not None and previous[0] is not None and view is not None and previous[1] is not None:
+        history = motion.warp_previous(previous[0], view, previous[1])
+    if learned:
+        y = denoise(buffers, history)
+    else:
+        y = denoise(buffers, None)
+        if y is not None and history is not None:
+            y = blend_history(y, *history, weight)
+    return y, None if y is None or history is None else history[1]
 
 
 def instability(output: np.ndarray, output_prev_warped: np.ndarray, reference: np.ndarray,

@@ -1,14 +1,16 @@
 """``denoise --sequence``: the file pattern, the outputs, the history from the headers' cameras, and frame by
-frame (said in one line) where the EXRs carry no camera."""
+frame (said in one line) where the EXRs carry no camera or one of another size than their pixels."""
 import shutil
 
 import numpy as np
+import OpenEXR
 import pytest
 
+from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import read_camera, read_header, read_layers
 from mcdenoise.pipeline.motion import exr_matrices
-from mcdenoise.train.sequence import output_path, sequence_files
+from mcdenoise.train.sequence import frame_view, output_path, sequence_files
 
 from .helpers import ORBIT_SCENE, TINY, cli, write_rgb_exr
 
@@ -79,3 +81,28 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
                "--quiet")
     assert proc.stdout.count("no motion for that frame") == 1 and "history on 0 of 2 frames" in proc.stdout
     shutil.rmtree(plain)
+
+
+def cropped_exr(path, camera, size: tuple[int, int]) -> None:
+    """An EXR of colour and depth whose pixels (the data window) are ``size`` (H, W) and whose display window and
+    camera attributes are ``camera``'s: a crop, as a renderer writes a region of its frame."""
+    h, w = size
+    channels = {c: np.full((h, w), 0.5, np.float32) for c in "RGB"}
+    channels["depth.Z"] = np.full((h, w), 3.0, np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **exr_matrices(camera),
+              "displayWindow": (np.array([0, 0], np.int32), np.array([camera.width - 1, camera.height - 1], np.int32))}
+    with OpenEXR.File(header, channels) as f:
+        f.write(str(path))
+
+
+def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tmp_path):
+    cam = motion.Camera(motion.look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
+    for n in range(2):
+        cropped_exr(tmp_path / f"c_{n}.exr", cam, (12, 16))
+    assert frame_view(tmp_path / "c_0.exr", read_layers(tmp_path / "c_0.exr")) == \
+        (None, "display window 32x24 differs from the pixels' 16x12")
+    proc = cli("denoise", "--sequence", tmp_path / "c_#.exr", "--out", tmp_path / "o" / "c_#.exr", "--spp", "4",
+               "--device", "cpu", "--quiet")
+    assert proc.stdout.count("note: ") == 1 and "display window 32x24 differs from the pixels' 16x12" in proc.stdout
+    assert "history on 0 of 1 frames" in proc.stdout, proc.stdout
+    assert read_layers(tmp_path / "o" / "c_1.exr")["color"].shape == (12, 16, 3)

@@ -11,7 +11,7 @@ from mcdenoise.pipeline import motion, schema
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.store import FrameKey
 from mcdenoise.train.data import Crops
-from mcdenoise.train.history import previous_frames, warp_previous, with_history
+from mcdenoise.train.history import previous_frames, with_history
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import (
     HISTORY_CHANNELS,
@@ -20,6 +20,7 @@ from mcdenoise.train.model import (
     cond_names,
     inputs,
     load,
+    reads_history,
     save,
     to_pu,
     widen_control,
@@ -114,7 +115,7 @@ def warm_started(folder: Path) -> Path:
 def test_a_warm_start_from_a_model_without_history_begins_at_that_model(tmp_path):
     folder = warm_started(tmp_path / "temporal")
     record = json.loads((folder / "model.json").read_text())
-    assert record["history"] is True and record["cond_channels"] == cond_names(True)
+    assert reads_history(record["cond_channels"]) and record["cond_channels"] == cond_names(True)
     temporal = load_denoiser(folder, "cpu", precision="fp32")
     shipped = load_denoiser(SHIPPED_MODEL, "cpu", precision="fp32")
     assert temporal.history and temporal.model.history
@@ -155,7 +156,7 @@ def test_a_still_camera_warps_the_previous_output_onto_itself():
     frame["depth"][:] = 3.0
     frame["depth"][:, :4] = 0.0                                    # background: no history there
     prev_out = np.random.default_rng(0).random((24, 32, 3)).astype(np.float32)
-    warped, valid = warp_previous(prev_out, frame, frame, cam, cam)
+    warped, valid = motion.warp_previous(prev_out, motion.View.of(cam, frame), motion.View.of(cam, frame))
     assert valid.dtype == bool and not valid[:, :4].any() and valid[:, 4:].all()
     np.testing.assert_array_equal(warped[valid], prev_out[valid])   # pixel centres land on pixel centres
     assert not warped[~valid].any()
@@ -239,7 +240,7 @@ def test_a_temporal_run_trains_and_denoise_sequence_feeds_it_its_own_history(tem
     store, runs, proc = temporal_run
     run = runs / "diffusion_sppany"
     record = json.loads((run / "model.json").read_text())
-    assert record["history"] is True and record["cond_channels"] == cond_names(True)
+    assert reads_history(record["cond_channels"]) and record["cond_channels"] == cond_names(True)
     scene = sorted(p.name for p in (Path(store) / "scenes").iterdir())[0]
     frames = str(Path(store) / "scenes" / scene / "###" / "s00.exr")
     out = cli("denoise", "--sequence", frames, "--spp", "4", "--device", "cpu",

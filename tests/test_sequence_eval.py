@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from mcdenoise.evaluate.methods import Method, MethodUnavailable, Noisy
 from mcdenoise.evaluate.run import run_eval
-from mcdenoise.evaluate.sequence import check_sequence_names, load_sequence_methods, sequences
+from mcdenoise.evaluate.sequence import check_sequence_names, evaluate_sequences, load_sequence_methods, sequences
+from mcdenoise.evaluate.sequence_report import write_sequence_page
 from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.pipeline.store import FrameKey, Store
@@ -31,7 +33,7 @@ def test_every_test_scene_is_scored_frame_by_frame(report):
     store = Store(cfg.store)
     test = [k for k in store.frames("test")]
     seq = result["sequences"]["test"]
-    assert seq["scenes"] == {s: [str(k) for k in ks] for s, ks in sequences(store, test).items()} and seq["scenes"]
+    assert seq["scenes"] == {s: [str(k) for k in ks] for s, ks in sequences(test).items()} and seq["scenes"]
     rows = seq["spp"]["4"]["methods"]
     for name, row in rows.items():
         assert row["available"], name
@@ -84,7 +86,7 @@ def test_the_camera_of_an_old_frame_comes_from_its_scene_description(report, tmp
 
 def test_sequence_method_names_are_checked():
     check_sequence_names(["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours", "ours_filter", "ours_temporal"])
-    with pytest.raises(ConfigError, match="eval.sequence_methods: unknown method 'blur'"):
+    with pytest.raises(ConfigError, match="eval.sequence_methods: unknown method 'blur' .*ours_filter, ours_temporal"):
         check_sequence_names(["blur"])
     with pytest.raises(ConfigError, match="eval.sequence_methods: oidn_prefilter_temporal listed twice"):
         check_sequence_names(["oidn_prefilter_temporal", "oidn_prefilter_temporal"])
@@ -113,3 +115,83 @@ def test_ours_temporal_is_the_model_reading_its_history_and_ours_filter_the_filt
     methods, rows = load_sequence_methods(_Loader(True), names, 4)
     assert all(r["available"] for r in rows.values())
     assert rows["ours_temporal"]["label"].endswith("reading its previous output")
+
+
+def test_a_missing_frame_cuts_its_scene_into_two_runs():
+    keys = [FrameKey("a", f) for f in (4, 0, 1, 3, 5)] + [FrameKey("b", 0), FrameKey("c", 2), FrameKey("c", 3)]
+    assert sequences(keys) == {"a/000-001": [FrameKey("a", 0), FrameKey("a", 1)],
+                               "a/003-005": [FrameKey("a", 3), FrameKey("a", 4), FrameKey("a", 5)],
+                               "c": [FrameKey("c", 2), FrameKey("c", 3)]}
+
+
+class _PlaneStore:
+    """A store of one scene, a plane 3 units before a camera that slides sideways, frames ``frames`` only (the
+    others missing): what the sequence loop reads of a store."""
+    H, W = 12, 16
+
+    def __init__(self, frames):
+        self.frames = set(frames)
+
+    def camera(self, scene, frame):
+        assert frame in self.frames, frame
+        return motion.Camera(motion.look_at([0.05 * frame, 0, -3], [0.05 * frame, 0, 0], [0, 1, 0]), 40.0,
+                             self.W, self.H)
+
+    def geometry(self):
+        return {"depth": np.full((self.H, self.W, 1), 3.0, np.float32),
+                "normal": np.broadcast_to(np.float32([0, 0, -1]), (self.H, self.W, 3)).copy()}
+
+    def read(self, scene, frame, spp, stacks):
+        rng = np.random.default_rng(frame)
+        return {"color": rng.gamma(2.0, 0.25, (self.H, self.W, 3)).astype(np.float32), **self.geometry()}
+
+    def read_image(self, scene, frame, name, channels):
+        return {"color": np.full((self.H, self.W, 3), 0.5, np.float32), **self.geometry()}, {}
+
+
+class _Blur(Method):
+    """A per-frame denoiser of the test: the frame's mean colour everywhere."""
+    name = "oidn_prefilter"
+
+    def denoise(self, buffers):
+        return np.broadcast_to(buffers["color"].mean((0, 1)), buffers["color"].shape).astype(np.float32)
+
+
+class _Bases:
+    def load(self, name, spp):
+        if name == "noisy":
+            return Noisy()
+        if name == "oidn_prefilter":
+            return _Blur()
+        raise MethodUnavailable(f"{name}: not in this test")
+
+
+def test_runs_are_scored_apart_and_only_the_methods_asked_for_run(tmp_path):
+    cfg = load_config(TINY, ["eval.metrics=[l1, psnr]",
+                             "eval.sequence_methods=[noisy, oidn_prefilter, oidn_prefilter_temporal]"])
+    store = _PlaneStore([0, 1, 3, 4])                       # frame 2 is missing
+    keys = [FrameKey("a", f) for f in sorted(store.frames)]
+    result, strips = evaluate_sequences(cfg, store, keys, lambda k: "gt_clean", [4], _Bases(), lambda k, spp: [0],
+                                        ["l1", "psnr"])
+    assert result["scenes"] == {"a/000-001": ["a/000", "a/001"], "a/003-004": ["a/003", "a/004"]}
+    rows = result["spp"]["4"]["methods"]
+    for name, row in rows.items():
+        assert [r["index"] for r in row["per_frame"]] == [0, 1, 0, 1], name
+        # frame 3 has no previous frame at hand: no instability against frame 1
+        assert [("instability" in r["metrics"]) for r in row["per_frame"]] == [False, True, False, True], name
+    # the filter's seconds are its base's and its own: reprojection, warp and blend
+    base, filtered = rows["oidn_prefilter"]["per_frame"], rows["oidn_prefilter_temporal"]["per_frame"]
+    assert all(b["seconds"] > a["seconds"] for a, b in zip(base, filtered) if a["index"] > 0)
+    assert set(strips["4"]["outputs"]) == {"noisy", "oidn_prefilter", "oidn_prefilter_temporal"}
+    # asked for the filter alone: its base runs (it filters its outputs), no other method
+    cfg = load_config(TINY, ["eval.metrics=[l1, psnr]", "eval.sequence_methods=[oidn_prefilter_temporal]"])
+    result, strips = evaluate_sequences(cfg, store, keys, lambda k: "gt_clean", [4], _Bases(), lambda k, spp: [0],
+                                        ["l1", "psnr"])
+    assert list(result["spp"]["4"]["methods"]) == ["oidn_prefilter_temporal"]
+    assert set(strips["4"]["outputs"]) == {"oidn_prefilter", "oidn_prefilter_temporal"}
+
+
+def test_a_run_without_sequences_leaves_no_sequence_page(tmp_path):
+    (tmp_path / "sequence.md").write_text("# an earlier run's page\n")
+    assert write_sequence_page({}, {}, tmp_path, 1000, 0) == ""
+    assert not (tmp_path / "sequence.md").exists()

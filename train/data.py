@@ -8,9 +8,10 @@ training items from it: a random crop, OIDN's augmentation (flips, transposes, o
 of the colour channels for every colour-like channel and the target, one of the normal axes) and
 the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
 
-A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only frames t ≥ 1 of
-scenes with two or more frames, each with the history channels of ``train.history`` (OIDN's output of frame
-t−1 on the same stacks, warped into frame t); its crops lose the history with ``diffusion.history_dropout``.
+A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only the frames whose
+previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each with the history channels of
+``train.history`` (OIDN's output of frame t − 1 on the same stacks, warped into frame t); its crops lose the
+history with ``diffusion.history_dropout``.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from mcdenoise.pipeline.exr import StoreError
 from mcdenoise.pipeline.progress import progress
 from mcdenoise.pipeline.weights import save_safetensors
 
-from .model import ALIGNMENT, GROUPS, cond_names, groups, inputs, to_pu
+from .model import ALIGNMENT, GROUPS, cond_layout, cond_names, groups, inputs, reads_history, to_pu
 
 # The store is imported where it is read: ``denoise --exr`` encodes a frame without one.
 if TYPE_CHECKING:
@@ -96,7 +97,8 @@ def _store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, b
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
                history: bool = False) -> Path:
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
-    ``history``: frames t ≥ 1 with their history (``train.history.store_history``, on the same stacks)."""
+    ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), with their history
+    (``train.history.store_history``, on the same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
     prev_of = _previous_frames(keys, history)
@@ -225,7 +227,7 @@ class Crops(EpochItems):
                  augment: bool = True, dropout: float = DROPOUT, history_dropout: float = 0.0):
         self.pack, self.crop, self.per_frame, self.seed = pack, int(crop), int(per_frame), int(seed)
         self.augment, self.dropout, self.epoch = augment, float(dropout), 0
-        self.history = pack["cond"].shape[1] == len(cond_names(True))
+        self.history = reads_history(cond_layout(pack["cond"].shape[1]))
         self.drop = {g: float(history_dropout) if g == "history" else self.dropout for g in groups(self.history)}
         keep = torch.ones(len(pack["spp"]), dtype=torch.bool) if not spps else torch.isin(pack["spp"], torch.tensor(spps))
         self.items = torch.nonzero(keep).flatten().tolist()
@@ -341,5 +343,5 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
         if not keys:
             raise StoreError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
         path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux, source.history)
-        print(f"pack {split}: {len(keys)} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
+        print(f"pack {split}: {len(pack_keys(keys, source.history))} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0

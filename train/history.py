@@ -5,9 +5,10 @@ cameras, as a user's renderer would give them) with its validity mask; ``train.m
 In training the previous output is **OIDN's final-frame output** of frame t−1 (the same stacks as frame t's
 input), computed once when the pack is built. Why not the model's own output: that output depends on the
 weights being trained, so it would have to be recomputed every epoch (or the training unrolled over frames),
-and the pack could not be shared by runs; OIDN's output does not change, costs one OIDN pass per frame, and
-is what the model's output starts from (the Control Module corrects OIDN's estimate), so at inference, fed its
-own output, the model gets a history at least as good as the one it trained on. A frame without a previous
+and the pack could not be shared by runs; OIDN's output does not change, costs one OIDN pass per pack variant
+(``train.data.PACK_VARIANTS``: a (spp, stacks) input of the frame, up to 4 per frame) and two camera reads
+each, and is what the model's output starts from (the Control Module corrects OIDN's estimate), so at
+inference, fed its own output, the model gets a history at least as good as the one it trained on. A frame without a previous
 frame (t = 0) gets no history: its history channels and ``has.history`` are zero.
 """
 from __future__ import annotations
@@ -23,19 +24,10 @@ if TYPE_CHECKING:
 
 
 def previous_frames(keys: list[FrameKey]) -> dict[FrameKey, FrameKey]:
-    """{key: the key of its scene's previous frame} for the keys whose previous frame is among ``keys`` too
-    (frames t ≥ 1 of scenes with at least two frames), in the order of ``keys``."""
+    """{key: its previous frame (``FrameKey.previous``)} for the keys whose previous frame is among ``keys`` too,
+    in the order of ``keys``."""
     have = set(keys)
-    return {k: p for k in keys if (p := type(k)(k.scene, k.frame - 1)) in have}
-
-
-def warp_previous(output_prev: np.ndarray, buffers: dict[str, np.ndarray], buffers_prev: dict[str, np.ndarray],
-                  cam: motion.Camera, cam_prev: motion.Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(``output_prev`` warped into this frame (H, W, 3), the (H, W) bool validity): reprojected with both
-    frames' noisy depth and normal (disocclusions and silhouettes are invalid, and 0 in the warp)."""
-    xy, valid = motion.reproject(buffers["depth"][..., 0], cam, cam_prev, depth_prev=buffers_prev["depth"][..., 0],
-                                 normal_t=buffers.get("normal"), normal_prev=buffers_prev.get("normal"))
-    return motion.warp(np.asarray(output_prev, np.float32), xy, valid), valid
+    return {k: p for k in keys if (p := k.previous()) in have}
 
 
 def with_history(buffers: dict[str, np.ndarray], history: tuple[np.ndarray, np.ndarray] | None) -> dict:
@@ -55,6 +47,7 @@ def oidn_output(buffers: dict[str, np.ndarray]) -> np.ndarray:
 
 def store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, buffers_prev: dict
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The training history of ``key``: OIDN's output of ``prev`` (read as ``buffers_prev``) warped into it."""
-    return warp_previous(oidn_output(buffers_prev), buffers, buffers_prev, store.camera(key.scene, key.frame),
-                         store.camera(prev.scene, prev.frame))
+    """The training history of ``key``: OIDN's output of ``prev`` (read as ``buffers_prev``) warped into it with
+    both frames' noisy depth and normal (``motion.warp_previous``)."""
+    return motion.warp_previous(oidn_output(buffers_prev), motion.View.of(store.camera(key.scene, key.frame), buffers),
+                                motion.View.of(store.camera(prev.scene, prev.frame), buffers_prev))

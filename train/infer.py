@@ -91,8 +91,9 @@ class Denoiser:
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
-        # model.json ``history``: the model reads the previous output warped into this frame (``denoise(history=)``)
-        self.history = reads_history(meta)
+        # the condition has the history channels: the model reads the previous output warped into this frame
+        # (``denoise(history=)``)
+        self.history = reads_history(meta["cond_channels"])
         # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
         # EXR from another renderer) the base runs alone, where validation found the Control Module worse
         self.control_without_groups = bool(meta.get("control_without_groups", True))
@@ -113,7 +114,8 @@ class Denoiser:
         the past (``self.history``); None (a first frame, a single frame) is served as a frame without it."""
         if history is not None:
             if not self.history:
-                raise TrainError(f"{self.folder or 'this model'} does not read history (its model.json has no history)")
+                raise TrainError(f"{self.folder or 'this model'} does not read history (its model.json's "
+                                 "cond_channels have no history channels)")
             from .history import with_history  # the motion code is read only where there is a history
             buffers = with_history(buffers, history)
         strength = self.strength if strength is None else check_strength(strength, "strength")

@@ -21,10 +21,10 @@ relative-variance channel per buffer), the spp map log2(spp)/6, and one constant
 whether the input had it (``GROUPS``). A group an input lacks (an EXR from another renderer has no variances,
 no radiance split, no material buffers) is its background value, 0, with its presence map 0: the network is
 trained with such inputs (``train.data.DROPOUT``), so it serves them rather than falling back. A model that reads
-the past (model.json ``history``) has one more group, ``history``: the previous frame's output warped into this
-one as PU(output × this frame's exposure), zero where the warp is invalid, the validity, and ``has.history``;
-absent (a first frame) it is zero like any other group. A model without it keeps its condition channel for
-channel (``cond_names()``; ``cond_names(True)`` is the longer one).
+the past (``reads_history``: its model.json's ``cond_channels`` have the history's) has one more group,
+``history``: the previous frame's output warped into this one as PU(output × this frame's exposure), zero where
+the warp is invalid, the validity, and ``has.history``; absent (a first frame) it is zero like any other group.
+A model without it keeps its condition channel for channel (``cond_names()``; ``cond_names(True)`` is the longer one).
 
 **The base** is OIDN's UNet with OIDN's weights, or an ``oidn_ft`` run's; it never trains. It reads what OIDN
 reads and its output, decoded without help, is OIDN's own output: the first estimate.
@@ -226,7 +226,7 @@ def _aux_net(kind: str, device: str):
 
 # ---- the network's input: OIDN's, and the condition ------------------------------------------------
 # Buffer groups an input may lack, each with a presence map in the condition. ``history`` is read only by
-# a model that reads the past (model.json ``history``): the previous frame's output warped into this one
+# a model that reads the past (``reads_history``): the previous frame's output warped into this one
 # (``history``, (H, W, 3) HDR) and where that warp is valid (``history_valid``, (H, W) or (H, W, 1)).
 HISTORY_BUFFERS = ("history", "history_valid")
 GROUPS = {
@@ -650,10 +650,9 @@ def save(folder: Path, model: ControlledOIDN, blob: bytes, what: str, network: s
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "base.tza").exists() or (folder / "base.tza").read_bytes() != blob:
         atomic_write_bytes(folder / "base.tza", lambda tmp: Path(tmp).write_bytes(blob))
-    # ``history`` only where true: the model.json of a model that does not read the past stays as it was
     weights.save(folder, "oidn_control", model.control.state_dict(), {
         "base": "base.tza", "base_network": network, "base_what": what, "base_sha256": hashlib.sha256(blob).hexdigest(),
-        "cond_channels": cond_names(model.history), **({"history": True} if model.history else {}), "spp": spps,
+        "cond_channels": cond_names(model.history), "spp": spps,
         "formulation": form.record(), **record}, weights="control.safetensors")
 
 
@@ -663,7 +662,7 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
     meta = weights.read_record(folder, "oidn_control", "run `make train SPP=any`")
     blob = (folder / meta["base"]).read_bytes()
     weights.check_sha256(blob, meta["base_sha256"], f"{folder / meta['base']}: the base", "restore it or retrain")
-    history = reads_history(meta)
+    history = reads_history(meta["cond_channels"])
     if meta["cond_channels"] != cond_names(history):
         raise CheckpointError(f"{folder / 'model.json'}: trained on another condition layout "
                               f"({len(meta['cond_channels'])} channels, this code makes {len(cond_names(history))}); "
@@ -674,9 +673,18 @@ def load(folder: str | Path, device="cpu") -> tuple[ControlledOIDN, dict]:
     return model.to(device).eval(), meta
 
 
-def reads_history(meta: dict) -> bool:
-    """Whether a model (its model.json) reads the past: its condition has the history channels."""
-    return bool(meta.get("history", False))
+def reads_history(cond_channels: list[str]) -> bool:
+    """Whether a model reads the past: its condition (model.json's ``cond_channels``) has the history channels."""
+    return HISTORY_CHANNELS[0] in cond_channels
+
+
+def cond_layout(width: int) -> list[str]:
+    """The condition channels of a condition ``width`` channels wide (a pack's ``cond``): with or without the
+    history; ValueError for any other width."""
+    for history in (False, True):
+        if len(cond_names(history)) == width:
+            return cond_names(history)
+    raise ValueError(f"a condition of {width} channels: expected {len(cond_names())} or {len(cond_names(True))}")
 
 
 def widen_control(state: dict[str, torch.Tensor], layout: Layout, x_channels: int, old: list[str], new: list[str]

@@ -10,22 +10,22 @@ temporal filter of ``pipeline.temporal`` blends it with the previous output brou
     out_t = w · y_t + (1 − w) · clamp(warp(out_{t−1}))        (w: ``--temporal-weight``, default
                                                               ``eval.temporal_weight``)
 
-A model folder that reads the past (its model.json ``history``, ``diffusion.history``) needs no filter: it
-is given its own previous output warped into this frame, with the validity mask, as condition channels
-(``Denoiser.denoise(history=...)``), and its output is the frame's output. The summary line says which ran.
+A model folder that reads the past (``diffusion.history``: its model.json's condition has the history
+channels) needs no filter: it is given its own previous output warped into this frame, with the validity
+mask, as condition channels (``Denoiser.denoise(history=...)``), and its output is the frame's output. Either
+way a frame is one ``pipeline.temporal.step``, as in the sequence evaluation. The summary line says which ran.
 
 The motion needs, in every EXR, the standard header attributes ``worldToCamera`` and ``worldToNDC``
-(``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes) and a depth
-channel ``Z`` (camera-space z). A frame without them is denoised alone, and the command says so in one
-line. The first frame has no history. The outputs are independent of where the sequence is cut only up
-to that first frame: run the whole shot at once.
+(``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes), a depth
+channel ``Z`` (camera-space z) and a display window (the camera's image) the size of the pixels. A frame
+without them is denoised alone, and the command says so in one line. The first frame has no history. The
+outputs are independent of where the sequence is cut only up to that first frame: run the whole shot at once.
 """
 from __future__ import annotations
 
 import glob
 import re
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -66,41 +66,21 @@ def output_path(pattern: str, number: int) -> Path:
     return Path(pattern[:run.start()] + str(number).zfill(run.end() - run.start()) + pattern[run.end():])
 
 
-@dataclass
-class Seen:
-    """What the next frame needs of this one: its output, camera and geometry (None: no motion)."""
-    output: np.ndarray
-    camera: motion.Camera | None
-    depth: np.ndarray | None
-    normal: np.ndarray | None
-
-
-def frame_geometry(path: Path, buffers: dict) -> tuple[motion.Camera | None, str]:
-    """(the frame's camera, '') when the EXR has the camera attributes and a depth channel, else (None, why)."""
+def frame_view(path: Path, buffers: dict) -> tuple[motion.View | None, str]:
+    """(the frame's view, '') when the EXR has the camera attributes, a depth channel and a display window the
+    size of its pixels, else (None, why)."""
     if "depth" not in buffers:
         return None, "no depth channel Z"
     try:
-        return read_camera(path), ""
+        cam = read_camera(path)
     except StoreError as exc:
         return None, str(exc).removeprefix(f"{path}: ")
-
-
-def history_of(cam, buffers: dict, prev: Seen | None) -> tuple[np.ndarray, np.ndarray] | None:
-    """(the previous output warped into this frame, its validity), None without a previous frame or motion."""
-    if prev is None or cam is None or prev.camera is None:
-        return None
-    xy, valid = motion.reproject(buffers["depth"][..., 0], cam, prev.camera, depth_prev=prev.depth,
-                                 normal_t=buffers.get("normal"), normal_prev=prev.normal)
-    return motion.warp(prev.output, xy, valid), valid
-
-
-def blend(y: np.ndarray, history: tuple[np.ndarray, np.ndarray] | None, weight: float
-          ) -> tuple[np.ndarray, float | None]:
-    """(this frame's output, the fraction of its pixels that took history; None without history)."""
-    if history is None:
-        return y, None
-    warped, valid = history
-    return temporal.blend_history(y, warped, valid, weight), float(valid.mean())
+    # the camera projects onto the display window, the pixels are the data window: a crop or an overscan
+    # would reproject every pixel to the wrong place
+    height, width = buffers["color"].shape[:2]
+    if (cam.height, cam.width) != (height, width):
+        return None, f"display window {cam.width}x{cam.height} differs from the pixels' {width}x{height}"
+    return motion.View.of(cam, buffers), ""
 
 
 def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, device: str | None, precision: str,
@@ -121,8 +101,7 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
     learned = den.history
 
     def run(b, history):
-        return den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed,
-                           history=history if learned else None)
+        return den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed, history=history)
     return run, weights_text(folder, den.meta), learned
 
 
@@ -131,8 +110,8 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
                          device: str | None = None, precision: str = "auto", seed: int | None = None) -> int:
     """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
     weight = cfg.eval.temporal_weight if weight is None else float(weight)
-    if not 0.0 < weight <= 1.0:
-        raise TrainError(f"--temporal-weight {weight}: expected a share of the new frame in (0, 1]")
+    if (why := temporal.weight_problem(weight)) is not None:
+        raise TrainError(f"--temporal-weight: {why}")
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
     inputs = {p.resolve() for _, p in files}
@@ -149,26 +128,23 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {files[0][1]} has only "
                          f"{', '.join(sorted(first))}; use --method ours")
     run, weights, learned = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
-    prev, took, alone, t0 = None, [], "", time.perf_counter()
+    # (the previous frame's output, its view), what the next frame's history is made of
+    previous, took, alone, t0 = None, [], "", time.perf_counter()
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
         buffers = read_layers(path)
-        cam, why = frame_geometry(path, buffers)
-        alone = alone or (f"{path}: {why}" if cam is None else "")
-        history = history_of(cam, buffers, prev)
-        if learned:     # the model reads its own previous output: no filter after it
-            hdr = run(buffers, history)
-            valid = None if history is None else float(history[1].mean())
-        else:
-            hdr, valid = blend(run(buffers, None), history, weight)
+        view, why = frame_view(path, buffers)
+        alone = alone or (f"{path}: {why}" if view is None else "")
+        # a model that reads its own previous output has no filter after it (``temporal.step``)
+        hdr, valid = temporal.step(run, buffers, view, previous, weight, learned)
         if valid is not None:
-            took.append(valid)
+            took.append(float(valid.mean()))
         out.parent.mkdir(parents=True, exist_ok=True)
         temporal_record = {"learned": True} if learned else {"weight": weight}
         write_output(out, hdr, {"image": "denoised", "source": str(path), "spp": int(spp), "method": method,
-                                "weights": weights, "temporal": {**temporal_record, "history_fraction": valid}},
-                     camera=cam)
-        prev = Seen(hdr, cam, buffers["depth"][..., 0] if cam is not None else None,
-                    buffers.get("normal") if cam is not None else None)
+                                "weights": weights, "temporal": {**temporal_record, "history_fraction":
+                                                                 None if valid is None else float(valid.mean())}},
+                     camera=None if view is None else view.camera)
+        previous = hdr, view
     if alone:
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
     how = (f"{method} reading its own warped previous output (learned history)" if learned

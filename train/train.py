@@ -217,7 +217,7 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
     init_meta = weights.read_record(init, "oidn_control", "") if init is not None else {}
     network = init_meta.get("base_network", NETWORK) if init is not None else d.base_network
     # a model that reads the past keeps reading it: a warm start from one needs no diffusion.history
-    history = d.history or reads_history(init_meta)
+    history = d.history or reads_history(init_meta.get("cond_channels", []))
     source = StoreSource(cfg, network, history)
     spps = source.spps(spp)
     rank, world = dist_info()
