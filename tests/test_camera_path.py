@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from mcdenoise.pipeline.config import ConfigError
-from mcdenoise.pipeline.motion import look_at
 from mcdenoise.pipeline.store import Store
 from mcdenoise.render.camera import dolly_path, orbit_path, parse_move, rotation, sensor_path
 from mcdenoise.render.external import camera_move
-from tests.helpers import ORBIT_SCENE, TINY, cli
+from tests.helpers import ORBIT_SCENE, TINY, cli, look_at
 
 
 def test_orbit_keeps_the_target_centred_and_the_distance():

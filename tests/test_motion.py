@@ -9,7 +9,8 @@ import pytest
 from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.errors import StoreError
 from mcdenoise.pipeline.exr import read_camera, scan_exr, write_image
-from mcdenoise.pipeline.motion import Camera, look_at, project, reproject, unproject, warp
+from mcdenoise.pipeline.motion import Camera, project, reproject, unproject, warp
+from tests.helpers import look_at
 
 W, H = 64, 48
 FOV = 50.0
