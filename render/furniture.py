@@ -306,6 +306,9 @@ def prop(rng, room: float) -> dict:
 
 def _turn(v, yaw_deg: float) -> np.ndarray:
     """``v`` (x, y, z) turned by ``yaw_deg`` about +y: +z goes to (sin, 0, cos), as geometry.transform_matrix does."""
+    # The yaw case of render.camera.rotation, written out: Rodrigues' matrix product rounds differently in
+    # the last bit, which moves some positions across the 4-decimal rounding of the descriptions, and the
+    # generated scenes must stay as they were drawn (tests/test_interior.py pins the three against each other).
     a = np.deg2rad(yaw_deg)
     x, y, z = (float(c) for c in v)
     return np.array([x * np.cos(a) + z * np.sin(a), y, -x * np.sin(a) + z * np.cos(a)])

@@ -28,6 +28,22 @@ BEFORE = {"default": "bffee243c16783bc1bd8cec5f8823ed6840f6b765080ac979ba62d73bc
           "paper": "b3d535c4adeefd144b1233a27bc5e1180e89c3f45bc62417a6d13a6dbad2d369"}
 
 
+def test_the_yaw_of_furniture_is_the_rotation_of_cameras_and_meshes():
+    """A placed item's points turn (furniture._turn) as its meshes do (geometry.transform_matrix) and as a
+    camera turns about +y (camera.rotation)."""
+    from mcdenoise.render.camera import rotation
+    from mcdenoise.render.furniture import _turn
+    from mcdenoise.render.geometry import transform_matrix
+
+    rng = np.random.default_rng(5)
+    for yaw in (0.0, 90.0, -37.5, 180.0, 271.3):
+        v = rng.normal(size=3)
+        turned = _turn(v, yaw)
+        np.testing.assert_allclose(turned, rotation((0, 1, 0), np.radians(yaw)) @ v, atol=1e-12)
+        np.testing.assert_allclose(turned, transform_matrix({"rotation_deg": [0, yaw, 0]})[:3, :3] @ v, atol=1e-12)
+    np.testing.assert_allclose(_turn([0, 0, 1], 30.0), [0.5, 0, np.cos(np.radians(30))], atol=1e-15)
+
+
 def _digest(cfg, seed: int, count: int = 24) -> str:
     h = hashlib.sha256()
     for i in range(count):
