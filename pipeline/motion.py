@@ -74,6 +74,9 @@ TAP_EPS = 1e-3
 # the compact encoding's depth rounding (2^-11), and far below the depth steps between objects.
 DEPTH_TOLERANCE = 0.05
 NORMAL_THRESHOLD = 0.9          # cos 25.8 degrees: half-float normals, curved surfaces' footprints
+# Clip distances of the store's cameras (render.buffers.make_sensor) and of a frame record that lacks them.
+NEAR_CLIP = 1e-3
+FAR_CLIP = 1e4
 # OpenEXR camera space (x right) from Mitsuba's local camera space (x left).
 _FLIP_X = np.diag([-1.0, 1.0, 1.0, 1.0])
 
@@ -85,8 +88,8 @@ class Camera:
     fov_x: float                    # degrees across the width
     width: int
     height: int
-    near: float = 1e-3
-    far: float = 1e4
+    near: float = NEAR_CLIP
+    far: float = FAR_CLIP
 
     def __post_init__(self):
         m = np.asarray(self.camera_to_world, dtype=np.float64)
@@ -262,8 +265,8 @@ def camera_from_record(record: dict, where: str = "frame.json") -> Camera:
                          "cameras were recorded lack 'fov_x'; render the frame again)")
     try:
         return Camera(np.asarray(record["camera_to_world"], dtype=np.float64), float(record["fov_x"]),
-                      record["width"], record["height"], float(record.get("near_clip", 1e-3)),
-                      float(record.get("far_clip", 1e4)))
+                      record["width"], record["height"], float(record.get("near_clip", NEAR_CLIP)),
+                      float(record.get("far_clip", FAR_CLIP)))
     except (TypeError, ValueError) as exc:
         raise StoreError(f"{where}: the recorded camera is not usable ({exc})") from None
 
