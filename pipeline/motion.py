@@ -252,8 +252,11 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray) -> np.n
 # ---- the cameras in files --------------------------------------------------------------------
 
 def camera_record(cam: Camera) -> dict:
-    """The camera fields of a frame's ``frame.json`` besides ``camera_to_world``, width and height."""
-    return {"fov_x": float(cam.fov_x), "near_clip": float(cam.near), "far_clip": float(cam.far)}
+    """The camera fields of a frame's ``frame.json`` besides width and height (``camera_from_record`` reads
+    them back): the pose rounded to 6 decimals (Mitsuba holds it in float32, relative 6e-8), the field of
+    view and the clip distances."""
+    return {"camera_to_world": np.round(cam.camera_to_world, 6).tolist(), "fov_x": float(cam.fov_x),
+            "near_clip": float(cam.near), "far_clip": float(cam.far)}
 
 
 def camera_from_record(record: dict, where: str = "frame.json") -> Camera:
