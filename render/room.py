@@ -12,10 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mcdenoise.render.layout import rect, wall_with_window
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
+from mcdenoise.render.rounding import rnd
 
 
 def random_plan(rng, neighbour: bool | None = None) -> dict:
@@ -34,7 +31,7 @@ def random_plan(rng, neighbour: bool | None = None) -> dict:
         z0 = rng.uniform(-1.0, d - 2.0)
         z1 = max(z0 + 2.5, 1.6, rng.uniform(z0 + 2.0, d + 1.5))
         rects.append({"x": [-rng.uniform(2.5, 4.5), 0.0], "z": [z0, z1], "room": 1})
-    return {"height": _r(h), "rects": [{**q, "x": [_r(v) for v in q["x"]], "z": [_r(v) for v in q["z"]]} for q in rects]}
+    return {"height": rnd(h), "rects": [{**q, "x": [rnd(v) for v in q["x"]], "z": [rnd(v) for v in q["z"]]} for q in rects]}
 
 
 def label_at(plan: dict, x: float, z: float) -> int:
@@ -66,7 +63,7 @@ def wall_segments(plan: dict) -> list:
                 k = j
                 while k + 1 < len(spans) - 1 and (lo[k + 1], hi[k + 1]) == (lo[j], hi[j]):
                     k += 1
-                segments.append({"line": line, "at": _r(at), "span": [_r(spans[j]), _r(spans[k + 1])],
+                segments.append({"line": line, "at": rnd(at), "span": [rnd(spans[j]), rnd(spans[k + 1])],
                                  "rooms": [int(lo[j]), int(hi[j])]})
                 j = k + 1
     return segments
