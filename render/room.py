@@ -16,7 +16,7 @@ from mcdenoise.render.rounding import rnd
 
 
 def random_plan(rng, neighbour: bool | None = None) -> dict:
-    """A main room of 3-7 m by 3-6 m, 2.5-3.2 m high; an L wing (30 %), an alcove (30 %) and a neighbouring
+    """A main room of 3.2-7 m by 3-6 m, 2.5-3.2 m high; an L wing (30 %), an alcove (30 %) and a neighbouring
     room behind a door (``neighbour``, else 50 %)."""
     w, d, h = rng.uniform(3.2, 7.0), rng.uniform(3.0, 6.0), rng.uniform(2.5, 3.2)
     rects = [{"x": [0.0, w], "z": [0.0, d], "room": 0}]
@@ -111,7 +111,7 @@ def floors_and_ceilings(plan: dict, floor_mats: dict, ceiling: dict) -> list:
     return out
 
 
-def bounds(plan: dict, room: int | None = None) -> tuple:
-    """(x0, x1, z0, z1) around the plan's rectangles (of one room when given)."""
-    qs = [q for q in plan["rects"] if room is None or q["room"] == room]
+def bounds(plan: dict) -> tuple:
+    """(x0, x1, z0, z1) around the plan's rectangles."""
+    qs = plan["rects"]
     return (min(q["x"][0] for q in qs), max(q["x"][1] for q in qs), min(q["z"][0] for q in qs), max(q["z"][1] for q in qs))
