@@ -35,7 +35,9 @@ frame t-1. It is **invalid** when
   z in frame t-1: invalid when |z / z_seen - 1| > ``depth_tolerance``. 1/z is affine in screen
   coordinates on a plane, so on planes the interpolation is exact (up to the pixel-mean of depth)
   and the test does not depend on the surface's slant; a footprint straddling two surfaces at depth
-  ratio r reads a mixed 1/z and is caught once the far tap's weight exceeds about tolerance / (r - 1);
+  ratio r > 1 reads a mixed 1/z and is caught once the other surface's taps weigh more than
+  tolerance / (r - 1) for a point on the far surface, tolerance * r / (r - 1) for one on the near surface
+  (the relative error of 1/z is that weight times r - 1, or times (r - 1) / r);
 * (``normal_t`` and ``normal_prev`` given) the world-space shading normals disagree: the
   bilinearly read normal of t-1, normalised, has a dot product below ``normal_threshold`` with
   frame t's (world-space normals of a point do not change when the camera moves).
@@ -45,8 +47,10 @@ Warping (``warp``)
 Bilinear interpolation of the image of t-1 at ``xy_prev`` over the same four taps (clamped at the
 border, weights below ``TAP_EPS`` dropped and the rest renormalised, so a landing spot on a pixel
 centre returns that pixel exactly); invalid pixels are 0. Where ``valid`` comes from ``reproject``
-with ``depth_prev``, a valid pixel's footprint holds no background tap and no tap of another
-surface beyond the tolerance above, so the warp never blends across a silhouette.
+with ``depth_prev``, a valid pixel's footprint holds no background tap, and one straddling two
+surfaces at depth ratio r passes only while the other surface's taps weigh at most the bounds
+above: the warp blends across a silhouette by up to tolerance * r / (r - 1) (0.1 at the default
+tolerance and r = 2), and across surfaces of nearly equal depth freely.
 
 OpenEXR headers (``exr_matrices``, ``camera_from_exr``)
 ------------------------------------------------------
