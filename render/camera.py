@@ -58,7 +58,13 @@ def random_camera(rng: np.random.Generator, center, radius: float, fov_range, mo
 
 def bezier_camera(origins, targets, fovs, frames: int, max_distance: float) -> dict:
     """The camera description of a move along quadratic Beziers through three ``origins`` and three
-    ``targets``, its field of view going linearly from ``fovs[0]`` to ``fovs[1]``: every frame's pose."""
+    ``targets``, its field of view going linearly from ``fovs[0]`` to ``fovs[1]``: every frame's pose.
+
+    ``max_distance`` is stored as given (the description's ``max_distance``). Only the open sets and the
+    stress presets read it, as how far the camera gets from the scene's centre, to size the room around
+    the path (render.scene, render.stress): ``random_camera`` passes the start distance from the centre
+    plus the move's length. Interiors pass the start origin's distance to its target and product shots 1.1
+    times the start distance to the products; nothing is built from those."""
     (o0, o1, o2), (t0, t1, t2), (fov0, fov2) = origins, targets, fovs
     poses = []
     for i in range(frames):
