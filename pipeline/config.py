@@ -270,7 +270,9 @@ class CleanConfig(TrainingConfig):
 
 @dataclass
 class AfgsaConfig(TrainingConfig):
-    epochs: int = override("epochs", 12, "An epoch: crops_per_frame crops of every train frame.")
+    epochs: int = override("epochs", 12, "An epoch: crops_per_frame crops of every train frame. A fixed epoch "
+                                         "count rather than a time budget, so that two runs write the same weights "
+                                         "on loaded and idle cores.")
     crop: int = override("crop", 64, "Paper: 128.")
     lr: float = override("lr", 5e-4, "Of the generator; optimiser: Adam (paper: 1e-4; higher for minutes of CPU "
                                        "training).")

@@ -5,7 +5,8 @@ the cleaner, noisy / OIDN / Isik / ours / GT_clean for the evaluator). Each row 
 ``size``² window of every image, picked where the row's reference image has the most gradient
 energy (where blur and residual noise show), gamma-tonemapped for display (paper eq. 4,
 ``pipeline.metrics.gamma_compress``). ``plot_curves``: a training run's curves (named (x, y) series, log y
-when every value is positive). ``contact_sheet``: whole images in a labelled grid (e.g. every validation scene).
+when every value is positive). ``contact_sheet``: whole images in a labelled grid (every validation
+scene; random scenes, each exposed by itself: ``exposed``).
 ``animated_strip``: a sequence as an animated GIF, one column per method.
 """
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .exr import atomic_write_bytes
-from .metrics import gamma_compress
+from .metrics import LUMINANCE, gamma_compress, linear_to_srgb, reinhard
 
 
 def detail_crop(img: np.ndarray, size: int) -> tuple[int, int]:
@@ -68,24 +69,42 @@ def crop_grid(rows: list[tuple[str, list[np.ndarray | None]]], titles: list[str]
     save_figure(fig, path, dpi=110)
 
 
-def contact_sheet(cells: list[tuple[str, np.ndarray]], path: Path, cols: int = 6, title: str | None = None) -> None:
-    """Save whole HDR images (H, W, 3) in a grid of ``cols`` columns, each under its label, gamma-tonemapped
-    as ``crop_grid`` (paper eq. 4) and shown pixel for pixel (no interpolation)."""
+# Mid-grey: where ``exposed`` puts an image's log-average luminance (Reinhard's key value).
+MID_GREY = 0.18
+
+
+def exposed(rgb: np.ndarray) -> np.ndarray:
+    """Display values in [0, 1] of an HDR image (H, W, 3) exposed by itself: scaled so that its log-average
+    luminance is ``MID_GREY``, Reinhard-tonemapped (paper eq. 7) and sRGB-encoded. Images of very
+    different brightness all read; their brightness is then not comparable."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    lum = np.clip(rgb @ LUMINANCE, 0.0, None)
+    key = max(float(np.exp(np.mean(np.log(lum + 1e-4)))), 1e-4)
+    return linear_to_srgb(reinhard(rgb * (MID_GREY / key)))
+
+
+def contact_sheet(cells: list[tuple[str, np.ndarray]], path: Path, cols: int = 6, title: str | None = None,
+                  exposure: bool = False, cell: float = 2.1) -> None:
+    """Save whole HDR images (H, W, 3) in a grid of ``cols`` columns of ``cell`` inches, each under its label and
+    shown pixel for pixel (no interpolation); written via a temporary name. Tonemap: the gamma curve of
+    ``crop_grid`` (paper eq. 4), one exposure for all; with ``exposure`` each image by its own (``exposed``).
+    ValueError when there is no image."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     if not cells:
-        return
+        raise ValueError(f"{path}: a contact sheet needs at least one image")
     rows = -(-len(cells) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.1 * cols, 2.3 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(cell * cols, (cell + 0.2) * rows), squeeze=False)
     for k, ax in enumerate(axes.ravel()):
         ax.set_xticks([]), ax.set_yticks([])
         if k >= len(cells):
             ax.axis("off")
             continue
         label, img = cells[k]
-        ax.imshow(np.clip(gamma_compress(img), 0, 1), interpolation="nearest")
+        shown = exposed(img) if exposure else np.clip(gamma_compress(img), 0, 1)
+        ax.imshow(shown, interpolation="nearest")
         ax.set_title(label, fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)

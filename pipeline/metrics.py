@@ -33,6 +33,8 @@ evaluator's ``clamp(x, 0)/(1 + x)`` convention (the authors' code) does the same
   6 maps to 0.99, so the paper's [0, 6] range lands in [0, 1].
 - ``gamma_compress``: ``A·x^γ``, A = 0.47, γ = 1/2.4 (paper eq. 4), used for figures;
   6 maps to 0.99 as well.
+- ``linear_to_srgb``: the sRGB transfer of [0, 1] (contact sheets' self-exposed tiles), with its inverse
+  ``srgb_to_linear`` (palette colours given as sRGB).
 
 Inverses clamp their input to the tonemap's range (e.g. ``y < 1`` for Reinhard) so that a
 model's slightly out-of-range prediction maps back to a finite radiance instead of inf/NaN.
@@ -113,6 +115,14 @@ def inverse_gamma_compress(y, a: float = GAMMA_A, gamma: float = GAMMA):
     """``(max(y, 0) / a)^(1/gamma)``."""
     y = clamp_values(_asarray(y), 0.0)
     return (y / a) ** (1.0 / gamma)
+
+
+def linear_to_srgb(x):
+    """The sRGB transfer function (IEC 61966-2-1): linear RGB clamped to [0, 1] to display values.
+
+    Lists and tuples become numpy arrays (float64); arrays and tensors keep their dtype."""
+    x = clamp_values(x if is_torch(x) else np.asarray(x), 0.0, 1.0)
+    return _lib(x).where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def srgb_to_linear(c):
@@ -222,8 +232,8 @@ def ssim(pred, ref, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> flo
     return float((num / den).mean())
 
 
-# FLIP's sRGB -> luminance weights (linear sRGB, D65): the reference's Y decides its exposures.
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+# Luminance weights of linear sRGB (D65): FLIP's reference Y decides its exposures; contact sheets expose by it.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def flip(pred, ref, hdr: bool = False) -> float:
@@ -241,7 +251,7 @@ def flip(pred, ref, hdr: bool = False) -> float:
     if hdr:
         r = np.ascontiguousarray(np.clip(np.asarray(ref, dtype=np.float32), 0, None))
         t = np.ascontiguousarray(np.clip(np.asarray(pred, dtype=np.float32), 0, None))
-        if float((r.reshape(-1, 3) @ _LUMINANCE).max(initial=0.0)) <= 0.0:
+        if float((r.reshape(-1, 3) @ LUMINANCE).max(initial=0.0)) <= 0.0:
             params = {"startExposure": 0.0, "stopExposure": 0.0}
     else:
         r = np.ascontiguousarray(reinhard(np.asarray(ref, dtype=np.float32)), dtype=np.float32)

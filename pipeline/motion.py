@@ -35,7 +35,9 @@ frame t-1. It is **invalid** when
   z in frame t-1: invalid when |z / z_seen - 1| > ``depth_tolerance``. 1/z is affine in screen
   coordinates on a plane, so on planes the interpolation is exact (up to the pixel-mean of depth)
   and the test does not depend on the surface's slant; a footprint straddling two surfaces at depth
-  ratio r reads a mixed 1/z and is caught once the far tap's weight exceeds about tolerance / (r - 1);
+  ratio r > 1 reads a mixed 1/z and is caught once the other surface's taps weigh more than
+  tolerance / (r - 1) for a point on the far surface, tolerance * r / (r - 1) for one on the near surface
+  (the relative error of 1/z is that weight times r - 1, or times (r - 1) / r);
 * (``normal_t`` and ``normal_prev`` given) the world-space shading normals disagree: the
   bilinearly read normal of t-1, normalised, has a dot product below ``normal_threshold`` with
   frame t's (world-space normals of a point do not change when the camera moves).
@@ -45,8 +47,10 @@ Warping (``warp``)
 Bilinear interpolation of the image of t-1 at ``xy_prev`` over the same four taps (clamped at the
 border, weights below ``TAP_EPS`` dropped and the rest renormalised, so a landing spot on a pixel
 centre returns that pixel exactly); invalid pixels are 0. Where ``valid`` comes from ``reproject``
-with ``depth_prev``, a valid pixel's footprint holds no background tap and no tap of another
-surface beyond the tolerance above, so the warp never blends across a silhouette.
+with ``depth_prev``, a valid pixel's footprint holds no background tap, and one straddling two
+surfaces at depth ratio r passes only while the other surface's taps weigh at most the bounds
+above: the warp blends across a silhouette by up to tolerance * r / (r - 1) (0.1 at the default
+tolerance and r = 2), and across surfaces of nearly equal depth freely.
 
 OpenEXR headers (``exr_matrices``, ``camera_from_exr``)
 ------------------------------------------------------
@@ -74,6 +78,9 @@ TAP_EPS = 1e-3
 # the compact encoding's depth rounding (2^-11), and far below the depth steps between objects.
 DEPTH_TOLERANCE = 0.05
 NORMAL_THRESHOLD = 0.9          # cos 25.8 degrees: half-float normals, curved surfaces' footprints
+# Clip distances of the store's cameras (render.buffers.make_sensor) and of a frame record that lacks them.
+NEAR_CLIP = 1e-3
+FAR_CLIP = 1e4
 # OpenEXR camera space (x right) from Mitsuba's local camera space (x left).
 _FLIP_X = np.diag([-1.0, 1.0, 1.0, 1.0])
 
@@ -85,8 +92,8 @@ class Camera:
     fov_x: float                    # degrees across the width
     width: int
     height: int
-    near: float = 1e-3
-    far: float = 1e4
+    near: float = NEAR_CLIP
+    far: float = FAR_CLIP
 
     def __post_init__(self):
         m = np.asarray(self.camera_to_world, dtype=np.float64)
@@ -114,20 +121,6 @@ class Camera:
     def world_to_camera(self) -> np.ndarray:
         """4x4 column-vector matrix from world to Mitsuba's local camera frame (x left, y up, z forward)."""
         return np.linalg.inv(self.camera_to_world)
-
-
-def look_at(origin, target, up) -> np.ndarray:
-    """Mitsuba's ``look_at`` as a 4x4 camera_to_world: forward towards ``target``, left = up x forward."""
-    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
-    forward = target - origin
-    forward /= np.linalg.norm(forward)
-    left = np.cross(up, forward)
-    if np.linalg.norm(left) < 1e-12:
-        raise ValueError("look_at: up is parallel to the view direction")
-    left /= np.linalg.norm(left)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, np.cross(forward, left), forward, origin
-    return m
 
 
 # ---- projection ------------------------------------------------------------------------------
@@ -291,8 +284,11 @@ def warp_previous(image_prev: np.ndarray, view: View, view_prev: View) -> tuple[
 # ---- the cameras in files --------------------------------------------------------------------
 
 def camera_record(cam: Camera) -> dict:
-    """The camera fields of a frame's ``frame.json`` besides ``camera_to_world``, width and height."""
-    return {"fov_x": float(cam.fov_x), "near_clip": float(cam.near), "far_clip": float(cam.far)}
+    """The camera fields of a frame's ``frame.json`` besides width and height (``camera_from_record`` reads
+    them back): the pose rounded to 6 decimals (Mitsuba holds it in float32, relative 6e-8), the field of
+    view and the clip distances."""
+    return {"camera_to_world": np.round(cam.camera_to_world, 6).tolist(), "fov_x": float(cam.fov_x),
+            "near_clip": float(cam.near), "far_clip": float(cam.far)}
 
 
 def camera_from_record(record: dict, where: str = "frame.json") -> Camera:
@@ -304,8 +300,8 @@ def camera_from_record(record: dict, where: str = "frame.json") -> Camera:
                          "cameras were recorded lack 'fov_x'; render the frame again)")
     try:
         return Camera(np.asarray(record["camera_to_world"], dtype=np.float64), float(record["fov_x"]),
-                      record["width"], record["height"], float(record.get("near_clip", 1e-3)),
-                      float(record.get("far_clip", 1e4)))
+                      record["width"], record["height"], float(record.get("near_clip", NEAR_CLIP)),
+                      float(record.get("far_clip", FAR_CLIP)))
     except (TypeError, ValueError) as exc:
         raise StoreError(f"{where}: the recorded camera is not usable ({exc})") from None
 

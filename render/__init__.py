@@ -7,6 +7,7 @@
   ``render.camera``: its parts: random shapes as meshes, BSDFs, procedural textures, lights set
   by target irradiance, a smooth camera move over the frames (and the orbit, dolly and
   camera-to-camera paths of a user's scene).
+- ``render.rounding``: the rounding of a description's numbers, shared by every generator.
 - ``render.layout``: object placement, the ground and a room's walls, shared with the stress presets.
 - ``render.interior``: furnished interiors (``scene.interior_probability``): ``render.room`` draws
   their floor plans and walls, ``render.furniture`` the furniture, lamps and props assembled from

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mcdenoise.pipeline.motion import FAR_CLIP, NEAR_CLIP
 from mcdenoise.pipeline.numerics import repair_nonfinite, sample_variance_of_mean
 from mcdenoise.pipeline.schema import BY_NAME, OPTIONAL_FEATURES, variance_name
 from mcdenoise.render.integrator import aov_layout, output_buffers, parse_features, register
@@ -48,7 +49,7 @@ def get_integrator(mi, features=None, max_depth: int = 8, rr_depth: int = 5, mom
 
 
 def make_sensor(mi, to_world, fov: float, width: int, height: int,
-                near_clip: float = 1e-3, far_clip: float = 1e4):
+                near_clip: float = NEAR_CLIP, far_clip: float = FAR_CLIP):
     """Perspective camera (``fov`` in degrees along x) with a box-filtered RGB ``hdrfilm``.
 
     The box filter keeps each sample in its own pixel, so pixel noise is independent and the

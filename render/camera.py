@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from mcdenoise.render.rounding import vec
+
 UP = [0.0, 1.0, 0.0]
-
-
-def _vec(v) -> list:
-    return [round(float(x), 5) for x in v]
 
 
 def bezier(p0, p1, p2, t: float) -> np.ndarray:
@@ -60,15 +58,21 @@ def random_camera(rng: np.random.Generator, center, radius: float, fov_range, mo
 
 def bezier_camera(origins, targets, fovs, frames: int, max_distance: float) -> dict:
     """The camera description of a move along quadratic Beziers through three ``origins`` and three
-    ``targets``, its field of view going linearly from ``fovs[0]`` to ``fovs[1]``: every frame's pose."""
+    ``targets``, its field of view going linearly from ``fovs[0]`` to ``fovs[1]``: every frame's pose.
+
+    ``max_distance`` is stored as given (the description's ``max_distance``). Only the open sets and the
+    stress presets read it, as how far the camera gets from the scene's centre, to size the room around
+    the path (render.scene, render.stress): ``random_camera`` passes the start distance from the centre
+    plus the move's length. Interiors pass the start origin's distance to its target and product shots 1.1
+    times the start distance to the products; nothing is built from those."""
     (o0, o1, o2), (t0, t1, t2), (fov0, fov2) = origins, targets, fovs
     poses = []
     for i in range(frames):
         t = i / (frames - 1) if frames > 1 else 0.0
-        poses.append({"origin": _vec(bezier(o0, o1, o2, t)), "target": _vec(bezier(t0, t1, t2, t)),
+        poses.append({"origin": vec(bezier(o0, o1, o2, t), 5), "target": vec(bezier(t0, t1, t2, t), 5),
                       "up": list(UP), "fov": round(fov0 + (fov2 - fov0) * t, 4)})
     return {"path": "quadratic_bezier",
-            "keyframes": {"origin": [_vec(o0), _vec(o1), _vec(o2)], "target": [_vec(t0), _vec(t1), _vec(t2)],
+            "keyframes": {"origin": [vec(o0, 5), vec(o1, 5), vec(o2, 5)], "target": [vec(t0, 5), vec(t1, 5), vec(t2, 5)],
                           "fov": [round(fov0, 4), round(fov2, 4)]},
             "max_distance": round(float(max_distance), 5),
             "frames": poses}
@@ -81,10 +85,10 @@ def static_camera(origin, target, fov: float, frames: int, up=UP, drift=None) ->
     poses = []
     for i in range(frames):
         t = i / (frames - 1) if frames > 1 else 0.0
-        poses.append({"origin": _vec(origin + drift * t), "target": _vec(target + drift * t * 0.5),
+        poses.append({"origin": vec(origin + drift * t, 5), "target": vec(target + drift * t * 0.5, 5),
                       "up": [float(u) for u in up], "fov": round(float(fov), 4)})
-    return {"path": "linear", "keyframes": {"origin": [_vec(origin), _vec(origin + drift)],
-                                            "target": [_vec(target), _vec(target + drift * 0.5)], "fov": [fov, fov]},
+    return {"path": "linear", "keyframes": {"origin": [vec(origin, 5), vec(origin + drift, 5)],
+                                            "target": [vec(target, 5), vec(target + drift * 0.5, 5)], "fov": [fov, fov]},
             "max_distance": round(float(np.linalg.norm(origin - target) + np.linalg.norm(drift)), 5),
             "frames": poses}
 

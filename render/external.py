@@ -18,6 +18,8 @@ its view axis: ``render.frame.look_distance``) by that angle over the frames, ``
 moves it that fraction of the distance towards the target; without ``--move`` the frames go from the
 scene's first perspective camera to its second (a hand-made scene carries its own move that way; the
 camera stays still where there is no second). Every frame records its camera (frame.json, EXR headers).
+A rerun keeps the images on disk (it resumes), so it must ask for the same camera path: one with another
+``--frames``/``--move`` is refused (``check_rerun``).
 """
 from __future__ import annotations
 
@@ -37,8 +39,12 @@ EXTERNAL_SPLIT = "external"
 _EXTERNAL_INDEX_BASE = 1 << 20
 
 
-# Most frames of one external scene: frame seeds stay distinct 32-bit counters (frame_seeds) up to here.
+# Most frames of one external scene (render-scene --frames).
 MAX_FRAMES = 100
+# Frame f of the scene at position i of the external split seeds its images from the counter
+# (2^20·(1+f) + i)·images + k (frame_seeds, pipeline.store.image_seed), a distinct 32-bit value while
+# (frames + 1)·images <= 2^12 (i < 2^20): 100 frames of up to 38 stacks. seed_range checks it.
+_SEED_COUNTERS = 1 << 12
 
 # load_file's own keywords: a scene parameter of that name could not be passed to it.
 _RESERVED = ("path", "parallel", "optimize", "update_scene")
@@ -101,12 +107,44 @@ def camera_move(frames: int, move: str | None) -> dict | None:
     return {"kind": kind, "amount": amount, "frames": frames}
 
 
+def seed_range(frames: int, stacks: int) -> None:
+    """ConfigError in one line where ``frames`` frames of ``stacks`` stacks would need seed counters past
+    2^32 (two images of the store would then share a seed)."""
+    images = len(image_names(stacks))
+    if (frames + 1) * images > _SEED_COUNTERS:
+        most = _SEED_COUNTERS // images - 1
+        raise ConfigError(f"--frames {frames} with dataset.stacks={stacks}: the frames' seeds would pass 2^32 "
+                          f"(at most {most} frames of {stacks} stacks, or {_SEED_COUNTERS // (frames + 1) - 2} "
+                          f"stacks of {frames} frames)")
+
+
+def _move_words(move: dict | None) -> str:
+    """A scene description's ``move`` as render-scene's arguments."""
+    if move is None:
+        return "--frames 1"
+    amount = f" --move {move['kind']}:{move['amount']:g}" if "amount" in move else ""
+    return f"--frames {move['frames']}{amount}"
+
+
+def check_rerun(store: Store, sid: str, move: dict | None) -> None:
+    """ConfigError in one line when ``sid``'s folder was rendered along another camera path (frame count or
+    move): a rerun keeps the images already on disk (it resumes an interrupted render) and frame k's pose is
+    k/(N-1) of the move, so the frames would mix two paths."""
+    if not (store.scene_dir(sid) / "scene.json").exists():
+        return
+    before = store.scene_manifest(sid).get("description", {}).get("move")
+    if before != move:
+        raise ConfigError(f"{store.scene_dir(sid)}: rendered with {_move_words(before)}, not {_move_words(move)}; "
+                          "its frames would mix two camera paths: delete the folder or give the scene another --name")
+
+
 def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None = None,
                  name: str | None = None, defines: dict[str, str] | None = None, frames: int = 1,
                  move: str | None = None) -> dict:
     """Render ``xml`` (its ``$name`` parameters from ``defines``) into the store's external split: one
     frame, or ``frames`` along ``move`` (module docstring)."""
     path_move = camera_move(frames, move)
+    seed_range(frames, cfg.dataset.stacks)
     if not Path(xml).is_file():
         raise StoreError(f"{xml}: scene file not found")
     size = None
@@ -117,13 +155,16 @@ def render_scene(xml: str, store_path: str, cfg: Config, resolution: str | None 
         size = (int(m.group(1)), int(m.group(2)))
     store = Store(store_path)
     sid = scene_id(xml, name)
+    desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {}),
+            **({"move": path_move} if path_move else {})}
+    check_rerun(store, sid, path_move)
     # A scene that fails (bad XML, a render error) leaves the store as it found it: the manifest
     # gets its old bytes back, a new scene folder goes, a store this call created is removed.
     root_existed = store.root.exists()
     manifest = store.manifest_path.read_bytes() if store.manifest_path.exists() else None
     folder_existed = store.scene_dir(sid).exists()
     try:
-        return _render(store, store_path, cfg, xml, sid, size, defines or {}, path_move)
+        return _render(store, store_path, cfg, xml, sid, size, desc)
     except BaseException:
         if not root_existed:
             shutil.rmtree(store.root, ignore_errors=True)
@@ -167,20 +208,17 @@ def frame_seeds(master: int, index: int, frame: int, names: list[str]) -> dict[s
             for k, n in enumerate(names)}
 
 
-def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, defines: dict,
-            move: dict | None = None) -> dict:
+def _render(store: Store, store_path: str, cfg: Config, xml: str, sid: str, size, desc: dict) -> dict:
     from .dataset import render_frame_entry, scene_record, task_spp
     from .frame import FrameTask
 
     index = _register(store, cfg, sid)
     d = cfg.dataset
     names = image_names(d.stacks)
-    frames = move["frames"] if move else 1
+    frames = desc["move"]["frames"] if "move" in desc else 1
     seeds = {str(f): frame_seeds(cfg.seed, index, f, names) for f in range(frames)}
-    desc = {"xml": str(Path(xml).resolve()), **({"defines": dict(sorted(defines.items()))} if defines else {}),
-            **({"move": move} if move else {})}
     record = scene_record(cfg, sid, index, EXTERNAL_SPLIT, None, frames, list(size) if size else None, seeds, desc)
-    own = scene_depths(xml, defines)    # the scene's own path depths are part of its look: kept
+    own = scene_depths(xml, desc.get("defines", {}))    # the scene's own path depths are part of its look: kept
     record["integrator"].update(own)
     store.write_scene_manifest(sid, {**record, "packages": package_versions()})
     render = dataclasses.asdict(cfg.render)

@@ -211,10 +211,9 @@ def render_frame(task: FrameTask) -> dict:
                    "total": round(time.perf_counter() - t_start, 4)},
         "reused_images": reused,
         **gt_summary(store, task, records, gt_color),
-        # The camera frame (columns: left, up, forward, origin): lets consumers turn the
+        # The camera frame (camera_to_world, columns: left, up, forward, origin) lets consumers turn the
         # world-space normals into camera space (train.data); with the field of view and clip
         # distances, the whole camera (pipeline.motion.camera_from_record: reprojection).
-        "camera_to_world": np.round(camera.camera_to_world, 6).tolist(),
         **camera_record(camera),
     }
     if "xml" in task.desc:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mcdenoise.render.rounding import rnd, vec
+
 PART_DEFAULTS = {
     "box": {"extents": [1.0, 1.0, 1.0]},
     "cylinder": {"radius": 0.5, "height": 1.0, "sections": 24},
@@ -20,38 +22,30 @@ PART_DEFAULTS = {
 }
 
 
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
-def _vec(v) -> list:
-    return [_r(x) for x in v]
-
-
 def part(primitive: str, size, position, rotation=None, **params) -> dict:
     """One primitive fitted to the box ``size`` (before it turns), turned by ``rotation`` (degrees, static x, y, z)
     and centred at ``position``."""
     p = {**PART_DEFAULTS.get(primitive, {}), **params}
-    out = {"primitive": primitive, "params": p, "size": _vec(size), "position": _vec(position)}
+    out = {"primitive": primitive, "params": p, "size": vec(size), "position": vec(position)}
     if rotation is not None:
-        out["rotation_deg"] = _vec(rotation)
+        out["rotation_deg"] = vec(rotation)
     return out
 
 
 def vase_part(radii, size, position) -> dict:
     """A closed body of revolution through ``radii`` (bottom to top), fitted to ``size``: bottles, glasses,
     bowls, pots."""
-    return part("vase", size, position, radii=_vec(radii), height=1.0, sections=24)
+    return part("vase", size, position, radii=vec(radii), height=1.0, sections=24)
 
 
 def item(size, parts: dict, surfaces=(), lights=(), name: str = "") -> dict:
     """An item; ``surfaces``: [x, y, z, width, depth, headroom] of each flat place props can stand on."""
-    return {"name": name, "size": _vec(size), "parts": parts, "surfaces": [list(s) for s in surfaces],
+    return {"name": name, "size": vec(size), "parts": parts, "surfaces": [list(s) for s in surfaces],
             "lights": list(lights)}
 
 
 def u(rng, a: float, b: float) -> float:
-    return _r(rng.uniform(a, b))
+    return rnd(rng.uniform(a, b))
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,8 +202,8 @@ def plant(rng, scale: float = 1.0) -> dict:
 def bulb(center, radius: float, power: float, color) -> dict:
     """A spherical bulb emitting ``power`` (flux = pi x radiance x area) in ``color`` (luminance ~1)."""
     radiance = np.asarray(color) * power / (4 * np.pi**2 * radius**2)
-    return {"type": "sphere", "role": "bulb", "center": _vec(center), "radius": _r(radius, 6),
-            "power": _r(power), "radiance": _vec(radiance)}
+    return {"type": "sphere", "role": "bulb", "center": vec(center), "radius": rnd(radius, 6),
+            "power": rnd(power), "radiance": vec(radiance)}
 
 
 def _shade(rng, y0: float, scale: float, closed_top: bool) -> tuple[list, list, dict]:
@@ -306,6 +300,9 @@ def prop(rng, room: float) -> dict:
 
 def _turn(v, yaw_deg: float) -> np.ndarray:
     """``v`` (x, y, z) turned by ``yaw_deg`` about +y: +z goes to (sin, 0, cos), as geometry.transform_matrix does."""
+    # The yaw case of render.camera.rotation, written out: Rodrigues' matrix product rounds differently in
+    # the last bit, which moves some positions across the 4-decimal rounding of the descriptions, and the
+    # generated scenes must stay as they were drawn (tests/test_interior.py pins the three against each other).
     a = np.deg2rad(yaw_deg)
     x, y, z = (float(c) for c in v)
     return np.array([x * np.cos(a) + z * np.sin(a), y, -x * np.sin(a) + z * np.cos(a)])
@@ -313,7 +310,7 @@ def _turn(v, yaw_deg: float) -> np.ndarray:
 
 def to_world(point, pose) -> list:
     """A point of an item's frame in the room, for ``pose`` = (x, y, z, yaw_deg)."""
-    return _vec(_turn(point, pose[3]) + np.asarray(pose[:3], float))
+    return vec(_turn(point, pose[3]) + np.asarray(pose[:3], float))
 
 
 def _light_to_world(light: dict, pose) -> dict:
@@ -323,7 +320,7 @@ def _light_to_world(light: dict, pose) -> dict:
             out[key] = to_world(light[key], pose)
     for key in ("normal", "up"):
         if key in light:
-            out[key] = _vec(_turn(light[key], pose[3]))
+            out[key] = vec(_turn(light[key], pose[3]))
     if "shade" in light:   # the shade's axis in the room, for the checks that the bulb sits inside it
         out["shade"] = {**light["shade"], "axis": to_world([0, 0, 0], pose)}
     return out
@@ -337,6 +334,6 @@ def place(it: dict, name: str, pose, materials: dict, two_sided=("leaf", "shade"
             continue
         objects.append({"name": f"{name}.{role}", "shape": {"kind": "assembly", "parts": parts},
                         "material": materials[role], "two_sided": role in two_sided,
-                        "transform": {"scale": 1.0, "rotation_deg": [0.0, _r(pose[3], 2), 0.0],
-                                      "position": _vec(pose[:3])}})
+                        "transform": {"scale": 1.0, "rotation_deg": [0.0, rnd(pose[3], 2), 0.0],
+                                      "position": vec(pose[:3])}})
     return objects, [_light_to_world(light, pose) for light in it["lights"]]

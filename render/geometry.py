@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from mcdenoise.render.rounding import rnd
+
 PRIMITIVES = ("box", "icosphere", "uv_sphere", "cylinder", "capsule", "cone", "torus", "vase")
 # Parts of assemblies only (render.furniture): random_primitive draws by index from PRIMITIVES, so new kinds
 # live apart to leave the draws of existing scenes as they were.
@@ -23,17 +25,13 @@ MAX_FACES = 10_000          # load_dict time grows with triangles; ~10k per mesh
 SMOOTH_ANGLE_DEG = 35.0     # edges sharper than this stay hard (box edges, cylinder caps)
 
 
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
 # --------------------------------------------------------------------------------------------
 # Random parameters
 
 
 def random_primitive(rng: np.random.Generator) -> dict:
     kind = PRIMITIVES[int(rng.integers(len(PRIMITIVES)))]
-    u = lambda a, b: _r(rng.uniform(a, b))  # noqa: E731
+    u = lambda a, b: rnd(rng.uniform(a, b))  # noqa: E731
     if kind == "box":
         params = {"extents": [u(0.3, 1.0), u(0.3, 1.0), u(0.3, 1.0)]}
     elif kind == "icosphere":
@@ -59,13 +57,13 @@ def random_deform(rng: np.random.Generator) -> dict | None:
         return None
     kind = ("displace", "twist", "taper", "bend")[int(rng.integers(4))]
     if kind == "displace":
-        return {"type": "displace", "amplitude": _r(rng.uniform(0.02, 0.12)),
-                "frequency": _r(rng.uniform(2.0, 8.0)), "seed": int(rng.integers(2**31))}
+        return {"type": "displace", "amplitude": rnd(rng.uniform(0.02, 0.12)),
+                "frequency": rnd(rng.uniform(2.0, 8.0)), "seed": int(rng.integers(2**31))}
     if kind == "twist":
-        return {"type": "twist", "angle_deg": _r(rng.uniform(-120, 120), 2)}
+        return {"type": "twist", "angle_deg": rnd(rng.uniform(-120, 120), 2)}
     if kind == "taper":
-        return {"type": "taper", "amount": _r(rng.uniform(-0.7, 0.7))}
-    return {"type": "bend", "amount": _r(rng.uniform(-1.0, 1.0))}
+        return {"type": "taper", "amount": rnd(rng.uniform(-0.7, 0.7))}
+    return {"type": "bend", "amount": rnd(rng.uniform(-1.0, 1.0))}
 
 
 def random_shape(rng: np.random.Generator, group_probability: float, mesh_files: tuple[str, ...] = (),
@@ -84,9 +82,9 @@ def random_shape(rng: np.random.Generator, group_probability: float, mesh_files:
                 part["params"]["count"] = [20, 20]
             elif part["primitive"] == "torus":
                 part["params"].update(major_sections=40, minor_sections=16)
-            part["offset"] = [_r(rng.uniform(-0.5, 0.5)) for _ in range(3)]
-            part["scale"] = _r(rng.uniform(0.3, 0.8))
-            part["rotation_deg"] = [_r(rng.uniform(0, 360), 2) for _ in range(3)]
+            part["offset"] = [rnd(rng.uniform(-0.5, 0.5)) for _ in range(3)]
+            part["scale"] = rnd(rng.uniform(0.3, 0.8))
+            part["rotation_deg"] = [rnd(rng.uniform(0, 360), 2) for _ in range(3)]
             parts.append(part)
         return {"kind": "group", "parts": parts}
     shape = {"kind": "primitive", **random_primitive(rng)}

@@ -27,18 +27,11 @@ from mcdenoise.render.room import (
     segment_walls,
     wall_segments,
 )
+from mcdenoise.render.rounding import rnd, vec
 
 LIGHTINGS = {"lamps": 0.22, "daylight": 0.2, "mixed": 0.16, "cove": 0.12, "neighbour": 0.14, "recessed": 0.16}
 THEMES = ("living", "dining", "bedroom", "study")
 CLEARANCE = 0.45   # free floor around the camera's path, in metres
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
-def _vec(v) -> list:
-    return [_r(x) for x in v]
 
 
 class Layout:
@@ -94,7 +87,7 @@ def interior_scene(cfg, seed: int, index: int, frames: int) -> dict:
     center = [(main["x"][0] + main["x"][1]) / 2, 1.0, (main["z"][0] + main["z"][1]) / 2]
     return {"seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
             "kind": "interior", "lighting": lighting, "plan": plan,
-            "cluster": {"center": _vec(center), "radius": _r(np.hypot(x1 - x0, z1 - z0) / 2)},
+            "cluster": {"center": vec(center), "radius": rnd(np.hypot(x1 - x0, z1 - z0) / 2)},
             "objects": objects, "ground": outside, "walls": walls, "lights": lights, "environment": environment,
             "camera": camera}
 
@@ -133,7 +126,7 @@ def _walls(rng, plan, mats, lighting: str, layout: Layout) -> tuple[list, list]:
         room = seg["rooms"][1] if seg["rooms"][0] == -1 else seg["rooms"][0]
         walls += segment_walls(seg, h, mats["wall"] if room == 0 else mats["neighbour_wall"], opening)
         if opening:
-            openings.append({"kind": kind, "segment": seg, "span": _vec(opening[:2]), "heights": _vec(opening[2:])})
+            openings.append({"kind": kind, "segment": seg, "span": vec(opening[:2]), "heights": vec(opening[2:])})
             a, b = point_on(seg, opening[0] - 0.1), point_on(seg, opening[1] + 0.1)
             n = inward(seg, room) * depth
             ends = np.array([a - n, b + n]) if kind == "door" else np.array([a, b + n])
@@ -347,7 +340,7 @@ def _power(rng, base: float) -> float:
 def _warm(rng) -> list:
     """A bulb's colour: warm white to neutral, luminance 1."""
     c = np.asarray(tone(rng, (0.05, 0.13), (0.0, 0.5), (1.0, 1.0)))
-    return _vec(c / max(0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2], 1e-6))
+    return vec(c / max(0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2], 1e-6))
 
 
 def _light(rng, lighting: str, plan, layout: Layout, room: _Room, openings) -> tuple[list, list, dict | None]:
@@ -384,6 +377,8 @@ def _light(rng, lighting: str, plan, layout: Layout, room: _Room, openings) -> t
 def _sky(rng, irradiance: float) -> dict:
     """A sky (a sun 70 % of the time, half of the suns delta lights) of ``irradiance`` outside."""
     sky = lt.random_environment(rng, irradiance)
+    # random_environment gives a sky a sun 60 % of the time; redrawing 36 % of the sunless ones leaves
+    # 0.6 / (0.6 + 0.4 * 0.64) = 70 % suns.
     while sky["type"] != "sky" or (sky["sun"] is None and rng.uniform() < 0.36):
         sky = lt.random_environment(rng, irradiance)
     if sky["sun"] and rng.uniform() < 0.5:
@@ -443,9 +438,9 @@ def _cove(rng, seg, plan, layout: Layout, power: float) -> tuple[list, dict]:
     w_along, w_across = length - 0.12, depth - 0.08
     c = at(mid, 0.04 + w_across / 2, y + 0.005)
     size = [w_across, w_along] if seg["line"] == "x" else [w_along, w_across]
-    light = {"type": "rectangle", "role": "cove", "hidden": True, "small": False, "center": _vec(c),
-             "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, 1.0], "size": _vec(size), "power": _r(power),
-             "radiance": _vec(np.asarray(_warm(rng)) * power / (np.pi * w_along * w_across))}
+    light = {"type": "rectangle", "role": "cove", "hidden": True, "small": False, "center": vec(c),
+             "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, 1.0], "size": vec(size), "power": rnd(power),
+             "radiance": vec(np.asarray(_warm(rng)) * power / (np.pi * w_along * w_across))}
     box = [at(s0, 0, y - t), at(s1, depth, y + 0.16)]
     layout.take((min(box[0][0], box[1][0]), max(box[0][0], box[1][0]), y - t, h,
                  min(box[0][2], box[1][2]), max(box[0][2], box[1][2])))
@@ -468,9 +463,9 @@ def _recessed(rng, plan, base: float) -> tuple[list, list]:
         for z in zs:
             power = _power(rng, each * 2.0)
             intensity = np.asarray(_warm(rng)) * power / (2 * np.pi * (1 - np.cos(np.deg2rad(cutoff))))
-            lights.append({"type": "spot", "role": "recessed", "hidden": True, "position": _vec([x, h - 0.03, z]),
-                           "target": _vec([x, 0.0, z]), "cutoff_angle": _r(cutoff, 2), "beam_width": _r(cutoff * 0.7, 2),
-                           "power": _r(power), "intensity": _vec(intensity)})
+            lights.append({"type": "spot", "role": "recessed", "hidden": True, "position": vec([x, h - 0.03, z]),
+                           "target": vec([x, 0.0, z]), "cutoff_angle": rnd(cutoff, 2), "beam_width": rnd(cutoff * 0.7, 2),
+                           "power": rnd(power), "intensity": vec(intensity)})
             rings.append(fu.part("torus", [0.16, 0.02, 0.16], [x, h - 0.01, z], minor_radius=0.12))
     obj = {"name": "downlight_trims", "shape": {"kind": "assembly", "parts": rings},
            "material": {"family": "roughconductor", "material": "Al", "alpha": 0.2, "distribution": "ggx"},
@@ -492,9 +487,9 @@ def _next_door(rng, plan, layout: Layout, room: _Room, power: float, windows) ->
     side = rng.uniform(0.4, 1.0)
     c = [(q["x"][0] + q["x"][1]) / 2, plan["height"] - 0.01, (q["z"][0] + q["z"][1]) / 2]
     p = _power(rng, power)
-    return [], [{"type": "rectangle", "role": "panel", "small": False, "center": _vec(c), "normal": [0.0, -1.0, 0.0],
-                 "up": [0.0, 0.0, 1.0], "size": [_r(side), _r(side)], "power": _r(p),
-                 "radiance": _vec(np.asarray(lt.light_color(rng)) * p / (np.pi * side * side))}], None
+    return [], [{"type": "rectangle", "role": "panel", "small": False, "center": vec(c), "normal": [0.0, -1.0, 0.0],
+                 "up": [0.0, 0.0, 1.0], "size": [rnd(side), rnd(side)], "power": rnd(p),
+                 "radiance": vec(np.asarray(lt.light_color(rng)) * p / (np.pi * side * side))}], None
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,15 +6,8 @@ import numpy as np
 
 from mcdenoise.render.geometry import random_shape
 from mcdenoise.render.materials import pick_family, random_color, random_material
+from mcdenoise.render.rounding import rnd, vec
 from mcdenoise.render.textures import random_texture_params
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
-def _vec(v) -> list:
-    return [_r(x) for x in v]
 
 
 def random_object(rng: np.random.Generator, cfg, mesh_files: tuple, name: str, position, scale) -> dict:
@@ -22,13 +15,13 @@ def random_object(rng: np.random.Generator, cfg, mesh_files: tuple, name: str, p
     family = pick_family(rng, cfg.materials)
     mat = random_material(rng, family, cfg.texture_probability)
     if rng.uniform() < 0.3:  # stretched objects
-        scale = [_r(scale * rng.uniform(0.7, 1.3)) for _ in range(3)]
+        scale = [rnd(scale * rng.uniform(0.7, 1.3)) for _ in range(3)]
     tilt = rng.uniform() < 0.25
-    rot = [_r(rng.uniform(0, 360), 2) if tilt else 0.0, _r(rng.uniform(0, 360), 2), _r(rng.uniform(0, 360), 2) if tilt else 0.0]
+    rot = [rnd(rng.uniform(0, 360), 2) if tilt else 0.0, rnd(rng.uniform(0, 360), 2), rnd(rng.uniform(0, 360), 2) if tilt else 0.0]
     return {"name": name, "shape": shape, "material": mat,
             # User meshes may be open or inconsistently wound: shade both sides.
             "two_sided": shape["kind"] == "file",
-            "transform": {"scale": scale, "rotation_deg": rot, "position": _vec(position),
+            "transform": {"scale": scale, "rotation_deg": rot, "position": vec(position),
                           "rest_on_ground": True}}
 
 
@@ -56,12 +49,12 @@ def place_objects(rng: np.random.Generator, cfg, count: int, mesh_files: tuple =
                 break
         placed.append((best, s))
         height = float(rng.uniform(0.1, 0.8)) if rng.uniform() < 0.1 else 0.0
-        objects.append(random_object(rng, cfg, mesh_files, f"object_{i}", [best[0], height, best[1]], _r(s)))
+        objects.append(random_object(rng, cfg, mesh_files, f"object_{i}", [best[0], height, best[1]], rnd(s)))
     centers = np.array([[o["transform"]["position"][0], o["transform"]["position"][1] + _size(o) / 2,
                          o["transform"]["position"][2]] for o in objects])
     center = centers.mean(0)
     radius = max(float(np.linalg.norm(c - center)) + 0.87 * _size(o) for c, o in zip(centers, objects))
-    return objects, _vec(center), _r(radius)
+    return objects, vec(center), rnd(radius)
 
 
 def _size(obj: dict) -> float:
@@ -82,14 +75,14 @@ def surface_material(rng: np.random.Generator, texture_probability: float, size:
     key = {"diffuse": "reflectance", "roughplastic": "diffuse_reflectance", "principled": "base_color"}[family]
     if family == "principled":
         rough = rng.uniform(0.02, 0.15) if polished else rng.uniform(0.3, 1.0)
-        mat.update(metallic=0.0, spec_trans=0.0, roughness=_r(rough))
+        mat.update(metallic=0.0, spec_trans=0.0, roughness=rnd(rough))
         for k in ("clearcoat", "clearcoat_gloss", "sheen", "anisotropic"):
             mat.pop(k, None)
     elif polished:
-        mat["alpha"] = _r(rng.uniform(0.005, 0.06))
+        mat["alpha"] = rnd(rng.uniform(0.005, 0.06))
     if rng.uniform() < texture_probability:
         tex = random_texture_params(rng)
-        tex["uv_scale"] = _r(size / tile)
+        tex["uv_scale"] = rnd(size / tile)
         mat[key] = {"texture": tex}
     else:
         mat[key] = random_color(rng, value=rng.uniform(0.3, 0.9))
@@ -98,7 +91,7 @@ def surface_material(rng: np.random.Generator, texture_probability: float, size:
 
 def rect(center, normal, up, size, material) -> dict:
     """A rectangle surface (Mitsuba ``rectangle``: [-1, 1]² scaled to ``size``, facing ``normal``)."""
-    return {"center": _vec(center), "normal": _vec(normal), "up": _vec(up), "size": [_r(size[0]), _r(size[1])],
+    return {"center": vec(center), "normal": vec(normal), "up": vec(up), "size": [rnd(size[0]), rnd(size[1])],
             "material": material}
 
 

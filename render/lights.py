@@ -9,24 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from mcdenoise.render.rounding import rnd, vec
 from mcdenoise.render.textures import random_color
 
 SKY_SIZE = (64, 128)  # latlong (rows, cols): small, since the sky is smooth apart from the sun
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
-def _vec(v) -> list:
-    return [_r(x) for x in v]
 
 
 def light_color(rng: np.random.Generator) -> list:
     """A mildly tinted light colour with luminance ~1 (warm, cool or white)."""
     c = np.asarray(random_color(rng, saturation=rng.uniform(0.0, 0.35), value=1.0))
     lum = 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
-    return _vec(c / max(lum, 1e-6))
+    return vec(c / max(lum, 1e-6))
 
 
 def direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -62,20 +55,20 @@ def area_light(rng: np.random.Generator, center: np.ndarray, radius: float, max_
         w, h = size, size * rng.uniform(0.3, 1.0)
         area = w * h
         n = (center - pos) / np.linalg.norm(center - pos)
-        return {"type": "rectangle", "small": bool(small), "center": _vec(pos), "normal": _vec(n),
-                "up": perp_up(n), "size": [_r(w, 6), _r(h, 6)], "irradiance": _r(irradiance),
-                "radiance": _vec(color * irradiance * dist**2 / area)}
+        return {"type": "rectangle", "small": bool(small), "center": vec(pos), "normal": vec(n),
+                "up": perp_up(n), "size": [rnd(w, 6), rnd(h, 6)], "irradiance": rnd(irradiance),
+                "radiance": vec(color * irradiance * dist**2 / area)}
     r = size / 2
-    return {"type": "sphere", "small": bool(small), "center": _vec(pos), "radius": _r(r, 6),
-            "irradiance": _r(irradiance), "radiance": _vec(color * irradiance * dist**2 / (np.pi * r * r))}
+    return {"type": "sphere", "small": bool(small), "center": vec(pos), "radius": rnd(r, 6),
+            "irradiance": rnd(irradiance), "radiance": vec(color * irradiance * dist**2 / (np.pi * r * r))}
 
 
 def point_light(rng: np.random.Generator, center: np.ndarray, radius: float, max_dist: float,
                 irradiance: float) -> dict:
     dist = min(radius * rng.uniform(1.2, 3.5), max_dist)
     pos = center + direction(rng.uniform(0, 360), rng.uniform(20, 85)) * dist
-    return {"type": "point", "position": _vec(pos), "irradiance": _r(irradiance),
-            "intensity": _vec(np.asarray(light_color(rng)) * irradiance * dist**2)}
+    return {"type": "point", "position": vec(pos), "irradiance": rnd(irradiance),
+            "intensity": vec(np.asarray(light_color(rng)) * irradiance * dist**2)}
 
 
 def spot_light(rng: np.random.Generator, center: np.ndarray, radius: float, max_dist: float,
@@ -84,28 +77,28 @@ def spot_light(rng: np.random.Generator, center: np.ndarray, radius: float, max_
     pos = center + direction(rng.uniform(0, 360), rng.uniform(30, 85)) * dist
     target = center + rng.normal(size=3) * radius * 0.3
     cutoff = rng.uniform(12, 45)
-    return {"type": "spot", "position": _vec(pos), "target": _vec(target),
-            "cutoff_angle": _r(cutoff, 2), "beam_width": _r(cutoff * rng.uniform(0.5, 0.95), 2),
-            "irradiance": _r(irradiance),
-            "intensity": _vec(np.asarray(light_color(rng)) * irradiance * dist**2)}
+    return {"type": "spot", "position": vec(pos), "target": vec(target),
+            "cutoff_angle": rnd(cutoff, 2), "beam_width": rnd(cutoff * rng.uniform(0.5, 0.95), 2),
+            "irradiance": rnd(irradiance),
+            "intensity": vec(np.asarray(light_color(rng)) * irradiance * dist**2)}
 
 
 def random_environment(rng: np.random.Generator, irradiance: float) -> dict:
     """A procedural sky (with or without a sun) or a constant environment."""
     if rng.uniform() < 0.3:
-        return {"type": "constant", "irradiance": _r(irradiance),
-                "radiance": _vec(np.asarray(light_color(rng)) * irradiance / np.pi)}
+        return {"type": "constant", "irradiance": rnd(irradiance),
+                "radiance": vec(np.asarray(light_color(rng)) * irradiance / np.pi)}
     zenith = random_color(rng, saturation=rng.uniform(0.2, 0.8), value=rng.uniform(0.5, 1.0))
     horizon = random_color(rng, saturation=rng.uniform(0.0, 0.4), value=rng.uniform(0.7, 1.0))
     ground = random_color(rng, saturation=rng.uniform(0.0, 0.5), value=rng.uniform(0.1, 0.5))
     sun = None
     if rng.uniform() < 0.6:
-        sun = {"azimuth_deg": _r(rng.uniform(0, 360), 2), "elevation_deg": _r(rng.uniform(10, 70), 2),
-               "size_deg": _r(rng.uniform(3, 8), 2), "strength": _r(rng.uniform(1, 6)),
+        sun = {"azimuth_deg": rnd(rng.uniform(0, 360), 2), "elevation_deg": rnd(rng.uniform(10, 70), 2),
+               "size_deg": rnd(rng.uniform(3, 8), 2), "strength": rnd(rng.uniform(1, 6)),
                "color": light_color(rng)}
     strength = sun["strength"] if sun else 0.0
     return {"type": "sky", "zenith": zenith, "horizon": horizon, "ground": ground, "sun": sun,
-            "irradiance": _r(irradiance), "scale": _r(irradiance / (np.pi * (1.0 + strength)), 6)}
+            "irradiance": rnd(irradiance), "scale": rnd(irradiance / (np.pi * (1.0 + strength)), 6)}
 
 
 def sky_bitmap(env: dict, size: tuple[int, int] = SKY_SIZE) -> np.ndarray:

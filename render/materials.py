@@ -10,16 +10,13 @@ import json
 
 import numpy as np
 
+from mcdenoise.render.rounding import rnd
 from mcdenoise.render.textures import make_texture, random_color, random_texture_params
 
 FAMILIES = ("principled", "diffuse", "plastic", "roughplastic", "conductor", "roughconductor",
             "dielectric", "roughdielectric")
 CONDUCTORS = ("Au", "Ag", "Al", "Cu", "Cr", "W", "Ir", "Rh")
 TRANSMISSIVE = ("dielectric", "roughdielectric")
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
 
 
 def random_color_or_texture(rng: np.random.Generator, texture_probability: float) -> list | dict:
@@ -41,7 +38,7 @@ def pick_family(rng: np.random.Generator, weights: dict) -> str:
 
 def random_material(rng: np.random.Generator, family: str, texture_probability: float) -> dict:
     """Random parameters of one material of the given family."""
-    u = lambda a, b: _r(rng.uniform(a, b))  # noqa: E731
+    u = lambda a, b: rnd(rng.uniform(a, b))  # noqa: E731
     color = lambda: random_color_or_texture(rng, texture_probability)  # noqa: E731
     if family == "principled":
         m = {"family": family, "base_color": color(), "roughness": u(0.05, 1.0),

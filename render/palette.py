@@ -3,11 +3,8 @@ as material descriptions (render.materials) drawn from palettes that look like r
 muted walls, green leaves) rather than from the whole colour wheel."""
 from __future__ import annotations
 
+from mcdenoise.render.rounding import rnd
 from mcdenoise.render.textures import hsv_color, random_texture_params, surface_texture_params
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
 
 
 def tone(rng, hue, sat, val) -> list:
@@ -22,34 +19,34 @@ def wood(rng, uv_scale: float = 1.0, gloss: float | None = None) -> dict:
     colors = [tone(rng, hue, (0.45, 0.75), (dark * 0.6, dark * 0.8)), tone(rng, hue, (0.4, 0.7), (dark, dark * 1.2)),
               tone(rng, hue, (0.3, 0.6), (min(0.95, dark * 1.4), min(0.98, dark * 1.6)))]
     tex = {"texture": surface_texture_params(rng, "wood", colors, int(rng.integers(3, 9)), uv_scale)}
-    rough = _r(rng.uniform(0.25, 0.7) if gloss is None else gloss)
+    rough = rnd(rng.uniform(0.25, 0.7) if gloss is None else gloss)
     if rng.uniform() < 0.5:
         return {"family": "principled", "base_color": tex, "roughness": rough, "metallic": 0.0, "specular": 0.5}
-    return {"family": "roughplastic", "diffuse_reflectance": tex, "int_ior": 1.5, "alpha": _r(max(rough**2, 0.005)),
+    return {"family": "roughplastic", "diffuse_reflectance": tex, "int_ior": 1.5, "alpha": rnd(max(rough**2, 0.005)),
             "distribution": "ggx", "nonlinear": False}
 
 
 def fabric(rng, uv_scale: float = 8.0) -> dict:
     base = tone(rng, (0, 1), (0.1, 0.6), (0.2, 0.8))
     if rng.uniform() < 0.6:
-        colors = [[_r(c * 0.7) for c in base], base]
+        colors = [[rnd(c * 0.7) for c in base], base]
         return {"family": "diffuse", "reflectance": {"texture": surface_texture_params(rng, "fabric", colors, 16, uv_scale)}}
-    return {"family": "principled", "base_color": base, "roughness": _r(rng.uniform(0.6, 1.0)), "metallic": 0.0,
-            "specular": 0.3, "sheen": _r(rng.uniform(0.3, 1.0))}
+    return {"family": "principled", "base_color": base, "roughness": rnd(rng.uniform(0.6, 1.0)), "metallic": 0.0,
+            "specular": 0.3, "sheen": rnd(rng.uniform(0.3, 1.0))}
 
 
 def plaster(rng) -> dict:
     base = tone(rng, (0, 1), (0.0, 0.25), (0.55, 0.95))
-    colors = [[_r(c * 0.9) for c in base], base]
+    colors = [[rnd(c * 0.9) for c in base], base]
     return {"family": "diffuse", "reflectance": {"texture": surface_texture_params(rng, "plaster", colors, 4, 0.4)}}
 
 
 def tile(rng, polished: bool) -> dict:
     base = tone(rng, (0, 1), (0.0, 0.4), (0.3, 0.9))
-    colors = [base, [_r(c * 0.8) for c in base], tone(rng, (0, 1), (0.0, 0.1), (0.5, 0.8))]
+    colors = [base, [rnd(c * 0.8) for c in base], tone(rng, (0, 1), (0.0, 0.1), (0.5, 0.8))]
     tex = {"texture": surface_texture_params(rng, "tile", colors, int(rng.integers(2, 6)), 0.5)}
     return {"family": "roughplastic", "diffuse_reflectance": tex, "int_ior": 1.5,
-            "alpha": _r(rng.uniform(0.005, 0.04) if polished else rng.uniform(0.1, 0.4)),
+            "alpha": rnd(rng.uniform(0.005, 0.04) if polished else rng.uniform(0.1, 0.4)),
             "distribution": "ggx", "nonlinear": False}
 
 
@@ -57,7 +54,7 @@ def floor(rng, polished_probability: float) -> dict:
     """Wood or tile, polished (sharp reflections of the room) with ``polished_probability``."""
     polished = bool(rng.uniform() < polished_probability)
     if rng.uniform() < 0.6:
-        return wood(rng, 0.5, _r(rng.uniform(0.03, 0.12)) if polished else None)
+        return wood(rng, 0.5, rnd(rng.uniform(0.03, 0.12)) if polished else None)
     return tile(rng, polished)
 
 
@@ -67,27 +64,27 @@ def matte(rng, hue=(0, 1), sat=(0.0, 0.6), val=(0.1, 0.8)) -> dict:
 
 def metal(rng, rough: tuple = (0.02, 0.3)) -> dict:
     kind = ("Al", "Cr", "Cu", "Au", "Ag")[int(rng.integers(5))]
-    return {"family": "roughconductor", "material": kind, "alpha": _r(rng.uniform(*rough)), "distribution": "ggx"}
+    return {"family": "roughconductor", "material": kind, "alpha": rnd(rng.uniform(*rough)), "distribution": "ggx"}
 
 
 def glass(rng, rough_probability: float = 0.2) -> dict:
-    m = {"family": "dielectric", "int_ior": _r(rng.uniform(1.45, 1.55)), "ext_ior": 1.000277}
+    m = {"family": "dielectric", "int_ior": rnd(rng.uniform(1.45, 1.55)), "ext_ior": 1.000277}
     if rng.uniform() < 0.4:   # green, brown or blue bottle glass
         m["specular_transmittance"] = tone(rng, (0.08, 0.6), (0.3, 0.8), (0.6, 0.95))
     if rng.uniform() < rough_probability:
-        m.update(family="roughdielectric", alpha=_r(rng.uniform(0.03, 0.2)), distribution="ggx")
+        m.update(family="roughdielectric", alpha=rnd(rng.uniform(0.03, 0.2)), distribution="ggx")
     return m
 
 
 def glazed(rng, rough: tuple = (0.01, 0.2)) -> dict:
     """Glazed ceramic or lacquer: a coloured base under a smooth clear coat."""
     return {"family": "roughplastic", "diffuse_reflectance": tone(rng, (0, 1), (0.0, 0.8), (0.1, 0.9)), "int_ior": 1.5,
-            "alpha": _r(rng.uniform(*rough)), "distribution": "ggx", "nonlinear": False}
+            "alpha": rnd(rng.uniform(*rough)), "distribution": "ggx", "nonlinear": False}
 
 
 def art(rng) -> dict:
     tex = random_texture_params(rng, size=128)
-    tex["uv_scale"] = _r(rng.uniform(0.8, 3.0))
+    tex["uv_scale"] = rnd(rng.uniform(0.8, 3.0))
     return {"family": "diffuse", "reflectance": {"texture": tex}}
 
 

@@ -49,8 +49,16 @@ from mcdenoise.pipeline import schema
 from mcdenoise.pipeline.config import Config
 from mcdenoise.pipeline.exr import StoreError
 
+# Stored bytes of a frame over the exact encoding's, for compact images without a beauty view (format
+# version 3), and the growth of a compact frame by format version 4's half-precision beauty view: the
+# measurements are MEASURED's encoding_factor_source.
+COMPACT_BYTES = 0.611
+COMPACT_ZSTD_BYTES = 0.517
+BEAUTY_VIEW_FACTOR = 1.102
+
 # Measured by `python -m pipeline plan --measure` (see measure()). Re-measure on the target
-# machine and paste the printed JSON here, or calibrate with --store.
+# machine and paste the printed JSON here (keeping encoding_factor's formula: --measure does not
+# measure it), or calibrate with --store.
 MEASURED: dict = {
  "date": "2026-11-22",
  "machine": "AMD EPYC, 2 cores, 1 render thread(s), CPU time (load average 6.5)",
@@ -86,7 +94,8 @@ MEASURED: dict = {
  },
  "gt_spp_for_ratio": 1024,
  "encoding": "exact",
- "encoding_factor": {"exact": 1.0, "compact": 0.673, "compact-zstd": 0.570},
+ "encoding_factor": {"exact": 1.0, "compact": round(COMPACT_BYTES * BEAUTY_VIEW_FACTOR, 3),
+                     "compact-zstd": round(COMPACT_ZSTD_BYTES * BEAUTY_VIEW_FACTOR, 3)},
  "encoding_factor_source": "compact-zstd: verify data/default --bytes 100: 11.92 / 23.05 MiB per frame (86 frames), "
                            "2026-12-01; compact: verify data/encodings --encodings 4: 15.22 / 24.90 MiB per frame (4 frames "
                            "of configs/default.yaml), 2026-12-04; both x 1.102 for the half beauty view of format "

@@ -12,17 +12,10 @@ import numpy as np
 from mcdenoise.render import camera as cam, furniture as fu, lights as lt
 from mcdenoise.render.layout import rect
 from mcdenoise.render.palette import glass, glazed, matte, metal, tone, wood
+from mcdenoise.render.rounding import rnd, vec
 from mcdenoise.render.textures import random_texture_params
 
 PRODUCTS = ("bottle", "can", "phone", "watch", "sphere", "vase")
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
-def _vec(v) -> list:
-    return [_r(x) for x in v]
 
 
 def product_scene(cfg, seed: int, index: int, frames: int) -> dict:
@@ -39,7 +32,7 @@ def product_scene(cfg, seed: int, index: int, frames: int) -> dict:
     camera = _camera(rng, center, radius, frames)
     lights, environment = _studio_lights(rng, center, radius, camera)
     return {"seed": int(seed), "index": int(index), "preset": None, "frames": int(frames),
-            "kind": "product", "cluster": {"center": _vec(center), "radius": _r(radius)},
+            "kind": "product", "cluster": {"center": vec(center), "radius": rnd(radius)},
             "objects": objects, "ground": ground, "walls": [], "lights": lights, "environment": environment,
             "camera": camera}
 
@@ -57,7 +50,7 @@ def _set(rng) -> tuple[list, dict]:
         sweep = fu.part("sweep", [w, h, d], [0.0, h / 2, 1.5 - d / 2], width=w, height=h, depth=d, radius=r, sections=16)
         ground = rect([0.0, -0.01, 0.0], [0, 1, 0], [0, 0, 1], [40.0, 40.0], matte(rng, sat=(0, 0.1), val=(0.05, 0.3)))
         return [_still("sweep", [sweep], paper, two_sided=True)], ground
-    top = wood(rng, 1.0, _r(rng.uniform(0.05, 0.4))) if rng.uniform() < 0.6 else glazed(rng, (0.01, 0.2))
+    top = wood(rng, 1.0, rnd(rng.uniform(0.05, 0.4))) if rng.uniform() < 0.6 else glazed(rng, (0.01, 0.2))
     table = [fu.part("box", [2.4, 0.05, 1.4], [0.0, -0.025, -0.2])]
     legs = [fu.part("box", [0.06, 0.7, 0.06], [sx * 1.1, -0.4, -0.2 + sz * 0.6]) for sx in (-1, 1) for sz in (-1, 1)]
     ground = rect([0.0, -0.75, 0.0], [0, 1, 0], [0, 0, 1], [40.0, 40.0], matte(rng, sat=(0, 0.2), val=(0.05, 0.4)))
@@ -80,8 +73,8 @@ def _product(rng, kind: str, i: int, at) -> list:
         r, h = rng.uniform(0.03, 0.04), rng.uniform(0.1, 0.17)
         body = fu.part("cylinder", [2 * r, h, 2 * r], [x, h / 2, z], sections=48)
         rim = fu.part("torus", [2 * r, 0.006, 2 * r], [x, h, z], minor_radius=0.03)
-        coat = {"family": "principled", "base_color": _label(rng)["base_color"], "metallic": _r(rng.uniform(0.5, 1.0)),
-                "roughness": _r(rng.uniform(0.08, 0.35)), "specular": 0.5}
+        coat = {"family": "principled", "base_color": _label(rng)["base_color"], "metallic": rnd(rng.uniform(0.5, 1.0)),
+                "roughness": rnd(rng.uniform(0.08, 0.35)), "specular": 0.5}
         return [_still(name, [body], coat), _still(name + ".rim", [rim], metal(rng, (0.03, 0.2)))]
     if kind == "phone":
         w, hh, t = rng.uniform(0.065, 0.08), rng.uniform(0.14, 0.17), rng.uniform(0.007, 0.01)
@@ -98,7 +91,7 @@ def _product(rng, kind: str, i: int, at) -> list:
         crystal = fu.part("cylinder", [1.8 * r, 0.002, 1.8 * r], [x, 0.012, z], sections=48)
         straps = [fu.part("box", [1.1 * r, 0.004, 0.08], [x, 0.002, z + s * (r + 0.04)]) for s in (-1, 1)]
         leather = {"family": "principled", "base_color": tone(rng, (0.0, 0.12), (0.3, 0.8), (0.05, 0.4)),
-                   "roughness": _r(rng.uniform(0.3, 0.6)), "metallic": 0.0, "specular": 0.4}
+                   "roughness": rnd(rng.uniform(0.3, 0.6)), "metallic": 0.0, "specular": 0.4}
         return [_still(name, [case, bezel], metal(rng, (0.01, 0.15))), _still(name + ".crystal", [crystal], glass(rng, 0.0)),
                 _still(name + ".strap", straps, leather)]
     if kind == "sphere":
@@ -114,13 +107,13 @@ def _offset(p: dict, lean: float, yaw: float, by: float) -> dict:
     """``p`` moved ``by`` along the front normal of a slab leaning by ``lean`` and turned by ``yaw``."""
     a, b = np.deg2rad(lean), np.deg2rad(yaw)
     n = np.array([np.cos(a) * np.sin(b), -np.sin(a), np.cos(a) * np.cos(b)])
-    return {**p, "position": _vec(np.asarray(p["position"]) + n * (by + 0.0006))}
+    return {**p, "position": vec(np.asarray(p["position"]) + n * (by + 0.0006))}
 
 
 def _label(rng) -> dict:
     tex = random_texture_params(rng, size=128)
-    tex["uv_scale"] = _r(rng.uniform(3.0, 12.0))
-    return {"family": "principled", "base_color": {"texture": tex}, "roughness": _r(rng.uniform(0.2, 0.6)),
+    tex["uv_scale"] = rnd(rng.uniform(3.0, 12.0))
+    return {"family": "principled", "base_color": {"texture": tex}, "roughness": rnd(rng.uniform(0.2, 0.6)),
             "metallic": 0.0, "specular": 0.5}
 
 
@@ -161,12 +154,12 @@ def _studio_lights(rng, center, radius: float, camera: dict) -> tuple[list, dict
         pos = center + d * dist
         n = -d
         up = [0.0, 1.0, 0.0] if kind == "strip" and abs(n[1]) < 0.9 else lt.perp_up(n)
-        lights.append({"type": "rectangle", "role": kind, "small": False, "center": _vec(pos), "normal": _vec(n), "up": up,
-                       "size": [_r(w, 5), _r(h, 5)], "irradiance": _r(e),
-                       "radiance": _vec(np.asarray(lt.light_color(rng)) * e * dist**2 / (w * h))})
+        lights.append({"type": "rectangle", "role": kind, "small": False, "center": vec(pos), "normal": vec(n), "up": up,
+                       "size": [rnd(w, 5), rnd(h, 5)], "irradiance": rnd(e),
+                       "radiance": vec(np.asarray(lt.light_color(rng)) * e * dist**2 / (w * h))})
     env = None
     if rng.uniform() < 0.3:
-        env = {"type": "constant", "irradiance": _r(key * 0.05), "radiance": _vec(np.asarray(lt.light_color(rng)) * key * 0.05 / np.pi)}
+        env = {"type": "constant", "irradiance": rnd(key * 0.05), "radiance": vec(np.asarray(lt.light_color(rng)) * key * 0.05 / np.pi)}
     return lights, env
 
 

@@ -12,14 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from mcdenoise.render.layout import rect, wall_with_window
-
-
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
+from mcdenoise.render.rounding import rnd
 
 
 def random_plan(rng, neighbour: bool | None = None) -> dict:
-    """A main room of 3-7 m by 3-6 m, 2.5-3.2 m high; an L wing (30 %), an alcove (30 %) and a neighbouring
+    """A main room of 3.2-7 m by 3-6 m, 2.5-3.2 m high; an L wing (30 %), an alcove (30 %) and a neighbouring
     room behind a door (``neighbour``, else 50 %)."""
     w, d, h = rng.uniform(3.2, 7.0), rng.uniform(3.0, 6.0), rng.uniform(2.5, 3.2)
     rects = [{"x": [0.0, w], "z": [0.0, d], "room": 0}]
@@ -34,7 +31,7 @@ def random_plan(rng, neighbour: bool | None = None) -> dict:
         z0 = rng.uniform(-1.0, d - 2.0)
         z1 = max(z0 + 2.5, 1.6, rng.uniform(z0 + 2.0, d + 1.5))
         rects.append({"x": [-rng.uniform(2.5, 4.5), 0.0], "z": [z0, z1], "room": 1})
-    return {"height": _r(h), "rects": [{**q, "x": [_r(v) for v in q["x"]], "z": [_r(v) for v in q["z"]]} for q in rects]}
+    return {"height": rnd(h), "rects": [{**q, "x": [rnd(v) for v in q["x"]], "z": [rnd(v) for v in q["z"]]} for q in rects]}
 
 
 def label_at(plan: dict, x: float, z: float) -> int:
@@ -66,7 +63,7 @@ def wall_segments(plan: dict) -> list:
                 k = j
                 while k + 1 < len(spans) - 1 and (lo[k + 1], hi[k + 1]) == (lo[j], hi[j]):
                     k += 1
-                segments.append({"line": line, "at": _r(at), "span": [_r(spans[j]), _r(spans[k + 1])],
+                segments.append({"line": line, "at": rnd(at), "span": [rnd(spans[j]), rnd(spans[k + 1])],
                                  "rooms": [int(lo[j]), int(hi[j])]})
                 j = k + 1
     return segments
@@ -114,7 +111,7 @@ def floors_and_ceilings(plan: dict, floor_mats: dict, ceiling: dict) -> list:
     return out
 
 
-def bounds(plan: dict, room: int | None = None) -> tuple:
-    """(x0, x1, z0, z1) around the plan's rectangles (of one room when given)."""
-    qs = [q for q in plan["rects"] if room is None or q["room"] == room]
+def bounds(plan: dict) -> tuple:
+    """(x0, x1, z0, z1) around the plan's rectangles."""
+    qs = plan["rects"]
     return (min(q["x"][0] for q in qs), max(q["x"][1] for q in qs), min(q["z"][0] for q in qs), max(q["z"][1] for q in qs))

@@ -26,10 +26,6 @@ DESC_VERSION = 1
 __all__ = ["random_scene", "scene_kind", "build_scene", "build_sensor", "STRESS_PRESETS", "stress_scene", "DESC_VERSION"]
 
 
-def _r(x: float, nd: int = 4) -> float:
-    return round(float(x), nd)
-
-
 def random_scene(cfg, seed: int, index: int, frames: int) -> dict:
     """The description of random scene ``index`` of a dataset with master ``seed``.
 

@@ -12,8 +12,6 @@ import numpy as np
 from mcdenoise.pipeline.metrics import srgb_to_linear
 
 KINDS = ("checker", "stripes", "noise", "cells", "dots", "gradient")
-# Surfaces of furnished rooms (render.interior); apart from KINDS, which random_texture_params draws by index.
-SURFACE_KINDS = ("wood", "tile", "fabric", "plaster")
 DEFAULT_SIZE = 256
 
 
@@ -215,3 +213,5 @@ def _plaster(p: dict, x, y) -> np.ndarray:
 
 
 SURFACES = {"wood": _wood, "tile": _tile, "fabric": _fabric, "plaster": _plaster}
+# Surfaces of furnished rooms (render.interior); apart from KINDS, which random_texture_params draws by index.
+SURFACE_KINDS = tuple(SURFACES)

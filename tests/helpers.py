@@ -183,3 +183,18 @@ ORBIT_SCENE = """<scene version="3.0.0">
     <bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
       <transform name="to_uv"><scale x="8" y="8"/></transform></texture></bsdf></shape>
 </scene>"""
+
+
+def look_at(origin, target, up) -> np.ndarray:
+    """Mitsuba's ``look_at`` as a 4x4 camera_to_world in numpy, so tests build cameras without Mitsuba:
+    forward towards ``target``, left = up x forward."""
+    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+    forward = target - origin
+    forward /= np.linalg.norm(forward)
+    left = np.cross(up, forward)
+    if np.linalg.norm(left) < 1e-12:
+        raise ValueError("look_at: up is parallel to the view direction")
+    left /= np.linalg.norm(left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, np.cross(forward, left), forward, origin
+    return m

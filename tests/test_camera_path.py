@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from mcdenoise.pipeline.config import ConfigError
-from mcdenoise.pipeline.motion import look_at
 from mcdenoise.pipeline.store import Store
 from mcdenoise.render.camera import dolly_path, orbit_path, parse_move, rotation, sensor_path
 from mcdenoise.render.external import camera_move
-from tests.helpers import ORBIT_SCENE, TINY, cli
+from tests.helpers import ORBIT_SCENE, TINY, cli, look_at
 
 
 def test_orbit_keeps_the_target_centred_and_the_distance():
@@ -97,6 +96,51 @@ def test_a_bad_move_is_one_line_on_the_command_line(tmp_path):
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
     assert "--move 'orbit:x': expected orbit:DEGREES" in proc.stderr
     assert not (tmp_path / "st").exists()
+
+
+def test_a_rerun_along_another_camera_path_is_refused(tmp_path):
+    """Frame k's pose is k/(N-1) of the move and a rerun keeps the images on disk: render-scene refuses another
+    frame count or move into the same scene folder, in one line naming the folder, both paths and the way out,
+    and leaves the store as it was; the same command again resumes (nothing to render)."""
+    xml = tmp_path / "s.xml"
+    xml.write_text(ORBIT_SCENE.format(second=""))
+    first = ["--frames", "2", "--move", "orbit:8"]
+    common = ["--store", tmp_path / "st", "--resolution", "4x3", "--config", TINY, "dataset.stacks=1",
+              "dataset.gt_spp=4"]
+    cli("render-scene", xml, *first, *common)
+    store = Store(tmp_path / "st")
+    folder = store.scene_dir("ext_s")
+    before = {p: p.read_bytes() for p in sorted((tmp_path / "st").rglob("*")) if p.is_file()}
+    for other, said in ((["--frames", "3", "--move", "orbit:8"], "--frames 3 --move orbit:8"),
+                        (["--frames", "2", "--move", "dolly:0.1"], "--frames 2 --move dolly:0.1"),
+                        (["--frames", "2"], "--frames 2;"), ([], "--frames 1;")):
+        proc = cli("render-scene", xml, *other, *common, check=False)
+        assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0, proc.stderr
+        assert f"{folder}: rendered with --frames 2 --move orbit:8, not {said}" in proc.stderr
+        assert "delete the folder or give the scene another --name" in proc.stderr
+        assert {p: p.read_bytes() for p in sorted((tmp_path / "st").rglob("*")) if p.is_file()} == before
+    cli("render-scene", xml, *first, *common)
+    assert sorted(p.name for p in folder.iterdir() if p.is_dir()) == ["000", "001"]
+    frames = {p: data for p, data in before.items() if p.parent.parent == folder}   # images and frame.json
+    assert len(frames) == 2 * 4 and all(p.read_bytes() == data for p, data in frames.items())
+
+
+def test_seed_counters_stay_distinct_32_bit_values():
+    """Frame f of external scene i seeds image k from (2^20 (1+f) + i) images + k: render-scene refuses a frame
+    and stack count whose counters would pass 2^32, in one line saying both limits."""
+    from mcdenoise.pipeline.store import image_names
+    from mcdenoise.render.external import _EXTERNAL_INDEX_BASE, MAX_FRAMES, frame_seeds, seed_range
+
+    seed_range(MAX_FRAMES, 38)
+    images = len(image_names(38))
+    top = (_EXTERNAL_INDEX_BASE * MAX_FRAMES + _EXTERNAL_INDEX_BASE - 1) * images + images - 1
+    assert top < 1 << 32        # the last frame of the 2^20-th external scene still fits
+    seeds = [s for f in range(MAX_FRAMES) for s in frame_seeds(0, _EXTERNAL_INDEX_BASE, f, image_names(38)).values()]
+    assert len(set(seeds)) == len(seeds)
+    with pytest.raises(ConfigError, match=r"--frames 100 with dataset.stacks=39: .* pass 2\^32 \(at most 98 "
+                                          r"frames of 39 stacks, or 38 stacks of 100 frames\)") as err:
+        seed_range(MAX_FRAMES, 39)
+    assert "\n" not in str(err.value)
 
 
 @pytest.mark.slow

@@ -11,8 +11,10 @@ from mcdenoise.pipeline.metrics import (
     inverse_gamma_compress,
     inverse_log_compress,
     inverse_reinhard,
+    linear_to_srgb,
     log_compress,
     reinhard,
+    srgb_to_linear,
 )
 
 PAIRS = [
@@ -37,6 +39,16 @@ def test_round_trip_torch_float32(fwd, inv):
     # float32 Reinhard of 1e5 keeps ~2 digits (1 − 1e−5 next to 1): a loose tolerance there.
     torch.testing.assert_close(inv(y)[:-1], x[:-1], rtol=1e-5, atol=1e-6)
     assert inv(y)[-1].item() == pytest.approx(1e5, rel=1e-2)
+
+
+def test_srgb_transfer_round_trip_and_known_values():
+    x = np.array([0.0, 0.001, 0.0031308, 0.01, 0.18, 0.5, 1.0])
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, rtol=1e-12, atol=1e-15)
+    assert linear_to_srgb(0.001) == pytest.approx(0.01292) and linear_to_srgb(1.0) == pytest.approx(1.0)
+    assert linear_to_srgb(0.18) == pytest.approx(0.4614, abs=1e-4)
+    assert linear_to_srgb(-1.0) == 0.0 and linear_to_srgb(7.0) == pytest.approx(1.0)   # clamped to [0, 1]
+    t = linear_to_srgb(torch.tensor([0.0, 0.18, 1.0]))
+    assert t.dtype == torch.float32 and t[1].item() == pytest.approx(0.4614, abs=1e-4)
 
 
 def test_known_values():

@@ -195,6 +195,15 @@ def test_ship_yaml_is_the_shipped_models_recipe_on_its_data():
     assert cfg.store == meta["store"] and (d["base"], d["base_network"]) == ("oidn", meta["base_network"])
 
 
+def test_ship_rooms_trains_with_ship_yamls_recipe():
+    """configs/ship_rooms.yaml changes the scenes, not the training: its clean, oidn_ft and diffusion sections
+    are configs/ship.yaml's, so the two cannot drift apart."""
+    ship, rooms = (to_dict(load_config(ROOT / "configs" / f"{name}.yaml")) for name in ("ship", "ship_rooms"))
+    for section in ("clean", "oidn_ft", "diffusion"):
+        assert rooms[section] == ship[section], f"configs/ship_rooms.yaml: section {section} differs from ship.yaml's"
+    assert rooms["dataset"] != ship["dataset"] and rooms["scene"] != ship["scene"]
+
+
 @pytest.mark.parametrize("section", sorted(TRAINER_KEYS))
 @pytest.mark.parametrize("override", ["batch_size=0", "crop=0", "nan_limit=0", "grad_clip=-1", "time_budget_s=-5",
                                       "lr=0"])

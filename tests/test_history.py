@@ -27,7 +27,7 @@ from mcdenoise.train.model import (
 )
 from mcdenoise.train.sampler import Formulation
 
-from .helpers import TINY, cli, train_tiny
+from .helpers import TINY, cli, look_at, train_tiny
 
 
 def fixed_frame(seed: int = 3, size: tuple[int, int] = (24, 32)) -> dict[str, np.ndarray]:
@@ -151,7 +151,7 @@ def test_previous_frames_pair_consecutive_frames_of_a_scene():
 
 
 def test_a_still_camera_warps_the_previous_output_onto_itself():
-    cam = motion.Camera(motion.look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
+    cam = motion.Camera(look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
     frame = fixed_frame()
     frame["depth"][:] = 3.0
     frame["depth"][:, :4] = 0.0                                    # background: no history there

@@ -9,7 +9,8 @@ import pytest
 from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.errors import StoreError
 from mcdenoise.pipeline.exr import read_camera, scan_exr, write_image
-from mcdenoise.pipeline.motion import Camera, look_at, project, reproject, unproject, warp
+from mcdenoise.pipeline.motion import Camera, project, reproject, unproject, warp
+from tests.helpers import look_at
 
 W, H = 64, 48
 FOV = 50.0
@@ -220,8 +221,9 @@ def test_header_pixel_matches_mitsuba(tmp_path):
 
 def test_camera_record_round_trip_and_old_frames():
     cam = camera(origin=(1, 2, 3), target=(0, 0, 0))
-    record = {"camera_to_world": np.round(cam.camera_to_world, 6).tolist(), "width": W, "height": H,
-              **motion.camera_record(cam)}
+    record = {"width": W, "height": H, **motion.camera_record(cam)}
+    assert list(record) == ["width", "height", "camera_to_world", "fov_x", "near_clip", "far_clip"]
+    assert record["camera_to_world"] == np.round(cam.camera_to_world, 6).tolist()
     back = motion.camera_from_record(json.loads(json.dumps(record)))
     np.testing.assert_allclose(back.camera_to_world, cam.camera_to_world, atol=1e-6)
     assert (back.fov_x, back.near, back.far) == (cam.fov_x, cam.near, cam.far)

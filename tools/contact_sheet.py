@@ -1,6 +1,7 @@
-"""A contact sheet of random scenes: interiors, product shots and today's open sets, rendered small with the
-pipeline's integrator and tonemapped into one PNG grid, with the build and render seconds per frame of each
-kind (docs/scenes.md shows both).
+"""A contact sheet of random scenes: interiors, product shots and the open sets of the default config,
+rendered small with the pipeline's integrator into one labelled PNG grid (``pipeline.figures.contact_sheet``,
+each tile exposed by itself), with the build and render seconds per frame of each kind (docs/scenes.md shows
+both).
 
     python -m tools.contact_sheet [--out docs/figures/scenes.png] [--interiors 80] [--products 48] [--objects 32]
                                   [--res 64] [--spp 32]
@@ -20,35 +21,17 @@ from pathlib import Path
 import numpy as np
 
 KINDS = ("interior", "product", "objects")
-
-
-def tonemap(rgb: np.ndarray) -> np.ndarray:
-    """Linear radiance → 8-bit sRGB, exposed so the frame's mean luminance lands near mid-grey (Reinhard)."""
-    lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
-    x = rgb * (0.18 / max(float(np.exp(np.mean(np.log(lum + 1e-4)))), 1e-4))
-    x = x / (1.0 + x)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.clip(x, 0, 1), 1 / 2.4) - 0.055)
-    return (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)
-
-
-def grid(tiles: list, cols: int) -> np.ndarray:
-    h, w, _ = tiles[0].shape
-    rows = -(-len(tiles) // cols)
-    out = np.zeros((rows * (h + 2), cols * (w + 2), 3), np.uint8)
-    for k, t in enumerate(tiles):
-        r, c = divmod(k, cols)
-        out[r * (h + 2) + 1:r * (h + 2) + 1 + h, c * (w + 2) + 1:c * (w + 2) + 1 + w] = t
-    return out
+COLS = 20
 
 
 def render_kind(mi, scene_cfg, kind: str, count: int, res: int, spp: int) -> tuple[list, list]:
-    """(tonemapped tiles, [build s, render s] per frame) of ``count`` scenes of one kind."""
+    """(labelled HDR colour images, [build s, render s] per frame) of ``count`` scenes of one kind."""
     from mcdenoise.render.buffers import render_image
     from mcdenoise.render.scene import build_scene, build_sensor, random_scene
 
     cfg = dataclasses.replace(scene_cfg, interior_probability=float(kind == "interior"),
                               product_probability=float(kind == "product"))
-    tiles, times = [], []
+    cells, times = [], []
     for index in range(count):
         desc = random_scene(cfg, 0, index, 2)
         t0 = time.perf_counter()
@@ -56,17 +39,28 @@ def render_kind(mi, scene_cfg, kind: str, count: int, res: int, spp: int) -> tup
         t1 = time.perf_counter()
         result = render_image(mi, scene, build_sensor(mi, desc, 0, res, res), spp=spp, seed=index, features=set())
         times.append([t1 - t0, time.perf_counter() - t1])
-        tiles.append(tonemap(result.buffers["color"]))
+        cells.append((f"{kind} {index}", result.buffers["color"]))
         del scene
         gc.collect()
         print(f"{kind} {index}: build {times[-1][0]:.2f} s, render {times[-1][1]:.2f} s", flush=True)
-    return tiles, times
+    return cells, times
+
+
+def kind_summary(times: list) -> dict:
+    """Frames, mean build and render seconds and the first frame's seconds of one kind. The first frame
+    compiles the kernels: the means leave it out (None with no other frame)."""
+    a = np.asarray(times, dtype=np.float64).reshape(-1, 2)
+    rest = a[1:]
+    return {"frames": len(a),
+            "build_s": round(float(rest[:, 0].mean()), 3) if len(rest) else None,
+            "render_s": round(float(rest[:, 1].mean()), 3) if len(rest) else None,
+            "first_frame_s": round(float(a[0].sum()), 3) if len(a) else None}
 
 
 def main(argv=None) -> None:
-    from PIL import Image
-
     from mcdenoise.pipeline.config import load_config
+    from mcdenoise.pipeline.exr import atomic_write_json
+    from mcdenoise.pipeline.figures import contact_sheet
     from mcdenoise.pipeline.mitsuba_env import import_mitsuba
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -77,21 +71,23 @@ def main(argv=None) -> None:
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--spp", type=int, default=32)
     args = ap.parse_args(argv)
+    counts = (args.interiors, args.products, args.objects)
+    if min(counts) < 0 or sum(counts) == 0:
+        ap.error(f"--interiors {args.interiors} --products {args.products} --objects {args.objects}: "
+                 "expected counts of 0 or more, at least one scene in all")
     cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "default.yaml")
     mi = import_mitsuba(cfg.render.variant, cfg.render.threads)
-    tiles, summary = [], {}
-    for kind, count in zip(KINDS, (args.interiors, args.products, args.objects)):
-        t, times = render_kind(mi, cfg.scene, kind, count, args.res, args.spp)
-        tiles += t
-        a = np.asarray(times)
-        # the first frame of a kind compiles its kernels: left out of the means
-        summary[kind] = {"frames": count, "build_s": round(float(a[1:, 0].mean()), 3),
-                         "render_s": round(float(a[1:, 1].mean()), 3), "first_frame_s": round(float(a[0].sum()), 3)}
+    cells, summary = [], {}
+    for kind, count in zip(KINDS, counts):
+        c, times = render_kind(mi, cfg.scene, kind, count, args.res, args.spp)
+        cells += c
+        summary[kind] = kind_summary(times)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(grid(tiles, 20)).save(out, optimize=True)
+    contact_sheet(cells, out, cols=min(COLS, len(cells)), exposure=True, cell=1.0,
+                  title=f"random scenes, frame 0, {args.res}x{args.res} at {args.spp} spp, each exposed by itself")
     summary["settings"] = {"resolution": args.res, "spp": args.spp, "variant": mi.variant()}
-    out.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+    atomic_write_json(out.with_suffix(".json"), summary)
     print(json.dumps(summary, indent=1))
 
 
