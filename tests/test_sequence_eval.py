@@ -14,7 +14,7 @@ from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.config import ConfigError, load_config
 from mcdenoise.pipeline.store import FrameKey, Store
 
-from .helpers import TINY
+from .helpers import TINY, look_at
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +134,7 @@ class _PlaneStore:
 
     def camera(self, scene, frame):
         assert frame in self.frames, frame
-        return motion.Camera(motion.look_at([0.05 * frame, 0, -3], [0.05 * frame, 0, 0], [0, 1, 0]), 40.0,
+        return motion.Camera(look_at([0.05 * frame, 0, -3], [0.05 * frame, 0, 0], [0, 1, 0]), 40.0,
                              self.W, self.H)
 
     def geometry(self):
