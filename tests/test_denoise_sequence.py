@@ -12,7 +12,7 @@ from mcdenoise.pipeline.exr import read_camera, read_header, read_layers
 from mcdenoise.pipeline.motion import exr_matrices
 from mcdenoise.train.sequence import frame_view, output_path, sequence_files
 
-from .helpers import ORBIT_SCENE, TINY, cli, write_rgb_exr
+from .helpers import ORBIT_SCENE, TINY, cli, look_at, write_rgb_exr
 
 
 def test_the_pattern_finds_the_frames_in_order(tmp_path):
@@ -96,7 +96,7 @@ def cropped_exr(path, camera, size: tuple[int, int]) -> None:
 
 
 def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tmp_path):
-    cam = motion.Camera(motion.look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
+    cam = motion.Camera(look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
     for n in range(2):
         cropped_exr(tmp_path / f"c_{n}.exr", cam, (12, 16))
     assert frame_view(tmp_path / "c_0.exr", read_layers(tmp_path / "c_0.exr")) == \

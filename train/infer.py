@@ -37,7 +37,6 @@ from .model import (
     network_output,
     oidn_ft_blob,
     present,
-    reads_history,
 )
 from .sampler import Formulation, check_strength, sample, with_strength
 
@@ -91,9 +90,9 @@ class Denoiser:
         if base_only:
             self.model.control = None
         self.name = "base_only" if base_only else "ours"
-        # the condition has the history channels: the model reads the previous output warped into this frame
-        # (``denoise(history=)``)
-        self.history = reads_history(meta["cond_channels"])
+        # the model reads the previous output warped into this frame (``denoise(history=)``): its condition
+        # has the history channels (``load_model`` built it from model.json's ``cond_channels``)
+        self.history = bool(model.history)
         # model.json ``control_without_groups: false``: on colour, albedo and normal alone (none of GROUPS: an
         # EXR from another renderer) the base runs alone, where validation found the Control Module worse
         self.control_without_groups = bool(meta.get("control_without_groups", True))
