@@ -533,6 +533,14 @@ class OidnFtConfig(TrainingConfig):
         self.at_least(bad, 0, "l2sp", "lr_end", "warmup_steps", "epoch_steps")
 
 
+def weight_problem(weight: float) -> str | None:
+    """Why ``weight`` cannot be the temporal filter's weight (``pipeline.temporal.blend_history``), or None: the one
+    range and text of every entry point (``eval.temporal_weight``, ``denoise --temporal-weight``)."""
+    if 0.0 < weight <= 1.0:
+        return None
+    return f"expected the new frame's share of the blend, in (0, 1] (1: no history), got {weight}"
+
+
 @dataclass
 class EvalConfig(Section):
     methods: list = doc("Methods to evaluate, in table order: noisy, oidn (colour+albedo+normal), oidn_albedo, "
@@ -601,7 +609,6 @@ class EvalConfig(Section):
         if self.bootstrap_resamples < 100:
             bad("bootstrap_resamples", f"must be >= 100 for a 95 % percentile interval, got {self.bootstrap_resamples}")
         self.one_of(bad, "equal_time", ("render", "pool", "none"))
-        from .temporal import weight_problem  # the filter's own range and text, as its other entry points say it
         if (why := weight_problem(self.temporal_weight)) is not None:
             bad("temporal_weight", why)
         if self.sequence_fps <= 0:

@@ -554,7 +554,6 @@ def read_camera(path: Path):
     ``worldToNDC`` attributes (a store image, or another renderer's with the same conventions), its image
     size the display window's. Only the header is read, in pure Python; StoreError naming the file and
     what is missing or unusable."""
-    from .motion import camera_from_exr
     path = Path(path)
 
     def fail(msg: str):
@@ -580,6 +579,7 @@ def read_camera(path: Path):
     if window is None or window[0] != "box2i" or len(window[1]) != 16:
         fail("EXR header lacks a valid 'displayWindow'")
     x0, y0, x1, y1 = (int.from_bytes(window[1][i:i + 4], "little", signed=True) for i in range(0, 16, 4))
+    from .motion import camera_from_exr  # only for an EXR that has a camera: plain EXRs never load it
     return camera_from_exr(matrices["worldToCamera"], matrices["worldToNDC"], x1 - x0 + 1, y1 - y0 + 1, str(path))
 
 

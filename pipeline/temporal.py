@@ -32,14 +32,8 @@ from collections.abc import Callable
 import numpy as np
 
 from . import motion
+from .config import weight_problem
 from .metrics import reinhard
-
-
-def weight_problem(weight: float) -> str | None:
-    """Why ``weight`` cannot be the temporal filter's weight, or None: the one range every entry point checks."""
-    if 0.0 < weight <= 1.0:
-        return None
-    return f"expected the new frame's share of the blend, in (0, 1] (1: no history), got {weight}"
 
 
 def neighbourhood_range(image: np.ndarray, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:

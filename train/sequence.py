@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline import motion, temporal
-from mcdenoise.pipeline.config import Config
+from mcdenoise.pipeline.config import Config, weight_problem
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import StoreError, read_camera, read_layers, write_output
 from mcdenoise.pipeline.progress import progress
@@ -110,7 +110,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
                          device: str | None = None, precision: str = "auto", seed: int | None = None) -> int:
     """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
     weight = cfg.eval.temporal_weight if weight is None else float(weight)
-    if (why := temporal.weight_problem(weight)) is not None:
+    if (why := weight_problem(weight)) is not None:
         raise TrainError(f"--temporal-weight: {why}")
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
