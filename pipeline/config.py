@@ -597,7 +597,8 @@ class EvalConfig(Section):
                                  factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours",
                                                   "ours_filter", "ours_temporal"])
     temporal_weight: float = doc("Share of the new frame in the temporal filter's exponential blend (1: no "
-                                 "history); the history is clamped to the new output's 3x3 range.", 0.5)
+                                 "history); the history is clamped to the new output's 3x3 range. 0.7: the rule "
+                                 "of docs/sequences.md on configs/sequence.yaml's val split.", 0.7)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
