@@ -388,11 +388,12 @@ class Loader:
                         checkpoint=weights_name(folder))
 
     def diffusion_folder(self, spp: int, variant: str) -> Path:
-        """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one."""
+        """``train.model.find_run``: the run for ``spp``, else the spp-conditioned one; a method without a variant
+        (``ours``) takes the config's ``diffusion.name``, as training named the run."""
         from mcdenoise.train.model import find_run
 
         try:
-            return find_run(self.cfg, spp, variant)
+            return find_run(self.cfg, spp, variant or None)
         except StoreError as exc:
             raise MethodUnavailable(str(exc)) from None
 
