@@ -111,3 +111,19 @@ def test_export_without_a_run_names_the_make_line_of_its_config(tmp_path):
     assert not (tmp_path / "model").exists()
     proc = cli("export", "--format", "oidn", f"runs={tmp_path}", check=False)
     assert proc.returncode == 2 and "run `make train MODEL=oidn_ft SPP=any` first" in proc.stderr, proc.stderr
+
+
+def test_eval_loads_the_run_that_diffusion_name_named(tmp_path):
+    """`eval diffusion.name=x` scores the run `train diffusion.name=x` wrote as ``ours``; a method's own variant
+    (``ours_y``) still picks its run."""
+    from mcdenoise.evaluate.methods import Loader, parse
+
+    for name in ("diffusion_sppany", "diffusion_sppany_x", "diffusion_sppany_y"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "model.json").write_text("{}")
+    cfg = load_config(None, [f"runs={tmp_path}", "diffusion.name=x"])
+    loader = Loader(cfg)
+    assert loader.diffusion_folder(4, parse("ours").variant) == tmp_path / "diffusion_sppany_x"
+    assert loader.diffusion_folder(4, parse("ours_y").variant) == tmp_path / "diffusion_sppany_y"
+    unnamed = Loader(load_config(None, [f"runs={tmp_path}"]))
+    assert unnamed.diffusion_folder(4, parse("ours").variant) == tmp_path / "diffusion_sppany"
