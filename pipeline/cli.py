@@ -251,9 +251,9 @@ def _inference_commands(sub) -> None:
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
     p.add_argument("--sequence", default=None, metavar="PATTERN",
                    help="a rendered sequence, e.g. 'in/frame_####.exr' (# the zero-padded frame number): every frame "
-                        "denoised (--method ours or oidn_prefilter) and blended with its warped history, using the "
-                        "EXR headers' worldToCamera/worldToNDC and the depth channel Z (without them, frame by frame, "
-                        "said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
+                        "denoised (--method ours or oidn_prefilter) and blended with its warped history, using "
+                        "Blender's Vector pass, or the EXR headers' worldToCamera/worldToNDC and the depth channel Z "
+                        "(without either, frame by frame, said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
     p.add_argument("--temporal-weight", type=float, default=None,
                    help="--sequence: the new frame's share of the blend (1: no history; default eval.temporal_weight)")
     p.add_argument("--out", required=True, help="output EXR (with --sequence: a pattern with one run of #)")

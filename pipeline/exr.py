@@ -909,14 +909,35 @@ def resolve(channels, schema_channels: dict[str, tuple[str, ...]], where: str) -
             continue
         suffixes = [c.rsplit(".", 1)[-1] for c in schema_channels[buffer]]
         for layer in layers:
-            views = sorted(view for view in {n[: -len(f"{layer}.{suffixes[0]}")] for n in names
-                                             if n.endswith(f"{layer}.{suffixes[0]}")}
-                           if (view == "" or (view.endswith(".") and "." not in view[:-1]))
-                           and all(f"{view}{layer}.{s}" in names for s in suffixes))
-            if len(views) > 1:
-                raise StoreError(f"{where}: layer {layer!r} is in several view layers "
-                                 f"({', '.join(v[:-1] or '(none)' for v in views)}); write one view layer per file")
-            if views:
-                found[buffer] = tuple(f"{views[0]}{layer}.{s}" for s in suffixes)
+            if (hit := find_layer(names, layer, suffixes, where)) is not None:
+                found[buffer] = hit
                 break
     return found
+
+
+def find_layer(names: set[str], layer: str, suffixes, where: str) -> tuple[str, ...] | None:
+    """The channels ``layer.<suffix>`` for every suffix, under no prefix or exactly one view layer
+    (``ViewLayer.Vector.X``); None when absent, StoreError naming ``where`` when several view layers have it."""
+    views = sorted(view for view in {n[: -len(f"{layer}.{suffixes[0]}")] for n in names
+                                     if n.endswith(f"{layer}.{suffixes[0]}")}
+                   if (view == "" or (view.endswith(".") and "." not in view[:-1]))
+                   and all(f"{view}{layer}.{s}" in names for s in suffixes))
+    if len(views) > 1:
+        raise StoreError(f"{where}: layer {layer!r} is in several view layers "
+                         f"({', '.join(v[:-1] or '(none)' for v in views)}); write one view layer per file")
+    return tuple(f"{views[0]}{layer}.{s}" for s in suffixes) if views else None
+
+
+def read_vector_pass(path: Path) -> np.ndarray | None:
+    """Blender's motion vectors (its ``Vector`` pass: channels ``[view layer.]Vector.X/Y/Z/W``) of the EXR at
+    ``path`` as written, (H, W, 4) float32, or None when it has none (``pipeline.motion.from_blender_vectors``
+    reads them). The file is one ``read_layers`` has read already: damage is its error."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        channels = f.channels()
+        found = find_layer(set(channels), "Vector", ("X", "Y", "Z", "W"), str(path))
+        if found is None:
+            return None
+        arrs = [channels[n].pixels for n in found]
+    if len({a.shape for a in arrs}) != 1:
+        raise StoreError(f"{path}: the Vector pass's channels differ in size")
+    return np.stack(arrs, axis=2).astype(np.float32)

@@ -52,6 +52,17 @@ surfaces at depth ratio r passes only while the other surface's taps weigh at mo
 above: the warp blends across a silhouette by up to tolerance * r / (r - 1) (0.1 at the default
 tolerance and r = 2), and across surfaces of nearly equal depth freely.
 
+Motion vectors (``flow``, ``from_blender_vectors``)
+--------------------------------------------------
+A renderer that writes its own motion (Blender's ``Vector`` pass) needs neither camera nor depth, and its
+vectors follow moving objects too. Here a frame's motion is (H, W, 4): ``to_prev`` (where the pixel's point
+was in frame t-1, minus where it is now) and ``to_next`` (where it will be in frame t+1, minus now), in the
+pixel coordinates above. Pixel p of frame t lands at q = p + to_prev(p) in frame t-1. It is **invalid** when q
+is off frame t-1, or when frame t-1's own ``to_next`` read bilinearly at q (the warp's footprint) does not
+bring q back to within ``tolerance`` pixels of p: q shows another surface in frame t-1 (a disocclusion, or a
+footprint straddling a silhouette, whose vectors mix two motions), the forward-backward test of optical
+flow. There is no normal test: Blender's ``Denoising Normal`` is in camera space, so it turns with the camera.
+
 OpenEXR headers (``exr_matrices``, ``camera_from_exr``)
 ------------------------------------------------------
 Store images carry the standard attributes ``worldToCamera`` and ``worldToNDC`` (``m44f``), as
@@ -78,6 +89,9 @@ TAP_EPS = 1e-3
 # the compact encoding's depth rounding (2^-11), and far below the depth steps between objects.
 DEPTH_TOLERANCE = 0.05
 NORMAL_THRESHOLD = 0.9          # cos 25.8 degrees: half-float normals, curved surfaces' footprints
+# Default forward-backward tolerance of flow, in pixels: far above half-float vectors' rounding (2^-11 relative)
+# and bilinear interpolation's error on a smooth flow, below the mismatch of two surfaces' motions.
+FLOW_TOLERANCE = 0.5
 # Clip distances of the store's cameras (render.buffers.make_sensor) and of a frame record that lacks them.
 NEAR_CLIP = 1e-3
 FAR_CLIP = 1e4
@@ -226,16 +240,57 @@ def reproject(depth_t: np.ndarray, cam_t: Camera, cam_prev: Camera, depth_prev: 
             seen = _read(inverse, taps)[:, 0]
             keep &= ~background & (np.abs(z[idx] * seen - 1) <= depth_tolerance)
         if normal_t is not None and normal_prev is not None:
-            n_prev = _read(np.asarray(normal_prev), taps)
-            n_t = np.asarray(normal_t, dtype=np.float64)[idx]
-            norms = np.linalg.norm(n_prev, axis=-1) * np.linalg.norm(n_t, axis=-1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cos = np.where(norms > 0, (n_prev * n_t).sum(axis=-1) / norms, -1.0)
-            keep &= cos >= normal_threshold
+            keep &= _normals_agree(normal_t, normal_prev, idx, taps, normal_threshold)
         valid[idx] = keep
     xy = xy.astype(np.float32)
     xy[~(z_t > 0)] = np.nan
     return xy, valid
+
+
+def _normals_agree(normal_t: np.ndarray, normal_prev: np.ndarray, idx, taps, threshold: float) -> np.ndarray:
+    """For the pixels ``idx`` of frame t: whether frame t-1's normal, read over ``taps`` and normalised, has a dot
+    product of at least ``threshold`` with frame t's."""
+    n_prev = _read(np.asarray(normal_prev), taps)
+    n_t = np.asarray(normal_t, dtype=np.float64)[idx]
+    norms = np.linalg.norm(n_prev, axis=-1) * np.linalg.norm(n_t, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos = np.where(norms > 0, (n_prev * n_t).sum(axis=-1) / norms, -1.0)
+    return cos >= threshold
+
+
+def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_TOLERANCE
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """``reproject``'s answer from motion vectors: (xy_prev [H, W, 2] float32, valid [H, W] bool) for frame t
+    of motion ``motion_t`` (H, W, 4) after frame t-1 of motion ``motion_prev``; xy_prev is NaN where the vector
+    is not finite. The tests that make a pixel invalid: module docstring."""
+    m_t, m_prev = np.asarray(motion_t, np.float64), np.asarray(motion_prev, np.float64)
+    if m_t.ndim != 3 or m_t.shape[2] != 4 or m_prev.ndim != 3 or m_prev.shape[2] != 4:
+        raise ValueError(f"motion must be (H, W, 4), got {m_t.shape} and {m_prev.shape}")
+    h, w = m_prev.shape[:2]
+    centres = pixel_centres(m_t.shape[1], m_t.shape[0])
+    xy = centres + m_t[..., :2]
+    valid = np.isfinite(xy).all(axis=-1)
+    xy[~valid] = np.nan
+    with np.errstate(invalid="ignore"):
+        valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= w) & (xy[..., 1] >= 0) & (xy[..., 1] <= h)
+    idx = np.nonzero(valid)
+    if idx[0].size:
+        taps = _footprint(xy[idx], w, h)
+        back = xy[idx] + _read(m_prev[..., 2:], taps)
+        with np.errstate(invalid="ignore"):
+            valid[idx] = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
+    return xy.astype(np.float32), valid
+
+
+def from_blender_vectors(vector: np.ndarray) -> np.ndarray:
+    """This module's motion (H, W, 4) float32 from Blender's ``Vector`` pass (X, Y, Z, W; rows top-down as its
+    EXR stores them). Cycles writes, in raster coordinates with y **up** (``primitive_motion_vector``):
+    (X, Y) = where the point was in the previous frame minus where it is, (Z, W) = where it is minus where it
+    will be. So ``to_prev`` = (X, -Y) and ``to_next`` = (-Z, W) in pixel coordinates with y down."""
+    v = np.asarray(vector, dtype=np.float32)
+    if v.ndim != 3 or v.shape[2] != 4:
+        raise ValueError(f"a Vector pass is (H, W, 4), got {v.shape}")
+    return np.stack([v[..., 0], -v[..., 1], -v[..., 2], v[..., 3]], axis=-1)
 
 
 def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -255,11 +310,12 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray) -> np.n
 
 @dataclass(frozen=True, eq=False)
 class View:
-    """What reprojection needs of one frame: its camera, its depth (H, W) and its shading normal (H, W, 3)
-    (None: no normal test)."""
-    camera: Camera
-    depth: np.ndarray
+    """What reprojection needs of one frame: its camera and depth (H, W), or its motion vectors (H, W, 4,
+    ``flow``), and its shading normal (H, W, 3) (None: no normal test)."""
+    camera: Camera | None
+    depth: np.ndarray | None
     normal: np.ndarray | None = None
+    motion: np.ndarray | None = None
 
     @classmethod
     def of(cls, camera: Camera, buffers: dict[str, np.ndarray]) -> View:
@@ -267,10 +323,26 @@ class View:
         return cls(camera, buffers["depth"][..., 0], buffers.get("normal"))
 
 
+def linked(view: View, view_prev: View) -> str | None:
+    """How ``view``'s pixels are followed into ``view_prev``: "motion" (both frames have motion vectors: the
+    renderer's own, moving objects included), "camera" (both have a camera and depth: a static scene) or None."""
+    if view.motion is not None and view_prev.motion is not None:
+        return "motion"
+    if all(v.camera is not None and v.depth is not None for v in (view, view_prev)):
+        return "camera"
+    return None
+
+
 def reproject_view(view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:
-    """``reproject`` of ``view``'s pixels into ``view_prev``, with both frames' depth and normal."""
-    return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth, normal_t=view.normal,
-                     normal_prev=view_prev.normal)
+    """Where ``view``'s pixels were in ``view_prev``: ``flow`` or ``reproject`` (with both frames' normals), as
+    ``linked`` says; ValueError when the two frames share neither motion vectors nor cameras with depth."""
+    how = linked(view, view_prev)
+    if how == "motion":
+        return flow(view.motion, view_prev.motion)
+    if how == "camera":
+        return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth,
+                         normal_t=view.normal, normal_prev=view_prev.normal)
+    raise ValueError("the two frames share neither motion vectors nor cameras with depth")
 
 
 def warp_previous(image_prev: np.ndarray, view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:

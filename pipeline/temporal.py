@@ -81,11 +81,13 @@ def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: di
 
     ``previous``: (this method's output of the previous frame, that frame's view); the history is that output
     warped into ``view`` (``motion.warp_previous``), none on a first frame, after a frame that failed or
-    where either frame has no view (no camera or depth). ``denoise(buffers, history)`` is the per-frame method;
+    where the two frames share no motion (``motion.linked``: motion vectors, or cameras with depth).
+    ``denoise(buffers, history)`` is the per-frame method;
     ``learned``: it reads the history itself (a model with ``diffusion.history``) and its output is the frame's;
     otherwise its output without history is blended with the history (``blend_history``, ``weight``)."""
     history = None
-    if previous is not None and previous[0] is not None and view is not None and previous[1] is not None:
+    if (previous is not None and previous[0] is not None and view is not None and previous[1] is not None
+            and motion.linked(view, previous[1])):
         history = motion.warp_previous(previous[0], view, previous[1])
     if learned:
         y = denoise(buffers, history)

@@ -6,7 +6,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mcdenoise.pipeline import motion
+from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.exr import read_camera, read_header, read_layers
 from mcdenoise.pipeline.motion import exr_matrices
@@ -100,9 +100,57 @@ def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tm
     for n in range(2):
         cropped_exr(tmp_path / f"c_{n}.exr", cam, (12, 16))
     assert frame_view(tmp_path / "c_0.exr", read_layers(tmp_path / "c_0.exr")) == \
-        (None, "display window 32x24 differs from the pixels' 16x12")
+        (None, "display window 32x24 differs from the pixels' 16x12, and no Vector pass")
     proc = cli("denoise", "--sequence", tmp_path / "c_#.exr", "--out", tmp_path / "o" / "c_#.exr", "--spp", "4",
                "--device", "cpu", "--quiet")
     assert proc.stdout.count("note: ") == 1 and "display window 32x24 differs from the pixels' 16x12" in proc.stdout
     assert "history on 0 of 1 frames" in proc.stdout, proc.stdout
     assert read_layers(tmp_path / "o" / "c_1.exr")["color"].shape == (12, 16, 3)
+
+
+def blender_frame(path, colour, albedo, vector) -> None:
+    """A Cycles multilayer EXR: the Denoising Data passes and the Vector pass under the view layer 'ViewLayer'."""
+    channels = {}
+    for layer, image, suffixes in (("Noisy Image", colour, "RGB"), ("Denoising Albedo", albedo, "RGB"),
+                                   ("Vector", vector, "XYZW")):
+        for k, s in enumerate(suffixes):
+            channels[f"ViewLayer.{layer}.{s}"] = np.ascontiguousarray(image[..., k], np.float32)
+    normal = np.zeros(colour.shape, np.float32)
+    normal[..., 2] = 1.0
+    for k, s in enumerate("XYZ"):
+        channels[f"ViewLayer.Denoising Normal.{s}"] = normal[..., k].copy()
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as f:
+        f.write(str(path))
+
+
+@pytest.mark.slow
+def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
+    """Three frames of a picture that moves right by 2 pixels and down by 1 per frame, as Blender writes them
+    (Denoising Data and Vector passes, no camera): frame t's history is the previous output moved by (2, 1),
+    valid where that pixel was on screen."""
+    h, w, n = 24, 32, 3
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:h + n, 0:w + 2 * n]
+    base = np.stack([(x % 9 < 4) * 0.8 + 0.1, (y % 7 < 3) * 0.6 + 0.2, 0.3 + 0.02 * x], -1).astype(np.float32)
+    # Cycles' convention (y up): X, Y = previous position - this one = (-2, +1); Z, W = this one - next = (-2, +1)
+    vector = np.broadcast_to(np.array([-2, 1, -2, 1], np.float32), (h, w, 4))
+    for t in range(n):
+        clean = base[n - t:n - t + h, 2 * (n - t):2 * (n - t) + w]        # frame t sees base shifted by (2t, t)
+        noisy = clean * rng.gamma(4.0, 0.25, clean.shape).astype(np.float32)
+        blender_frame(tmp_path / f"b_{t:02d}.exr", noisy, clean, vector)
+    assert frame_view(tmp_path / "b_00.exr", read_layers(tmp_path / "b_00.exr"))[0].motion is not None
+    run = ("denoise", "--sequence", tmp_path / "b_##.exr", "--method", "oidn_prefilter", "--spp", "4", "--quiet")
+    proc = cli(*run, "--out", tmp_path / "seq" / "o_##.exr", "--temporal-weight", "0.5")
+    assert "history on 2 of 2 frames" in proc.stdout and "note:" not in proc.stdout, proc.stdout
+    cli(*run, "--out", tmp_path / "alone" / "o_##.exr", "--temporal-weight", "1")
+    colour = lambda d, t: read_layers(tmp_path / d / f"o_{t:02d}.exr")["color"]     # noqa: E731
+    valid = np.zeros((h, w), bool)
+    valid[1:, 2:] = True
+    for t in (1, 2):
+        assert read_header(tmp_path / "seq" / f"o_{t:02d}.exr")["temporal"]["history_fraction"] == valid.mean()
+        history = np.zeros((h, w, 3), np.float32)
+        history[1:, 2:] = colour("seq", t - 1)[:-1, :-2]                   # the previous output, moved by (2, 1)
+        expected = temporal.blend_history(colour("alone", t), history, valid, 0.5)
+        # float32 outputs, and a shift by whole pixels reads each pixel alone (motion.TAP_EPS): the same arithmetic
+        np.testing.assert_allclose(colour("seq", t), expected, rtol=1e-6, atol=0)
+        assert not np.allclose(colour("seq", t), colour("alone", t), rtol=1e-2)

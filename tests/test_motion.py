@@ -169,6 +169,90 @@ def test_warp_is_bilinear_and_clamped_at_the_border():
     np.testing.assert_allclose(out[0, :, 0], [5 * 1.75 + 1.25, 0.0, 5 * 3 + 4])
 
 
+# ---- motion vectors (a renderer's own) ----------------------------------------------------------
+
+def blender_vector_pass(cam_t: Camera, depth_t, cam_prev: Camera, depth_prev) -> tuple[np.ndarray, np.ndarray]:
+    """The Vector passes Cycles would write for frames t-1 and t of a static scene (its convention, in raster
+    coordinates with y up: X, Y = where the point was in the previous frame minus where it is; Z, W = where it
+    is minus where it will be), built from the cameras: (frame t's pass, frame t-1's pass), (H, W, 4)."""
+    centres = motion.pixel_centres(W, H)
+    to_prev = project(unproject(depth_t, cam_t), cam_prev)[0] - centres      # in y-down pixels
+    to_next = project(unproject(depth_prev, cam_prev), cam_t)[0] - centres
+    up = np.array([1.0, -1.0])                                                # y down -> y up
+    zeros = np.zeros((H, W, 2))
+    return (np.concatenate([to_prev * up, zeros], -1).astype(np.float32),
+            np.concatenate([zeros, -to_next * up], -1).astype(np.float32))
+
+
+def test_motion_vectors_give_the_reprojection_of_a_translating_camera():
+    D, b = 5.0, 0.2
+    prev = camera(origin=(0, 0, 0), target=(0, 0, -1))
+    cur = camera(origin=(-b, 0.5 * b, 0), target=(-b, 0.5 * b, -1))
+    depth_t, depth_p = plane_depth(cur, (0, 0, 1), -D), plane_depth(prev, (0, 0, 1), -D)
+    vec_t, vec_p = blender_vector_pass(cur, depth_t, prev, depth_p)
+    xy, valid = motion.flow(motion.from_blender_vectors(vec_t), motion.from_blender_vectors(vec_p))
+    xy_cam, valid_cam = reproject(depth_t, cur, prev, depth_prev=depth_p)
+    # the vectors are float32 (relative 6e-8 of a few pixels): the same landing spots and the same mask
+    assert np.abs(xy - xy_cam).max() < 1e-4
+    np.testing.assert_array_equal(valid, valid_cam)
+    assert 0 < (~valid).sum() < W * H / 4                        # the columns and rows that leave the frame
+
+
+def test_motion_vectors_mask_a_disocclusion():
+    """The box scene of the depth test: the forward-backward test masks what the box hid in frame t-1, as the
+    depth test does, and keeps every pixel whose footprint lies on one surface."""
+    b = 0.5
+    prev = camera(origin=(0, 0, 0), target=(0, 0, -1))
+    cur = camera(origin=(b, 0, 0), target=(b, 0, -1))
+    (depth_t, box_t), (depth_p, _) = box_scene(cur), box_scene(prev)
+    vec_t, vec_p = blender_vector_pass(cur, depth_t, prev, depth_p)
+    xy, valid = motion.flow(motion.from_blender_vectors(vec_t), motion.from_blender_vectors(vec_p))
+    xy_cam, valid_cam = reproject(depth_t, cur, prev, depth_prev=depth_p)
+    assert np.abs(xy - xy_cam).max() < 1e-4
+    world = unproject(depth_t, cur)
+    crossing = world * (4.0 / 10.0)
+    hidden = ~box_t & (np.abs(crossing[..., 0]) <= 0.6) & (np.abs(crossing[..., 1]) <= 0.5)
+    assert hidden.sum() > 20 and not valid[hidden].any()
+    # The box moves b f (1/4 - 1/10) = 5.1 pixels more than the plane: a footprint whose taps on the other
+    # surface weigh more than 0.5 / 5.1 fails the test, a lighter one passes. So the two masks may differ
+    # within a pixel of the silhouettes, and nowhere else.
+    f = W / (2 * math.tan(math.radians(FOV) / 2))
+    edges_x = W / 2 + np.array([-0.6, 0.6]) / 4 * f
+    edges_y = H / 2 + np.array([-0.5, 0.5]) / 4 * f
+    near_edge = (((np.abs(xy_cam[..., 0, None] - edges_x) < 1).any(-1) & (xy_cam[..., 1] > edges_y[0] - 1)
+                  & (xy_cam[..., 1] < edges_y[1] + 1)) | ((np.abs(xy_cam[..., 1, None] - edges_y) < 1).any(-1)
+                                                          & (xy_cam[..., 0] > edges_x[0] - 1)
+                                                          & (xy_cam[..., 0] < edges_x[1] + 1)))
+    assert valid[valid_cam & ~near_edge].all() and not valid[~valid_cam & ~near_edge].any()
+
+
+def test_blender_vector_pass_convention():
+    """A point that moves right by 2 pixels and down by 1 per frame (rows top-down): Cycles writes X, Y = -2, +1
+    (the previous position minus this one, y up) and Z, W = -2, +1 (this one minus the next)."""
+    raw = np.broadcast_to(np.array([-2.0, 1.0, -2.0, 1.0], np.float32), (3, 4, 4))
+    m = motion.from_blender_vectors(raw)
+    np.testing.assert_array_equal(m[0, 0], [-2, -1, 2, 1])         # to_prev: left and up; to_next: right and down
+    xy, valid = motion.flow(m, m)
+    np.testing.assert_array_equal(xy[2, 3], [3.5 - 2, 2.5 - 1])
+    # the pixels whose point was off frame t-1: the first two columns and the first row
+    np.testing.assert_array_equal(valid, np.pad(np.ones((2, 2), bool), ((1, 0), (2, 0))))
+    with pytest.raises(ValueError, match=r"\(H, W, 4\)"):
+        motion.from_blender_vectors(raw[..., :2])
+
+
+def test_views_link_by_motion_vectors_first_then_by_cameras():
+    cam = camera()
+    depth = plane_depth(cam, (0, 0, 1), -5.0)
+    still = np.zeros((H, W, 4), np.float32)
+    by_camera, by_motion = motion.View(cam, depth), motion.View(None, None, motion=still)
+    both = motion.View(cam, depth, motion=still)
+    assert motion.linked(by_camera, by_camera) == "camera"
+    assert motion.linked(by_motion, by_motion) == motion.linked(both, by_motion) == "motion"
+    assert motion.linked(by_motion, by_camera) is None
+    with pytest.raises(ValueError, match="share neither"):
+        motion.reproject_view(by_motion, by_camera)
+
+
 # ---- the cameras in files -----------------------------------------------------------------------
 
 def test_header_matrices_map_a_world_point_to_its_pixel(tmp_path):

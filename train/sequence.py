@@ -5,7 +5,8 @@
 
 Each frame is denoised as ``denoise --exr`` does (``--method ours`` or ``oidn_prefilter``), then the
 temporal filter of ``pipeline.temporal`` blends it with the previous output brought into this frame
-(``pipeline.motion``: the frame's depth and the two cameras), where the history is valid:
+(``pipeline.motion``: the renderer's motion vectors, or the frame's depth and the two cameras), where the
+history is valid:
 
     out_t = w · y_t + (1 − w) · clamp(warp(out_{t−1}))        (w: ``--temporal-weight``, default
                                                               ``eval.temporal_weight``)
@@ -15,11 +16,17 @@ channels) needs no filter: it is given its own previous output warped into this 
 mask, as condition channels (``Denoiser.denoise(history=...)``), and its output is the frame's output. Either
 way a frame is one ``pipeline.temporal.step``, as in the sequence evaluation. The summary line says which ran.
 
-The motion needs, in every EXR, the standard header attributes ``worldToCamera`` and ``worldToNDC``
-(``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes), a depth
-channel ``Z`` (camera-space z) and a display window (the camera's image) the size of the pixels. A frame
-without them is denoised alone, and the command says so in one line. The first frame has no history. The
-outputs are independent of where the sequence is cut only up to that first frame: run the whole shot at once.
+The motion comes from one of two things in every EXR:
+
+* **motion vectors**: Blender's ``Vector`` pass (``ViewLayer.Vector.X/Y/Z/W``, enable it under View Layer
+  Properties → Passes → Data; Cycles writes it with motion blur off). They follow moving objects too. A pixel's
+  history is valid where the previous frame's vectors lead back to it (``motion.flow``).
+* **the camera and depth**: the standard header attributes ``worldToCamera`` and ``worldToNDC``
+  (``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes), a depth channel
+  ``Z`` (camera-space z) and a display window (the camera's image) the size of the pixels. Static scenes only.
+
+A frame with neither is denoised alone, and the command says so in one line. The first frame has no history.
+The outputs are independent of where the sequence is cut only up to that first frame: run the whole shot at once.
 """
 from __future__ import annotations
 
@@ -33,7 +40,7 @@ import numpy as np
 from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.config import Config, weight_problem
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.exr import StoreError, read_camera, read_layers, write_output
+from mcdenoise.pipeline.exr import StoreError, read_camera, read_layers, read_vector_pass, write_output
 from mcdenoise.pipeline.progress import progress
 
 _HASHES = re.compile(r"#+")
@@ -67,8 +74,24 @@ def output_path(pattern: str, number: int) -> Path:
 
 
 def frame_view(path: Path, buffers: dict) -> tuple[motion.View | None, str]:
-    """(the frame's view, '') when the EXR has the camera attributes, a depth channel and a display window the
-    size of its pixels, else (None, why)."""
+    """(the frame's view, '') when the EXR has a Vector pass, or the camera attributes, a depth channel and a
+    display window the size of its pixels; else (None, why)."""
+    height, width = buffers["color"].shape[:2]
+    camera, why = _camera(path, buffers, (height, width))
+    vectors = read_vector_pass(path)
+    if vectors is not None:
+        if vectors.shape[:2] != (height, width):
+            return None, f"the Vector pass is {vectors.shape[1]}x{vectors.shape[0]}, the pixels {width}x{height}"
+        depth = buffers["depth"][..., 0] if "depth" in buffers else None
+        return motion.View(camera, depth, buffers.get("normal"), motion.from_blender_vectors(vectors)), ""
+    if camera is None:
+        return None, f"{why}, and no Vector pass"
+    return motion.View.of(camera, buffers), ""
+
+
+def _camera(path: Path, buffers: dict, size: tuple[int, int]) -> tuple[motion.Camera | None, str]:
+    """(the EXR's camera, '') when it has the camera attributes, a depth channel and a display window of ``size``
+    (H, W), else (None, why)."""
     if "depth" not in buffers:
         return None, "no depth channel Z"
     try:
@@ -77,10 +100,9 @@ def frame_view(path: Path, buffers: dict) -> tuple[motion.View | None, str]:
         return None, str(exc).removeprefix(f"{path}: ")
     # the camera projects onto the display window, the pixels are the data window: a crop or an overscan
     # would reproject every pixel to the wrong place
-    height, width = buffers["color"].shape[:2]
-    if (cam.height, cam.width) != (height, width):
-        return None, f"display window {cam.width}x{cam.height} differs from the pixels' {width}x{height}"
-    return motion.View.of(cam, buffers), ""
+    if (cam.height, cam.width) != size:
+        return None, f"display window {cam.width}x{cam.height} differs from the pixels' {size[1]}x{size[0]}"
+    return cam, ""
 
 
 def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, device: str | None, precision: str,
