@@ -11,6 +11,11 @@ machine by ``python -m pipeline plan --measure`` (kept below with the date and t
   depths and interpolated linearly (extrapolated, floored at a quarter of the shallow cost,
   outside them). Other resolutions use the nearest measured one, scaling the overhead by the
   pixel count.
+- **scene kinds**: the constants are measured on scenes of objects on a ground. A furnished interior or a
+  product shot costs more per sample (more geometry, light that arrives after more bounces, glass):
+  ``kind_cost`` holds each kind's cost per sample over an objects scene's (``measure_kinds``), and a
+  config's random scenes cost the mean over its kind probabilities (``scene.interior_probability``,
+  ``scene.product_probability``); the stress presets count as objects scenes.
 - **writing** an image (EXR ZIP, atomic rename, SHA-256) costs ``write_s_per_mpx`` per
   megapixel; building the scene once per frame ``build_s``.
 - **ground-truth spp**: ``dataset.gt_spp`` without a target. With ``dataset.gt_target_psnr`` (a
@@ -100,6 +105,10 @@ MEASURED: dict = {
                            "2026-12-01; compact: verify data/encodings --encodings 4: 15.22 / 24.90 MiB per frame (4 frames "
                            "of configs/default.yaml), 2026-12-04; both x 1.102 for the half beauty view of format "
                            "version 4 (docs/store.md: 9.17 -> 10.11 MiB per frame of 22 frames, 2026-12-06)",
+ "kind_cost": {"interior": 1.92, "product": 0.58,
+               "source": "measure_kinds on configs/ship_rooms.yaml (3 scenes per kind, 128x128, max_depth 8, CPU time of "
+                         "1 thread beside a render), 2026-12-06; data/ship_rooms's first 55 frames agree: 1566 against "
+                         "809 ns per sample for interiors and objects scenes (1.94)"},
  "gt_psnr": {
   "source": "data/default (configs/default.yaml, 86 frames, 172 GTs at 1024 spp, 128x128, max_depth 8), 2026-12-01",
   "spp": 1024,
@@ -178,6 +187,10 @@ def estimate(cfg: Config, constants: dict | None = None) -> dict:
     stress = (len(STRESS_PRESETS) if d.stress in ("all", ["all"]) else len(d.stress)) * d.stress_copies
     frames = (d.scenes + stress) * d.frames
     cost, overhead = seconds_per_sample(c, side, cfg.render.max_depth)
+    # the constants are objects scenes'; interiors and product shots cost more per sample (kind_cost), the
+    # stress presets are counted as objects scenes
+    factor = kind_factor(cfg.scene, c)
+    cost *= (d.scenes * factor + stress) / max(d.scenes + stress, 1)
     write = c["write_s_per_mpx"] * px / 1e6
     raw = raw_bytes_per_pixel() * px
     gt_spp, gt_passes = expected_gt_spp(d, c)
@@ -196,6 +209,7 @@ def estimate(cfg: Config, constants: dict | None = None) -> dict:
     return {
         "frames": frames, "scenes": d.scenes, "stress_scenes": stress, "resolution": [w, h],
         "max_depth": cfg.render.max_depth, "samples_per_frame": px * (2 * gt_spp + d.stacks * d.stack_spp),
+        "kind_factor": factor,
         "seconds_per_sample": cost, "overhead_s": overhead, "build_s": c["build_s"], "parts": parts,
         "frame_core_s": frame_core_s, "frame_bytes": frame_bytes,
         "total_core_h": frame_core_s * frames / 3600, "total_bytes": frame_bytes * frames,
@@ -216,7 +230,9 @@ def format_table(est: dict, workers: tuple[int, ...] = DEFAULT_WORKERS, title: s
     lines = [
         f"plan{(' for ' + title) if title else ''}: {est['scenes']} scenes + {est['stress_scenes']} stress "
         f"= {n} frames at {w}x{h}, max_depth {est['max_depth']}, "
-        f"{est['samples_per_frame'] / 1e6:.1f} M samples per frame",
+        f"{est['samples_per_frame'] / 1e6:.1f} M samples per frame"
+        + (f"; the random scenes' kinds cost {est['kind_factor']:.2f}x objects scenes per sample (kind_cost)"
+           if est["kind_factor"] != 1.0 else ""),
         f"  cost model: {est['seconds_per_sample'] * 1e9:.0f} core-ns per sample + {est['overhead_s'] * 1e3:.0f} ms "
         f"per image + {est['build_s']:.2f} s scene build per frame ({est['source']}; "
         f"{est['measured']['date']}, {est['measured']['machine']})",
@@ -318,6 +334,49 @@ def measure(cfg: Config, resolutions=(128, 256), depths=(5, 8), spps=(4, 64), sc
     }
 
 
+SCENE_KINDS = ("objects", "interior", "product")
+
+
+def measure_kinds(cfg: Config, scenes: int = 3, res: int = 128, spps=(8, 32), threads: int = 1) -> dict:
+    """Core-seconds per sample of each scene kind over that of ``objects`` scenes (the kind the render constants
+    were measured on): ``scenes`` scenes of each kind, drawn by the config's generators, at ``res``² and the
+    config's ``render.max_depth``, the per-sample cost fitted from two sample counts as the constants are."""
+    import dataclasses
+
+    from mcdenoise.pipeline.mitsuba_env import import_mitsuba
+
+    from .buffers import needed_features
+    from .scene import build_scene, build_sensor, random_scene
+
+    mi = import_mitsuba(cfg.render.variant, threads)
+    only = {"objects": (0.0, 0.0), "interior": (1.0, 0.0), "product": (0.0, 1.0)}
+    cost = {}
+    for kind in SCENE_KINDS:
+        scene_cfg = dataclasses.replace(cfg.scene, interior_probability=only[kind][0], product_probability=only[kind][1])
+        timings: dict = {}
+        for i in range(scenes):
+            desc = random_scene(scene_cfg, cfg.seed, i, 1)
+            scene = build_scene(mi, desc)
+            _time_renders(mi, scene, build_sensor(mi, desc, 0, res, res), needed_features(mi, scene), cfg, res,
+                          (cfg.render.max_depth,), spps, 2, timings)
+            del scene
+        cost[kind] = _fit(timings[str(res)][str(cfg.render.max_depth)])[1]
+    return {kind: round(cost[kind] / cost["objects"], 2) for kind in SCENE_KINDS if kind != "objects"}
+
+
+def kind_factor(scene_cfg, c: dict) -> float:
+    """The mean per-sample cost of the random scenes of ``scene_cfg`` over that of ``objects`` scenes: each kind's
+    ``kind_cost`` weighted by its probability (``render.scene.scene_kind``)."""
+    pi, pp = float(scene_cfg.interior_probability), float(scene_cfg.product_probability)
+    if pi <= 0 and pp <= 0:
+        return 1.0
+    costs = c.get("kind_cost", {})
+    pi = min(max(pi, 0.0), 1.0)
+    rest = 1.0 - pi
+    pp = rest * min(max(pp, 0.0), 1.0)
+    return pi * costs.get("interior", 1.0) + pp * costs.get("product", 1.0) + (rest - pp)
+
+
 def _time_renders(mi, scene, sensor, features, cfg: Config, res: int, depths, spps, repeats: int,
                   timings: dict) -> None:
     """Add (samples, best CPU seconds) of each depth and spp at resolution ``res`` to ``timings[res][depth]``."""
@@ -381,7 +440,8 @@ def _cpu_name() -> str:
 
 
 def calibrate_from_store(root: str | Path, constants: dict | None = None, max_frames: int = 200) -> dict:
-    """The model's constants with rate, overhead and bytes fitted to an existing store's frames."""
+    """The model's constants with rate, overhead and bytes fitted to an existing store's frames (the rate of
+    objects scenes: each frame's samples weighted by its scene kind's ``kind_cost``)."""
     from mcdenoise.pipeline.exr import store_encoding
     from mcdenoise.pipeline.store import Store
 
@@ -395,11 +455,15 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
     cores = min(threads, cpus / workers) if threads > 0 else cpus / workers
     depth = int(conf.get("render", {}).get("max_depth", 8))
     points, gt_ratio, stack_ratio, sizes, gt_psnr, encodings = [], [], [], [], [], set()
-    frames = 0
+    frames, kinds = 0, {}
     for key in store.frames():
         rec = store.frame_record(key.scene, key.frame)
         if rec is None:
             continue
+        if key.scene not in kinds:      # per sample, a frame costs its kind's kind_cost times an objects frame
+            scene = store.scene_manifest(key.scene)
+            kind = "objects" if scene.get("preset") else (scene.get("description") or {}).get("kind", "objects")
+            kinds[key.scene] = c.get("kind_cost", {}).get(kind, 1.0)
         px = int(rec["width"]) * int(rec["height"])
         sizes.append(math.sqrt(px))
         for name, img in rec["images"].items():
@@ -407,7 +471,7 @@ def calibrate_from_store(root: str | Path, constants: dict | None = None, max_fr
                 continue
             if img.get("estimated_psnr") is not None:   # the GT's error at the reference spp (+3 dB per doubling)
                 gt_psnr.append(float(img["estimated_psnr"]) + 10 * math.log10(c["gt_psnr"]["spp"] / int(img["spp"])))
-            points.append((px * int(img["spp"]), float(img["render_seconds"]) * cores))
+            points.append((px * int(img["spp"]) * kinds[key.scene], float(img["render_seconds"]) * cores))
             (gt_ratio if name.startswith("gt") else stack_ratio).append(
                 int(img["bytes"]) / (raw_bytes_per_pixel() * px))
             encodings.add(store_encoding(img))

@@ -129,3 +129,27 @@ def test_progressive_gt_uses_the_expected_spp_from_the_target():
     capped = estimate(load_config(None, ["dataset.gt_target_psnr=60", "dataset.gt_max_spp=2048"]), c)
     assert capped["parts"]["gt"]["spp"] == 2048
     assert "target 45 dB" in cli("plan", "dataset.gt_target_psnr=45").stdout
+
+
+def test_scene_kinds_weigh_the_cost_per_sample_by_their_probability():
+    """Interiors and product shots cost kind_cost times an objects scene per sample; a config's random scenes the
+    mean over its kind probabilities, the stress presets as objects scenes; configs without the keys as before."""
+    c = {**MEASURED, "kind_cost": {"interior": 2.0, "product": 5.0}}
+    base = ["dataset.stress=[]"]
+    plain = estimate(load_config(None, base), c)
+    assert plain["kind_factor"] == 1.0
+    rooms = estimate(load_config(None, base + ["scene.interior_probability=0.5", "scene.product_probability=0.2"]), c)
+    # 50 % interiors, 0.5 x 0.2 = 10 % products, 40 % objects
+    assert rooms["kind_factor"] == pytest.approx(0.5 * 2 + 0.1 * 5 + 0.4)
+    assert rooms["seconds_per_sample"] == pytest.approx(1.9 * plain["seconds_per_sample"])
+    with_stress = estimate(load_config(None, ["scene.interior_probability=1", "dataset.stress=[all]"]), c)
+    n, k = with_stress["scenes"], with_stress["stress_scenes"]
+    assert k > 0 and with_stress["seconds_per_sample"] == pytest.approx(
+        plain["seconds_per_sample"] * (2.0 * n + k) / (n + k))
+
+
+def test_measure_kinds_gives_each_kind_over_objects_scenes():
+    from mcdenoise.render.plan import measure_kinds
+    cfg = load_config(TINY, ["render.max_depth=4"])
+    costs = measure_kinds(cfg, scenes=1, res=16, spps=(2, 8))
+    assert set(costs) == {"interior", "product"} and all(v > 0 for v in costs.values())
