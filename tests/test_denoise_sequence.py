@@ -154,3 +154,7 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
         # float32 outputs, and a shift by whole pixels reads each pixel alone (motion.TAP_EPS): the same arithmetic
         np.testing.assert_allclose(colour("seq", t), expected, rtol=1e-6, atol=0)
         assert not np.allclose(colour("seq", t), colour("alone", t), rtol=1e-2)
+    # ours on Blender's passes: no variance, light components or material layers, so the model's base alone, said
+    proc = cli("denoise", "--sequence", tmp_path / "b_##.exr", "--spp", "4", "--quiet", "--device", "cpu",
+               "--out", tmp_path / "ours" / "o_##.exr")
+    assert "history on 2 of 2 frames" in proc.stdout and "the model's base, OIDN, alone" in proc.stdout, proc.stdout

@@ -107,15 +107,17 @@ def _camera(path: Path, buffers: dict, size: tuple[int, int]) -> tuple[motion.Ca
 
 def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, device: str | None, precision: str,
                        seed: int | None):
-    """((buffers, history) -> HDR, the weights' name, whether it reads the history itself) of ``method``: ours
-    (the model folder; it reads the history where its model.json says so), or OIDN's final-frame mode."""
+    """((buffers, history) -> HDR, the weights' name, whether it reads the history itself, the set of what the
+    frames lacked that the model reads, filled as frames are denoised) of ``method``: ours (the model folder; it
+    reads the history where its model.json says so), or OIDN's final-frame mode."""
     from . import oidn
     from .infer import load_denoiser, weights_text
     from .model import find_run
 
+    lacked: set[str] = set()
     if method == "oidn_prefilter":
         return (lambda b, _: oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True),
-                "pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN", False)
+                "pyoidn built-in rt_hdr_calb_cnrm_large on albedo and normal prefiltered by OIDN", False, lacked)
     if method != "ours":
         raise TrainError(f"--sequence runs --method ours or oidn_prefilter, not {method}")
     folder = model or find_run(cfg, spp)
@@ -123,8 +125,15 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
     learned = den.history
 
     def run(b, history):
-        return den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed, history=history)
-    return run, weights_text(folder, den.meta), learned
+        y = den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed, history=history)
+        # as denoise --exr says it: what the model had to leave to OIDN
+        if den.last_estimate_only:
+            lacked.add(f"no albedo/normal layers: {den.fallback} alone")
+        elif den.last_base_only:
+            lacked.add("colour, albedo and normal only (no variance, light components or material layers): "
+                       "the model's base, OIDN, alone")
+        return y
+    return run, weights_text(folder, den.meta), learned, lacked
 
 
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
@@ -149,7 +158,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     if method == "oidn_prefilter" and not {"albedo", "normal"} <= first.keys():
         raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {files[0][1]} has only "
                          f"{', '.join(sorted(first))}; use --method ours")
-    run, weights, learned = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
+    run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
@@ -174,5 +183,6 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "
           f"history on {len(took)} of {len(files) - 1} frames"
           + (f", {100 * float(np.mean(took)):.0f} % of their pixels" if took else "")
-          + f") with {weights} in {time.perf_counter() - t0:.1f} s -> {out_pattern}", flush=True)
+          + f") with {weights} in {time.perf_counter() - t0:.1f} s -> {out_pattern}"
+          + "".join(f"; {note}" for note in sorted(lacked)), flush=True)
     return 0
