@@ -391,7 +391,9 @@ def _read_input(cfg: Config, frame: str | None, exr: str | None, spp: int | None
         aliased: dict = {}
         buffers = read_layers(Path(exr), aliased)
         for name, channels in aliased.items():
-            print(f"{exr}: {name} from {channels[0].rsplit('.', 1)[0]!r} ({', '.join(channels)})", flush=True)
+            layers = dict.fromkeys(c.rsplit(".", 1)[0] for c in channels)       # in order, once each
+            print(f"{exr}: {name} from {', '.join(map(repr, layers))}"
+                  + (f" ({', '.join(channels)})" if len(layers) == 1 else ""), flush=True)
         _warn_if_correlated(exr, buffers["color"])
         try:
             camera = read_camera(Path(exr))

@@ -1,7 +1,8 @@
 """A Cycles sequence with the Vector and Denoising Data passes: a checkered floor, a box and a sphere, the
-camera trucking and panning over 4 frames, 96x64, multilayer EXRs (docs/experiments/blender_vectors.py).
+camera trucking and panning over 4 frames, 96x64, multilayer EXRs with the light passes
+(docs/experiments/blender_vectors.py). Cycles' default pixel filter (Blackman-Harris, 1.5 px), or --box.
 
-    /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- SPP OUT_PATTERN
+    /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- [--box] SPP OUT_PATTERN
 """
 import math
 import sys
@@ -25,6 +26,13 @@ layer.use_pass_vector = True
 layer.use_pass_z = True
 layer.use_pass_normal = True
 layer.cycles.denoising_store_passes = True     # Denoising Albedo and Normal
+# the light passes, which pipeline.exr.blender_components sums into the model's radiance components
+for name in ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct", "glossy_indirect", "glossy_color",
+             "transmission_direct", "transmission_indirect", "transmission_color", "emit", "environment"):
+    setattr(layer, f"use_pass_{name}", True)
+if "--box" in sys.argv:                        # a box pixel filter 1 pixel wide: independent pixels
+    scene.cycles.pixel_filter_type = "BOX"
+    scene.cycles.filter_width = 1.0
 
 
 def material(name: str, checker: bool):
