@@ -860,55 +860,9 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
                     if a.shape != shape:
                         raise StoreError(f"{path}: channel {n!r} has shape {a.shape}, expected {shape}")
                 out[key] = np.stack(arrs, axis=2).astype(np.float32)
-    if not any(c in out for c in schema.RADIANCE_COMPONENTS):
-        found, used = blender_components(channels, shape, str(path))
-        out.update(found)
-        if found:
-            other["light components"] = used
     if aliased is not None:
         aliased.update(other)
     return out
-
-
-# Blender's (Cycles') light passes -> the schema's radiance components. Cycles writes each lobe's light divided
-# by the lobe's colour (DiffDir, DiffInd with DiffCol; Gloss*, Trans* likewise), emission seen by the camera (Emit)
-# and the world seen by it (Env); Combined is their sum, with the volume passes. The schema's split is by the
-# first hit's lobe too (render.integrator): diffuse, or glossy and transmission (its "specular").
-BLENDER_LIGHT: dict[str, tuple[tuple[str, ...], ...]] = {
-    "emission": (("Emit",), ("Env",)),
-    "diffuse_direct": (("DiffDir", "DiffCol"), ("VolumeDir",)),
-    "specular_direct": (("GlossDir", "GlossCol"), ("TransDir", "TransCol")),
-    "diffuse_indirect": (("DiffInd", "DiffCol"), ("VolumeInd",)),
-    "specular_indirect": (("GlossInd", "GlossCol"), ("TransInd", "TransCol")),
-}
-# passes every component needs; the others (transmission, the world, volumes) count as 0 where absent
-BLENDER_REQUIRED = ("Emit", "DiffDir", "DiffInd", "DiffCol", "GlossDir", "GlossInd", "GlossCol")
-
-
-def blender_components(channels: dict, shape: tuple, where: str) -> tuple[dict[str, np.ndarray], tuple[str, ...]]:
-    """(the schema's radiance components from a Blender multilayer EXR's light passes, the channels read) (``BLENDER_LIGHT``:
-    a light pass times its colour pass, summed; the volume passes go to the diffuse components, so the five sum
-    to Combined), or ({}, ()) when a pass of ``BLENDER_REQUIRED`` is missing. ``channels``: name -> (H, W)."""
-    names = set(channels)
-    layers, used = {}, []
-    for layer in sorted({p for terms in BLENDER_LIGHT.values() for term in terms for p in term}):
-        found = find_layer(names, layer, ("R", "G", "B"), where)
-        if found is not None:
-            used += found
-            arrs = [np.asarray(channels[n], np.float32) for n in found]
-            if any(a.shape != shape for a in arrs):
-                raise StoreError(f"{where}: Blender pass {layer!r} has shape {arrs[0].shape}, expected {shape}")
-            layers[layer] = np.stack(arrs, axis=2)
-    if not all(p in layers for p in BLENDER_REQUIRED):
-        return {}, ()
-    out = {}
-    for component, terms in BLENDER_LIGHT.items():
-        total = np.zeros(shape + (3,), np.float32)
-        for term in terms:
-            if all(p in layers for p in term):
-                total += np.prod([layers[p] for p in term], axis=0, dtype=np.float32)
-        out[component] = total
-    return out, tuple(used)
 
 
 def _derived_record(raw) -> bool:

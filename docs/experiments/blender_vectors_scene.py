@@ -26,7 +26,7 @@ layer.use_pass_vector = True
 layer.use_pass_z = True
 layer.use_pass_normal = True
 layer.cycles.denoising_store_passes = True     # Denoising Albedo and Normal
-# the light passes, which pipeline.exr.blender_components sums into the model's radiance components
+# the light passes (denoise does not read them: docs/sequences.md, the Vector pass)
 for name in ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct", "glossy_indirect", "glossy_color",
              "transmission_direct", "transmission_indirect", "transmission_color", "emit", "environment"):
     setattr(layer, f"use_pass_{name}", True)
