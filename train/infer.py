@@ -221,8 +221,9 @@ def _warn_if_correlated(exr: str, color: np.ndarray) -> None:
     if ratio is not None:
         print(f"warning: {exr}: its noise looks spatially correlated (neighbour ratio {ratio:.2f} < "
               f"{CORRELATED_BELOW}), as a wide reconstruction filter makes it (Mitsuba's default 'gaussian', "
-              "'tent'); OIDN, this denoiser's first estimate, leaves such noise in place. Render with "
-              "<rfilter type=\"box\"/> in the film (a nearly noise-free image can read this way too).",
+              "'tent'; Cycles' Blackman-Harris); OIDN, this denoiser's first estimate, leaves such noise in place. Render "
+              "with a box filter one pixel wide (Mitsuba: <rfilter type=\"box\"/> in the film; Cycles: Film > Pixel "
+              "Filter > Box, width 1 px); a nearly noise-free image can read this way too.",
               file=sys.stderr, flush=True)
 
 
