@@ -813,14 +813,17 @@ def library_output(captured: list[str]):
             captured.extend(line.strip() for line in sink.read().decode(errors="replace").splitlines() if line.strip())
 
 
-def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray]:
+def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = None) -> dict[str, np.ndarray]:
     """Buffers of *any* EXR that uses the schema's channel names, or another tool's for the colour,
     albedo and normal (Mitsuba's aov integrator, Blender's passes: ``ALIASES`` below).
 
     ``R, G, B`` (or a colour layer of another tool) are required; every other buffer (``albedo.R``…,
     ``N.X``…, ``variance.R``…) is read when all its channels are present and left out otherwise
     (consumers treat a missing feature as its background value). No ``mcdenoise`` header is needed.
-    ``aliased``, when given, receives buffer → the other tool's channels it was read from.
+    ``aliased``, when given, receives buffer → the other tool's channels it was read from. ``passes``, when
+    given, receives the passes of other tools that are not buffers: ``"Vector"``, Blender's motion vectors
+    (``[view layer.]Vector.X/Y/Z/W``, (H, W, 4) float32 as written; ``pipeline.motion.from_blender_vectors``),
+    when the file has them.
     An image of this store whose beauty is derived (compact: ``R, G, B`` missing or a half view) is read
     with ``read_image``, so its colour is the exact beauty, never the view.
     """
@@ -862,6 +865,10 @@ def read_layers(path: Path, aliased: dict | None = None) -> dict[str, np.ndarray
                 out[key] = np.stack(arrs, axis=2).astype(np.float32)
     if aliased is not None:
         aliased.update(other)
+    if passes is not None and (vector := find_layer(set(channels), "Vector", "XYZW", str(path))) is not None:
+        if any(channels[n].shape != shape for n in vector):
+            raise StoreError(f"{path}: the Vector pass's channels are not {shape[1]}x{shape[0]}, the colour's size")
+        passes["Vector"] = np.stack([channels[n] for n in vector], axis=2).astype(np.float32)
     return out
 
 
@@ -926,18 +933,3 @@ def find_layer(names: set[str], layer: str, suffixes, where: str) -> tuple[str, 
         raise StoreError(f"{where}: layer {layer!r} is in several view layers "
                          f"({', '.join(v[:-1] or '(none)' for v in views)}); write one view layer per file")
     return tuple(f"{views[0]}{layer}.{s}" for s in suffixes) if views else None
-
-
-def read_vector_pass(path: Path) -> np.ndarray | None:
-    """Blender's motion vectors (its ``Vector`` pass: channels ``[view layer.]Vector.X/Y/Z/W``) of the EXR at
-    ``path`` as written, (H, W, 4) float32, or None when it has none (``pipeline.motion.from_blender_vectors``
-    reads them). The file is one ``read_layers`` has read already: damage is its error."""
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        channels = f.channels()
-        found = find_layer(set(channels), "Vector", ("X", "Y", "Z", "W"), str(path))
-        if found is None:
-            return None
-        arrs = [channels[n].pixels for n in found]
-    if len({a.shape for a in arrs}) != 1:
-        raise StoreError(f"{path}: the Vector pass's channels differ in size")
-    return np.stack(arrs, axis=2).astype(np.float32)

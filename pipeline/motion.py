@@ -276,8 +276,8 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
     idx = np.nonzero(valid)
     if idx[0].size:
         taps = _footprint(xy[idx], w, h)
-        back = xy[idx] + _read(m_prev[..., 2:], taps)
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):      # a non-finite vector fails the test
+            back = xy[idx] + _read(m_prev[..., 2:], taps)
             valid[idx] = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
     return xy.astype(np.float32), valid
 

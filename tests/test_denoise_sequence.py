@@ -138,7 +138,10 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
         clean = base[n - t:n - t + h, 2 * (n - t):2 * (n - t) + w]        # frame t sees base shifted by (2t, t)
         noisy = clean * rng.gamma(4.0, 0.25, clean.shape).astype(np.float32)
         blender_frame(tmp_path / f"b_{t:02d}.exr", noisy, clean, vector)
-    assert frame_view(tmp_path / "b_00.exr", read_layers(tmp_path / "b_00.exr"))[0].motion is not None
+    passes: dict = {}
+    buffers = read_layers(tmp_path / "b_00.exr", passes=passes)
+    assert passes["Vector"].shape == (h, w, 4) and frame_view(tmp_path / "b_00.exr", buffers)[0] is None
+    assert frame_view(tmp_path / "b_00.exr", buffers, passes["Vector"])[0].motion is not None
     run = ("denoise", "--sequence", tmp_path / "b_##.exr", "--method", "oidn_prefilter", "--spp", "4", "--quiet")
     proc = cli(*run, "--out", tmp_path / "seq" / "o_##.exr", "--temporal-weight", "0.5")
     assert "history on 2 of 2 frames" in proc.stdout and "note:" not in proc.stdout, proc.stdout

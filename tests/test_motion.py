@@ -238,6 +238,14 @@ def test_blender_vector_pass_convention():
     np.testing.assert_array_equal(valid, np.pad(np.ones((2, 2), bool), ((1, 0), (2, 0))))
     with pytest.raises(ValueError, match=r"\(H, W, 4\)"):
         motion.from_blender_vectors(raw[..., :2])
+    # a non-finite vector (a damaged pass) follows nothing; a non-finite vector of frame t-1 fails the way back
+    bad = m.copy()
+    bad[2, 3, 0] = np.nan
+    bad_prev = m.copy()
+    bad_prev[0, 0, 2] = np.inf                   # row 0, column 0 of frame t-1: where row 1, column 2 of t was
+    xy, valid = motion.flow(bad, bad_prev)
+    assert np.isnan(xy[2, 3]).all()
+    np.testing.assert_array_equal(np.argwhere(valid), [[1, 3], [2, 2]])
 
 
 def test_views_link_by_motion_vectors_first_then_by_cameras():

@@ -40,7 +40,7 @@ import numpy as np
 from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.config import Config, weight_problem
 from mcdenoise.pipeline.errors import TrainError
-from mcdenoise.pipeline.exr import StoreError, read_camera, read_layers, read_vector_pass, write_output
+from mcdenoise.pipeline.exr import StoreError, read_camera, read_layers, write_output
 from mcdenoise.pipeline.progress import progress
 
 _HASHES = re.compile(r"#+")
@@ -73,15 +73,13 @@ def output_path(pattern: str, number: int) -> Path:
     return Path(pattern[:run.start()] + str(number).zfill(run.end() - run.start()) + pattern[run.end():])
 
 
-def frame_view(path: Path, buffers: dict) -> tuple[motion.View | None, str]:
-    """(the frame's view, '') when the EXR has a Vector pass, or the camera attributes, a depth channel and a
-    display window the size of its pixels; else (None, why)."""
+def frame_view(path: Path, buffers: dict, vectors: np.ndarray | None = None) -> tuple[motion.View | None, str]:
+    """(the frame's view, '') when the EXR has a Vector pass (``vectors``, as ``read_layers`` gives it in
+    ``passes``), or the camera attributes, a depth channel and a display window the size of its pixels; else
+    (None, why)."""
     height, width = buffers["color"].shape[:2]
     camera, why = _camera(path, buffers, (height, width))
-    vectors = read_vector_pass(path)
     if vectors is not None:
-        if vectors.shape[:2] != (height, width):
-            return None, f"the Vector pass is {vectors.shape[1]}x{vectors.shape[0]}, the pixels {width}x{height}"
         depth = buffers["depth"][..., 0] if "depth" in buffers else None
         return motion.View(camera, depth, buffers.get("normal"), motion.from_blender_vectors(vectors)), ""
     if camera is None:
@@ -162,8 +160,9 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
-        buffers = read_layers(path)
-        view, why = frame_view(path, buffers)
+        passes: dict = {}
+        buffers = read_layers(path, passes=passes)
+        view, why = frame_view(path, buffers, passes.get("Vector"))
         alone = alone or (f"{path}: {why}" if view is None else "")
         # a model that reads its own previous output has no filter after it (``temporal.step``)
         hdr, valid = temporal.step(run, buffers, view, previous, weight, learned)

@@ -18,12 +18,18 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline import motion
-from mcdenoise.pipeline.exr import read_layers, read_vector_pass
+from mcdenoise.pipeline.exr import read_layers
 from mcdenoise.pipeline.metrics import psnr
 
 
 def flat_psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
+
+
+def vector(path: Path) -> np.ndarray:
+    passes: dict = {}
+    read_layers(path, passes=passes)
+    return passes["Vector"]
 
 
 def main(folder: Path) -> int:
@@ -35,7 +41,7 @@ def main(folder: Path) -> int:
         a_prev, a_cur = read_layers(prev)["albedo"], read_layers(cur)["albedo"]
         cells = [f"unwarped {flat_psnr(a_prev, a_cur):.1f} dB"]
         for name, read in readings.items():
-            xy, valid = motion.flow(read(read_vector_pass(cur)), read(read_vector_pass(prev)))
+            xy, valid = motion.flow(read(vector(cur)), read(vector(prev)))
             warped = motion.warp(a_prev, xy, valid)
             cells.append(f"{name}: {flat_psnr(warped[valid], a_cur[valid]):.1f} dB on {100 * valid.mean():.0f} %")
         print(f"{cur.name}: " + "; ".join(cells))
