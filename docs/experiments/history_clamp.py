@@ -34,9 +34,33 @@ def variance_box(current: np.ndarray, gamma: float) -> tuple[np.ndarray, np.ndar
     return np.maximum(mu - gamma * sigma, lo).astype(np.float32), np.minimum(mu + gamma * sigma, hi).astype(np.float32)
 
 
+def catmull_rom(image: np.ndarray, xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``image`` read at ``xy`` (pixel coordinates) with the Catmull-Rom filter (4x4 taps, clamped at the border,
+    negatives set to 0) where ``valid``, 0 elsewhere: ``motion.warp`` with a sharper kernel."""
+    out = np.zeros(valid.shape + (image.shape[2],), np.float32)
+    idx = np.nonzero(valid)
+    u, v = xy[idx][:, 0] - 0.5, xy[idx][:, 1] - 0.5
+    i0, j0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+
+    def weights(f):
+        return [f * (-0.5 + f * (1 - 0.5 * f)), 1 + f * f * (-2.5 + 1.5 * f), f * (0.5 + f * (2 - 1.5 * f)),
+                f * f * (-0.5 + 0.5 * f)]
+    wx, wy = weights(u - i0), weights(v - j0)
+    h, w = image.shape[:2]
+    acc = np.zeros((idx[0].size, image.shape[2]))
+    for dy in range(4):
+        rows = np.clip(j0 + dy - 1, 0, h - 1)
+        for dx in range(4):
+            cols = np.clip(i0 + dx - 1, 0, w - 1)
+            acc += (wx[dx] * wy[dy])[:, None] * image[rows, cols].astype(np.float64)
+    out[idx] = np.maximum(acc, 0.0)
+    return out
+
+
 def blend(current, history, valid, weight, gamma):
-    """``temporal.blend_history`` with the history clamped to the min-max box (gamma None) or the variance box."""
-    if gamma is None:
+    """``temporal.blend_history`` with the history clamped to the min-max box (gamma None or "cubic") or the
+    variance box."""
+    if gamma is None or gamma == "cubic":
         return temporal.blend_history(current, history, valid, weight)
     lo, hi = variance_box(current, gamma)
     return temporal.blend_history(current, np.clip(history, lo, hi), valid, weight, clamp=False)
@@ -48,10 +72,11 @@ def main() -> int:
     ap.add_argument("--split", required=True)
     ap.add_argument("--spp", default="4,16")
     ap.add_argument("--weight", type=float, default=0.7)
-    ap.add_argument("--gammas", default="minmax,1,1.5")
+    ap.add_argument("--gammas", default="minmax,1,1.5",
+                    help="minmax, a variance-clipping gamma, or cubic (Catmull-Rom resampling, min-max clamp)")
     args = ap.parse_args()
     store = Store(args.store)
-    clamps = {g: None if g == "minmax" else float(g) for g in args.gammas.split(",")}
+    clamps = {g: None if g == "minmax" else g if g == "cubic" else float(g) for g in args.gammas.split(",")}
     keys = store.frames(args.split)
     seqs = sequences(keys)
     gains: dict[str, dict[int, dict[str, float]]] = {c: {} for c in clamps}
@@ -66,7 +91,12 @@ def main() -> int:
             for clamp, gamma in clamps.items():
                 out = [base[0]]
                 for t in range(1, len(frames)):
-                    history = motion.warp_previous(out[t - 1], frames[t].views["input"], frames[t - 1].views["input"])
+                    if gamma == "cubic":      # the history read with Catmull-Rom, the mask as the warp's
+                        xy, valid = motion.reproject_view(frames[t].views["input"], frames[t - 1].views["input"])
+                        history = catmull_rom(out[t - 1], xy, valid), valid
+                    else:
+                        history = motion.warp_previous(out[t - 1], frames[t].views["input"],
+                                                       frames[t - 1].views["input"])
                     out.append(blend(base[t], *history, args.weight, gamma))
                 psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                 gains[clamp].setdefault(spp, {})[name] = float(np.mean(np.subtract(psnr[1:], base_psnr[1:])))
