@@ -1,7 +1,8 @@
 """Time along a sequence: the classic temporal filter and the instability metric.
 
 Both work on images already brought into the current frame (``pipeline.motion.warp_previous``: the
-previous frame's image with its validity mask), so they know nothing about cameras. ``step`` is one frame
+previous frame's image, read with the Catmull-Rom kernel, with its validity mask), so they know nothing about
+cameras. ``step`` is one frame
 of a temporal method, the warp included: what ``denoise --sequence`` and the sequence evaluation both run.
 
 **The temporal filter** (``blend_history``) is what a renderer's TAA or a compositor's temporal

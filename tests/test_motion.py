@@ -169,6 +169,36 @@ def test_warp_is_bilinear_and_clamped_at_the_border():
     np.testing.assert_allclose(out[0, :, 0], [5 * 1.75 + 1.25, 0.0, 5 * 3 + 4])
 
 
+def _raw_catmull_rom(image, xy) -> float:
+    return float(motion._catmull_rom(image, np.asarray(xy, float)[None])[0, 0])
+
+
+def test_catmull_rom_reads_centres_and_linear_images_exactly_and_is_sharper():
+    rng = np.random.default_rng(4)
+    image = rng.random((6, 7, 2)).astype(np.float32)
+    centres = motion.pixel_centres(7, 6)
+    # on pixel centres the kernel is (0, 1, 0, 0): each pixel alone, to the bit
+    np.testing.assert_array_equal(warp(image, centres, np.ones((6, 7), bool), kernel="catmull_rom"), image)
+    # a linear ramp (away from the clamped border) is reproduced: the weights sum to 1 and have no linear error
+    ramp = (5.0 * np.arange(7)[None, :] + 3.0 * np.arange(6)[:, None] + 1.0)[..., None]
+    xy = np.array([[[2.3, 3.1], [3.5, 2.5], [4.9, 2.05]]])
+    out = warp(ramp, xy, np.ones((1, 3), bool), kernel="catmull_rom")[0, :, 0]
+    np.testing.assert_allclose(out, 5 * (xy[0, :, 0] - 0.5) + 3 * (xy[0, :, 1] - 0.5) + 1, rtol=1e-12)
+    # across a step 0 | 1 between columns 2 and 3: both read 0.5 midway; a quarter pixel towards the dark side
+    # bilinear reads 0.25, Catmull-Rom w2 + w3 at f = 1/4 = 0.2265625 - 0.0234375 (sharper); just beyond the
+    # step its negative lobe would read below 0, and the read is set to 0
+    step = np.zeros((3, 6, 1))
+    step[:, 3:] = 1.0
+    at = np.array([[[3.0, 1.5], [2.75, 1.5], [1.75, 1.5]]])
+    cr = warp(step, at, np.ones((1, 3), bool), kernel="catmull_rom")[0, :, 0]
+    bl = warp(step, at, np.ones((1, 3), bool))[0, :, 0]
+    np.testing.assert_allclose(cr, [0.5, 0.203125, 0.0])
+    np.testing.assert_allclose(bl, [0.5, 0.25, 0.0])
+    assert _raw_catmull_rom(step, at[0, 2]) < 0                 # the lobe that was set to 0
+    with pytest.raises(ValueError, match="kernel"):
+        warp(step, at, np.ones((1, 3), bool), kernel="lanczos")
+
+
 # ---- motion vectors (a renderer's own) ----------------------------------------------------------
 
 def blender_vector_pass(cam_t: Camera, depth_t, cam_prev: Camera, depth_prev) -> tuple[np.ndarray, np.ndarray]:

@@ -36,7 +36,9 @@ if TYPE_CHECKING:
     from mcdenoise.pipeline.store import FrameKey, Store
 
 FORMAT = "mcdenoise-oidn-pack"
-HISTORY_SOURCE = "oidn_prefilter"   # what a history pack's previous outputs are (``train.history``)
+# what a history pack's previous outputs are (``train.history``) and how they were read into the frame
+# (``motion.warp_previous``): a pack with other histories is built again
+HISTORY_SOURCE = "oidn_prefilter, catmull_rom"
 DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
 _COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
 # Noise realizations per frame in a pack, by spp: disjoint subsets of the store's stacks

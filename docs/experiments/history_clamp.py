@@ -5,10 +5,11 @@ history's clamp", has the rule this measures for).
     python docs/experiments/history_clamp.py --store data/val_seq --split external
 
 Per sequence of the split and per spp: OIDN's final-frame output of every frame (``oidn_prefilter``, the first
-noise realization), then the temporal filter along the sequence with each clamp, exactly as
-``pipeline.temporal.step`` runs it (the history warped with the noisy input's depth and normal, weight on the new
-frame). Prints, per clamp and spp, the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the
-mean over the two spp, and the sequences below oidn_prefilter.
+noise realization), then the temporal filter along the sequence with each clamp, as ``pipeline.temporal.step``
+runs it (the history warped with the noisy input's depth and normal, weight on the new frame), reading the
+history bilinearly except for "cubic" (Catmull-Rom, what ``motion.warp_previous`` reads with). Prints, per clamp
+and spp, the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean over the two spp,
+and the sequences below oidn_prefilter.
 """
 from __future__ import annotations
 
@@ -32,29 +33,6 @@ def variance_box(current: np.ndarray, gamma: float) -> tuple[np.ndarray, np.ndar
     mu, sigma = windows.mean(axis=0), windows.std(axis=0)
     lo, hi = temporal.neighbourhood_range(current)
     return np.maximum(mu - gamma * sigma, lo).astype(np.float32), np.minimum(mu + gamma * sigma, hi).astype(np.float32)
-
-
-def catmull_rom(image: np.ndarray, xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``image`` read at ``xy`` (pixel coordinates) with the Catmull-Rom filter (4x4 taps, clamped at the border,
-    negatives set to 0) where ``valid``, 0 elsewhere: ``motion.warp`` with a sharper kernel."""
-    out = np.zeros(valid.shape + (image.shape[2],), np.float32)
-    idx = np.nonzero(valid)
-    u, v = xy[idx][:, 0] - 0.5, xy[idx][:, 1] - 0.5
-    i0, j0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-
-    def weights(f):
-        return [f * (-0.5 + f * (1 - 0.5 * f)), 1 + f * f * (-2.5 + 1.5 * f), f * (0.5 + f * (2 - 1.5 * f)),
-                f * f * (-0.5 + 0.5 * f)]
-    wx, wy = weights(u - i0), weights(v - j0)
-    h, w = image.shape[:2]
-    acc = np.zeros((idx[0].size, image.shape[2]))
-    for dy in range(4):
-        rows = np.clip(j0 + dy - 1, 0, h - 1)
-        for dx in range(4):
-            cols = np.clip(i0 + dx - 1, 0, w - 1)
-            acc += (wx[dx] * wy[dy])[:, None] * image[rows, cols].astype(np.float64)
-    out[idx] = np.maximum(acc, 0.0)
-    return out
 
 
 def blend(current, history, valid, weight, gamma):
@@ -91,12 +69,10 @@ def main() -> int:
             for clamp, gamma in clamps.items():
                 out = [base[0]]
                 for t in range(1, len(frames)):
-                    if gamma == "cubic":      # the history read with Catmull-Rom, the mask as the warp's
-                        xy, valid = motion.reproject_view(frames[t].views["input"], frames[t - 1].views["input"])
-                        history = catmull_rom(out[t - 1], xy, valid), valid
-                    else:
-                        history = motion.warp_previous(out[t - 1], frames[t].views["input"],
-                                                       frames[t - 1].views["input"])
+                    # the history read bilinearly, or with Catmull-Rom ("cubic", what motion.warp_previous reads with)
+                    xy, valid = motion.reproject_view(frames[t].views["input"], frames[t - 1].views["input"])
+                    kernel = "catmull_rom" if gamma == "cubic" else "bilinear"
+                    history = motion.warp(out[t - 1], xy, valid, kernel=kernel), valid
                     out.append(blend(base[t], *history, args.weight, gamma))
                 psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                 gains[clamp].setdefault(spp, {})[name] = float(np.mean(np.subtract(psnr[1:], base_psnr[1:])))
