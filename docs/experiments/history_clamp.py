@@ -44,27 +44,38 @@ def blend(current, history, valid, weight, gamma):
     return temporal.blend_history(current, np.clip(history, lo, hi), valid, weight, clamp=False)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def arguments(doc: str) -> argparse.ArgumentParser:
+    """The options both history experiments take (this one and history_sources.py)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--store", required=True)
     ap.add_argument("--split", required=True)
     ap.add_argument("--spp", default="4,16")
     ap.add_argument("--weight", type=float, default=0.7)
+    return ap
+
+
+def oidn_sequences(store: Store, split: str, spp: int):
+    """(name, frames, OIDN's final-frame output of each) of every sequence of ``split`` at ``spp``, the first noise
+    realization, against GT1 where an external scene has no gt_clean."""
+    for name, seq in sequences(store.frames(split)).items():
+        ref = _reference_name(store, seq[0], split == "external")
+        frames = [read_frame(store, k, spp, realization_stacks(store, k, spp, 1)[0], ref) for k in seq]
+        yield name, frames, [oidn.denoise({k: f.buffers[k] for k in ("color", "albedo", "normal")}, aux=True,
+                                          clean_aux=True) for f in frames]
+
+
+def main() -> int:
+    ap = arguments(__doc__)
     ap.add_argument("--gammas", default="minmax,1,1.5",
                     help="minmax, a variance-clipping gamma, or cubic (Catmull-Rom resampling, min-max clamp)")
     args = ap.parse_args()
     store = Store(args.store)
     clamps = {g: None if g == "minmax" else g if g == "cubic" else float(g) for g in args.gammas.split(",")}
-    keys = store.frames(args.split)
-    seqs = sequences(keys)
+    seqs = sequences(store.frames(args.split))
     gains: dict[str, dict[int, dict[str, float]]] = {c: {} for c in clamps}
     spps = [int(s) for s in args.spp.split(",")]
     for spp in spps:
-        for name, seq in seqs.items():
-            ref = _reference_name(store, seq[0], args.split == "external")
-            frames = [read_frame(store, k, spp, realization_stacks(store, k, spp, 1)[0], ref) for k in seq]
-            base = [oidn.denoise({k: f.buffers[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
-                    for f in frames]
+        for name, frames, base in oidn_sequences(store, args.split, spp):
             base_psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(base, frames)]
             for clamp, gamma in clamps.items():
                 out = [base[0]]

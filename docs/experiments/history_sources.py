@@ -17,27 +17,19 @@ mean over t >= 1 of each PSNR, per spp.
 """
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
+from history_clamp import arguments, oidn_sequences  # beside this file: python puts its folder on the path
 
-from mcdenoise.evaluate.run import _reference_name, realization_stacks
-from mcdenoise.evaluate.sequence import read_frame, sequences
+from mcdenoise.evaluate.sequence import sequences
 from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.metrics import psnr
 from mcdenoise.pipeline.store import Store
-from mcdenoise.train import oidn
 
 SOURCES = ("noisy", "oidn", "filtered", "oidn(t)")
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--store", required=True)
-    ap.add_argument("--split", required=True)
-    ap.add_argument("--spp", default="4,16")
-    ap.add_argument("--weight", type=float, default=0.7)
-    args = ap.parse_args()
+    args = arguments(__doc__).parse_args()
     store = Store(args.store)
     seqs = sequences(store.frames(args.split))
     spps = [int(s) for s in args.spp.split(",")]
@@ -45,11 +37,7 @@ def main() -> int:
     for spp in spps:
         per_seq = {s: [] for s in SOURCES}
         coverage = []
-        for name, seq in seqs.items():
-            ref = _reference_name(store, seq[0], args.split == "external")
-            frames = [read_frame(store, k, spp, realization_stacks(store, k, spp, 1)[0], ref) for k in seq]
-            base = [oidn.denoise({k: f.buffers[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
-                    for f in frames]
+        for _, frames, base in oidn_sequences(store, args.split, spp):
             filtered = [base[0]]
             scores = {s: [] for s in SOURCES}
             for t in range(1, len(frames)):
