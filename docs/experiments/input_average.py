@@ -1,16 +1,18 @@
 """Averaging the noisy input over the previous frames before OIDN, against the temporal filter on OIDN's output
-(docs/sequences.md, "Averaging the input over the previous frames", has the rule this measures for).
+(docs/sequences.md, "Averaging the input over the previous frames" and "Read without resampling", has the rules
+this measures for).
 
     python docs/experiments/input_average.py --store data/sequence --split val
-    python docs/experiments/input_average.py --store data/val_seq --split external
+    python docs/experiments/input_average.py --store data/val_seq --split external --kernel nearest --windows 2,4,8
 
 Per sequence of the split and per spp (the first noise realization): frame t's input averaged with up to
-``--window - 1`` frames before it, each warped straight into frame t (``motion.reproject_view`` between the two
-frames, one Catmull-Rom read), over the frames valid at each pixel: the colour (``colour``) or only the diffuse
-components, the rest of frame t (``diffuse``); OIDN's final-frame mode on it; each also with the temporal
-filter on its output (``+filter``). The baseline ``filter`` is ``oidn_prefilter_temporal``. Prints per method
-and spp the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean instability (as the
-sequence page measures it, through GT1's motion) and the sequences below oidn_prefilter.
+window - 1 frames before it, each read straight into frame t (``motion.reproject_view`` between the two frames,
+then ``--kernel``), over the frames valid at each pixel: all the radiance (``colour/W``) or only the diffuse
+components (``diffuse/W``); OIDN's final-frame mode on it; each also with the temporal filter on its output
+(``+filter``). The baseline ``filter`` is ``oidn_prefilter_temporal``. ``--ours CANDIDATE`` adds train/shipped's
+model on that candidate's input, beside ``ours`` and ``ours_filter``. Prints per method and spp the mean over
+sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean instability (as the sequence page measures
+it, through GT1's motion) and the sequences below oidn_prefilter.
 """
 from __future__ import annotations
 
@@ -18,28 +20,52 @@ import numpy as np
 from history_clamp import arguments, oidn_sequences
 
 from mcdenoise.evaluate.scoring import score
-from mcdenoise.pipeline import motion, temporal
+from mcdenoise.pipeline import motion, schema, temporal
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
 DIFFUSE = ("diffuse_direct", "diffuse_indirect")
-REST = ("emission", "specular_direct", "specular_indirect")
 
 
-def averaged(frames, t: int, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """(colour, diffuse) of frame t, each the mean over frame t and the frames t-window+1 .. t-1 valid at the
-    pixel, every one warped straight into frame t."""
+def read_past(image: np.ndarray, xy: np.ndarray, valid: np.ndarray, kernel: str) -> np.ndarray:
+    """``image`` of a past frame at ``xy`` (0 where not ``valid``): ``motion.warp`` with ``kernel``, or the pixel
+    ``xy`` falls in (``nearest``: each past pixel whole, its noise white)."""
+    if kernel != "nearest":
+        return motion.warp(image, xy, valid, kernel=kernel)
+    h, w = image.shape[:2]
+    out = np.zeros(valid.shape + image.shape[2:], image.dtype)
+    ix = np.clip(np.floor(xy[valid][:, 0]).astype(int), 0, w - 1)
+    iy = np.clip(np.floor(xy[valid][:, 1]).astype(int), 0, h - 1)
+    out[valid] = image[iy, ix]
+    return out
+
+
+def averaged(frames, t: int, window: int, kind: str, kernel: str) -> dict[str, np.ndarray]:
+    """Frame t's buffers with its radiance averaged over frame t and the frames t-window+1 .. t-1 valid at each
+    pixel, every one read straight into frame t: all of it (``colour``: the beauty and every component) or the two
+    diffuse components, the beauty their sum with frame t's others (``diffuse``). A buffer's variance: the mean of
+    the frames' divided by their number (the colour's, for ``diffuse``: frame t's, its diffuse share so
+    replaced). The other buffers are frame t's."""
     own = frames[t].buffers
-    total = np.concatenate([own["color"], own[DIFFUSE[0]] + own[DIFFUSE[1]]], axis=2).astype(np.float64)
-    count = np.ones(total.shape[:2])
+    names = ["color", *schema.RADIANCE_COMPONENTS] if kind == "colour" else list(DIFFUSE)
+    keys = [k for n in names for k in (n, f"{n}.variance")]
+    total = {k: own[k].astype(np.float64) for k in keys}
+    count = np.ones(own["color"].shape[:2])
     for k in range(max(0, t - window + 1), t):
-        b = frames[k].buffers
         xy, valid = motion.reproject_view(frames[t].views["input"], frames[k].views["input"])
-        past = np.concatenate([b["color"], b[DIFFUSE[0]] + b[DIFFUSE[1]]], axis=2).astype(np.float32)
-        total += motion.warp(past, xy, valid, kernel="catmull_rom")
+        for key in keys:
+            total[key] += read_past(frames[k].buffers[key], xy, valid, kernel)
         count += valid
-    mean = (total / count[..., None]).astype(np.float32)
-    return mean[..., :3], mean[..., 3:]
+    out = dict(own)
+    for key in keys:
+        n = count[..., None] ** (2 if key.endswith(".variance") else 1)
+        out[key] = (total[key] / n).astype(np.float32)
+    if kind == "diffuse":
+        out["color"] = schema.beauty_from_components(out)
+        own_share = sum(own[f"{n}.variance"] for n in DIFFUSE)
+        new_share = sum(out[f"{n}.variance"] for n in DIFFUSE)
+        out["color.variance"] = np.maximum(own["color.variance"] - own_share + new_share, 0).astype(np.float32)
+    return out
 
 
 def filtered(outputs, frames, weight):
@@ -63,44 +89,60 @@ def instabilities(outputs, frames) -> list[float]:
 
 def main() -> int:
     ap = arguments(__doc__)
-    ap.add_argument("--window", type=int, default=8, help="frames averaged, frame t included")
+    ap.add_argument("--kernel", default="catmull_rom", choices=["nearest", "bilinear", "catmull_rom"],
+                    help="how a past frame's input is read")
+    ap.add_argument("--windows", default="8", help="frames averaged, frame t included (comma-separated)")
+    ap.add_argument("--ours", metavar="CANDIDATE",
+                    help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
+                         "ours and ours_filter")
     args = ap.parse_args()
     store = Store(args.store)
     spps = [int(s) for s in args.spp.split(",")]
-    names = ["oidn_prefilter", "filter", "colour", "colour+filter", "diffuse", "diffuse+filter"]
+    windows = [int(w) for w in args.windows.split(",")]
+    candidates = [(kind, w, f) for kind in ("colour", "diffuse") for w in windows for f in (False, True)]
+    label = lambda kind, w, f: f"{kind}/{w}" + ("+filter" if f else "")  # noqa: E731
+    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates)]
+    if args.ours:
+        from mcdenoise.train.infer import load_denoiser
+        model = load_denoiser("train/shipped")
+        kind, rest = args.ours.split("/")
+        ours_window, ours_filter = int(rest.removesuffix("+filter")), rest.endswith("+filter")
+        names += ["ours", "ours_filter", f"ours {args.ours}"]
     gain: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     unsteady: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
-            colour, diffuse = [], []
-            for t, f in enumerate(frames):
-                c, d = averaged(frames, t, args.window)
-                aux = {"albedo": f.buffers["albedo"], "normal": f.buffers["normal"]}
-                colour.append(oidn.denoise({"color": c, **aux}, aux=True, clean_aux=True))
-                rest = sum(f.buffers[k] for k in REST)
-                diffuse.append(oidn.denoise({"color": rest + d, **aux}, aux=True, clean_aux=True))
-            runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight), "colour": colour,
-                    "colour+filter": filtered(colour, frames, args.weight), "diffuse": diffuse,
-                    "diffuse+filter": filtered(diffuse, frames, args.weight)}
+            runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight)}
+            for kind, w, with_filter in candidates:
+                if with_filter:
+                    runs[label(kind, w, True)] = filtered(runs[label(kind, w, False)], frames, args.weight)
+                    continue
+                runs[label(kind, w, False)] = [
+                    oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
+                    for b in (averaged(frames, t, w, kind, args.kernel) for t in range(len(frames)))]
+            if args.ours:
+                ours = [model.denoise(f.buffers, spp) for f in frames]
+                runs["ours"], runs["ours_filter"] = ours, filtered(ours, frames, args.weight)
+                avg = [model.denoise(averaged(frames, t, ours_window, kind, args.kernel), spp) for t in range(len(frames))]
+                runs[f"ours {args.ours}"] = filtered(avg, frames, args.weight) if ours_filter else avg
             psnr = {n: [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                     for n, out in runs.items()}
             for n, out in runs.items():
                 gain[n][spp][name] = float(np.mean(np.subtract(psnr[n][1:], psnr["oidn_prefilter"][1:])))
                 unsteady[n][spp][name] = float(np.nanmean(instabilities(out, frames)))
             print(f"{spp} spp {name}: " + ", ".join(f"{n} {gain[n][spp][name]:+.3f}" for n in names[1:]), flush=True)
-    print(f"\n{args.store} {args.split}: {len(next(iter(gain['filter'].values())))} sequences, window "
-          f"{args.window}, filter weight {args.weight:g}, t >= 1, PSNR gain over oidn_prefilter and instability "
-          "(means over sequences)")
+    print(f"\n{args.store} {args.split}: {len(gain['filter'][spps[0]])} sequences, {args.kernel} read, filter "
+          f"weight {args.weight:g}, t >= 1, PSNR gain over oidn_prefilter and instability (means over sequences)")
     print("| method | " + " | ".join(f"gain {s} spp" for s in spps) + " | mean gain | "
-          + " | ".join(f"instability {s} spp" for s in spps) + " | sequences below, " + " / ".join(map(str, spps))
-          + " spp |")
-    print("| --- |" + " ---: |" * (2 * len(spps) + 1) + " --- |")
+          + " | ".join(f"instability {s} spp" for s in spps) + " | mean | sequences below, "
+          + " / ".join(map(str, spps)) + " spp |")
+    print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- |")
     for n in names:
         per = [float(np.mean(list(gain[n][s].values()))) for s in spps]
         inst = [float(np.mean(list(unsteady[n][s].values()))) for s in spps]
         below = [sum(v < 0 for v in gain[n][s].values()) for s in spps]
         print(f"| {n} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
-              + " | ".join(f"{v:.4f}" for v in inst) + " | " + " / ".join(map(str, below)) + " |")
+              + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " |")
     return 0
 
 
