@@ -122,12 +122,14 @@ def score_sequence(frames_out: dict[str, list[np.ndarray | None]], frames: list[
 
 
 def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods: dict, temporal_names: list[str],
-                 ref_name: str, weight: float) -> tuple[dict, dict, list[Frame]]:
+                 ref_name: str, weight: float, window: int = 1) -> tuple[dict, dict, list[Frame]]:
     """Along one sequence, every per-frame method of ``methods`` and the temporal methods ``temporal_names`` (their
-    bases among ``methods``): ({method: [output per frame]}, {method: [seconds per frame]}, frames)."""
+    bases among ``methods``, their input averaged over ``window`` frames): ({method: [output per frame]},
+    {method: [seconds per frame]}, frames)."""
     frames: list[Frame] = []
     outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
+    windows = {n: temporal.InputWindow(window) for n in temporal_names}
     for t, key in enumerate(seq):
         fr = read_frame(store, key, spp, stacks_of(key), ref_name)
         frames.append(fr)
@@ -140,21 +142,22 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
             base = TEMPORAL[name]
             previous = (outputs[name][t - 1], frames[t - 1].views["input"]) if t > 0 else None
             y, secs = temporal_frame(methods[base], outputs[base][t], seconds[base][t], fr, previous, weight,
-                                     name in LEARNED)
+                                     name in LEARNED, windows[name])
             outputs[name].append(y)
             seconds[name].append(secs)
     return outputs, seconds, frames
 
 
 def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, fr: Frame, previous, weight: float,
-                   learned: bool) -> tuple[np.ndarray | None, float]:
+                   learned: bool, window: temporal.InputWindow | None = None) -> tuple[np.ndarray | None, float]:
     """One frame of a temporal method on ``method`` (``temporal.step``, the history warped with the input's own
-    depth and normal), and its seconds: the step's own (reprojection, warp, blend) plus the method's, whose output
-    without history (``base_output``, ``base_seconds``) is reused rather than run again."""
+    depth and normal, the input averaged over ``window``), and its seconds: the step's own (reprojection, warp,
+    averaging, blend) plus the method's, whose output on the frame's own input without history (``base_output``,
+    ``base_seconds``) is reused rather than run again."""
     inside = {"wall": 0.0, "method": 0.0}      # the time spent in ``denoise``, and the method's share of it
 
     def denoise(buffers, history):
-        if history is None:
+        if history is None and buffers is fr.buffers:
             inside["method"] += base_seconds
             return base_output
         t0 = time.perf_counter()
@@ -164,12 +167,13 @@ def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, 
         return finite_output(oc) if oc.output is not None else None
 
     t0 = time.perf_counter()
-    y, _ = temporal.step(denoise, fr.buffers, fr.views["input"], previous, weight, learned)
+    y, _ = temporal.step(denoise, fr.buffers, fr.views["input"], previous, weight, learned, window)
     return y, time.perf_counter() - t0 - inside["wall"] + inside["method"]
 
 
-def load_sequence_methods(loader: Loader, names: list[str], spp: int) -> tuple[dict, dict]:
-    """(the per-frame methods the available rows need: theirs or their temporal method's base; a row per name)."""
+def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: int = 1) -> tuple[dict, dict]:
+    """(the per-frame methods the available rows need: theirs or their temporal method's base; a row per name;
+    ``window``: the frames a temporal method averages the input over, said in its label)."""
     methods, rows = {}, {}
     for name in names:
         base = TEMPORAL.get(name, name)
@@ -181,7 +185,9 @@ def load_sequence_methods(loader: Loader, names: list[str], spp: int) -> tuple[d
                 raise MethodUnavailable(f"the model of {base} ({methods[base].checkpoint}) does not read history: "
                                         "train one with diffusion.history=true (ours_filter is the temporal filter "
                                         "on it)")
-            suffix = " reading its previous output" if name in LEARNED else " + temporal filter" if name != base else ""
+            averaged = f" on the diffuse light of {window} frames" if window > 1 and name != base else ""
+            suffix = averaged + (" reading its previous output" if name in LEARNED
+                                 else " + temporal filter" if name != base else "")
             rows[name] = {"label": label(base) + suffix, "available": True,
                           "checkpoint": methods[base].checkpoint or None}
         except MethodUnavailable as exc:
@@ -212,17 +218,17 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
     seqs = sequences(keys)
     names = [m for m in SEQUENCE_METRICS if m in metric_names]
     result = {"scenes": {s: [str(k) for k in ks] for s, ks in seqs.items()}, "spp": {},
-              "weight": e.temporal_weight, "metrics": names}
+              "weight": e.temporal_weight, "window": e.temporal_window, "metrics": names}
     strips = {}
     for spp in spps:
-        methods, rows = load_sequence_methods(loader, e.sequence_methods, spp)
+        methods, rows = load_sequence_methods(loader, e.sequence_methods, spp, e.temporal_window)
         for name in rows:
             rows[name].update(per_frame=[], video={})
         strip = None
         for scene, seq in seqs.items():
             outputs, seconds, frames = run_sequence(store, seq, spp, lambda k: stacks_for(k, spp), methods,
                                                     [n for n in rows if n in TEMPORAL and rows[n]["available"]],
-                                                    ref_name(seq[0]), e.temporal_weight)
+                                                    ref_name(seq[0]), e.temporal_weight, e.temporal_window)
             scored = score_sequence({n: outputs[n] for n in rows if rows[n]["available"]}, frames, names,
                                     {"display": e.fvvdp_display})
             for name, recs in scored.items():

@@ -256,6 +256,9 @@ def _inference_commands(sub) -> None:
                         "(without either, frame by frame, said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
     p.add_argument("--temporal-weight", type=float, default=None,
                    help="--sequence: the new frame's share of the blend (1: no history; default eval.temporal_weight)")
+    p.add_argument("--temporal-window", type=int, default=None,
+                   help="--sequence: frames over which the noisy diffuse light is averaged before denoising (1: none; "
+                        "default eval.temporal_window)")
     p.add_argument("--out", required=True, help="output EXR (with --sequence: a pattern with one run of #)")
     p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
     p.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's)")
@@ -374,7 +377,8 @@ def _denoise(args) -> int:
         if args.exr is not None or args.frame is not None:
             raise ConfigError("give one of --sequence PATTERN, --exr FILE or --frame SCENE/FRAME")
         return cmd_denoise_sequence(config(args), args.sequence, args.out, args.spp, method=args.method,
-                                    weight=args.temporal_weight, quiet=args.quiet, model=model, device=args.device,
+                                    weight=args.temporal_weight, window=args.temporal_window, quiet=args.quiet,
+                                    model=model, device=args.device,
                                     precision=args.precision, seed=args.seed)
     if args.method != "ours" or args.oidn_weights:
         return cmd_denoise_oidn(config(args), args.frame, args.exr, args.out, args.method, args.oidn_weights,

@@ -589,9 +589,10 @@ class EvalConfig(Section):
     crop_size: int = doc("Side of each crop in pixels.", 64)
     sequence_methods: list = doc("Methods scored along each scene's camera move (the sequence page, scenes of at "
                                  "least two frames): any per-frame method of eval.methods' names, "
-                                 "oidn_prefilter_temporal (oidn_prefilter's output blended with its own warped "
-                                 "history: the classic temporal filter), ours_filter (the same filter on ours: what "
-                                 "denoise --sequence runs for a model that does not read the past) and ours_temporal "
+                                 "oidn_prefilter_temporal (oidn_prefilter on the diffuse light averaged over "
+                                 "eval.temporal_window frames, its output blended with its own warped history: the "
+                                 "temporal filter), ours_filter (the same on ours: what denoise --sequence runs for a "
+                                 "model that does not read the past) and ours_temporal "
                                  "(ours given its own warped previous output, where the model reads the past: "
                                  "diffusion.history; else the row says it is unavailable). Empty: no sequence page.",
                                  factory=lambda: ["noisy", "oidn_prefilter", "oidn_prefilter_temporal", "ours",
@@ -599,6 +600,11 @@ class EvalConfig(Section):
     temporal_weight: float = doc("Share of the new frame in the temporal filter's exponential blend (1: no "
                                  "history); the history is clamped to the new output's 3x3 range. 0.7: the rule "
                                  "of docs/sequences.md on configs/sequence.yaml's val split.", 0.7)
+    temporal_window: int = doc("Frames (this one included) over which the temporal methods average the noisy "
+                               "diffuse light before denoising, each past frame reprojected and read at the pixel "
+                               "its spot falls in; reflections and emission stay this frame's; 1: no averaging. "
+                               "8: the rule of docs/sequences.md (\"Read without resampling\") on the val split "
+                               "and the val_* scenes.", 8)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
@@ -612,6 +618,8 @@ class EvalConfig(Section):
         self.one_of(bad, "equal_time", ("render", "pool", "none"))
         if (why := weight_problem(self.temporal_weight)) is not None:
             bad("temporal_weight", why)
+        if self.temporal_window < 1:
+            bad("temporal_window", f"must be >= 1 (1: no averaging), got {self.temporal_window}")
         if self.sequence_fps <= 0:
             bad("sequence_fps", f"must be > 0, got {self.sequence_fps}")
 

@@ -60,6 +60,18 @@ history's resampling"). It reads a pixel centre exactly too, and reproduces line
 footprint reaches one pixel further across a silhouette than the validity test looks, which the filter's
 clamp bounds. The metrics' warp (``evaluate.sequence``) stays bilinear.
 
+A past frame's noisy *input* is read with ``kernel="nearest"``, the pixel the landing spot falls in, whole:
+any interpolation mixes neighbouring pixels' noise, and a denoiser trained on white noise keeps the
+correlated noise of an interpolated input as detail (docs/sequences.md, "Read without resampling"). The spot is
+then off by at most half a pixel.
+
+Further back (``trace``)
+------------------------
+Averaging a window of frames needs where frame t's pixels were in frames t-2, t-3, ... too. With cameras and
+depth each past frame is reached directly (``reproject`` between t and t-k: one landing spot, no error carried
+from frame to frame). Motion vectors only link neighbours, so the way back is chained: the spot in t-1, then
+frame t-1's own ``flow`` into t-2 read bilinearly there (its validity at the pixel the spot falls in), and so on.
+
 Motion vectors (``flow``, ``from_blender_vectors``)
 --------------------------------------------------
 A renderer that writes its own motion (Blender's ``Vector`` pass) needs neither camera nor depth, and its
@@ -301,11 +313,15 @@ def from_blender_vectors(vector: np.ndarray) -> np.ndarray:
     return np.stack([v[..., 0], -v[..., 1], -v[..., 2], v[..., 3]], axis=-1)
 
 
+KERNELS = ("bilinear", "catmull_rom", "nearest")
+
+
 def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray, kernel: str = "bilinear") -> np.ndarray:
-    """``image_prev`` [H', W', C] read at ``xy_prev`` [H, W, 2] (pixel coordinates of that image), bilinearly or
-    with ``kernel="catmull_rom"``: [H, W, C] in its dtype, 0 where not ``valid``. Footprints: module docstring."""
-    if kernel not in ("bilinear", "catmull_rom"):
-        raise ValueError(f"kernel must be 'bilinear' or 'catmull_rom', got {kernel!r}")
+    """``image_prev`` [H', W', C] read at ``xy_prev`` [H, W, 2] (pixel coordinates of that image), bilinearly,
+    with ``kernel="catmull_rom"``, or ``"nearest"`` (the pixel the spot falls in): [H, W, C] in its dtype, 0 where
+    not ``valid``. Footprints: module docstring."""
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
     img = _channels(image_prev)
     valid = np.asarray(valid, dtype=bool)
     out = np.zeros(valid.shape + (img.shape[2],), dtype=img.dtype)
@@ -316,9 +332,16 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray, kernel:
             raise ValueError("xy_prev is not finite on a valid pixel")
         if kernel == "bilinear":
             out[idx] = _read(img, _footprint(xy, img.shape[1], img.shape[0])).astype(img.dtype)
+        elif kernel == "nearest":
+            out[idx] = img[_pixel_of(xy[:, 1], img.shape[0]), _pixel_of(xy[:, 0], img.shape[1])]
         else:
             out[idx] = np.maximum(_catmull_rom(img, xy), 0.0).astype(img.dtype)
     return out
+
+
+def _pixel_of(coord: np.ndarray, size: int) -> np.ndarray:
+    """The index of the pixel a continuous coordinate falls in (pixel i covers [i, i + 1)), clamped to the image."""
+    return np.clip(np.floor(coord).astype(np.int64), 0, size - 1)
 
 
 def _catmull_rom(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -376,6 +399,40 @@ def reproject_view(view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]
         return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth,
                          normal_t=view.normal, normal_prev=view_prev.normal)
     raise ValueError("the two frames share neither motion vectors nor cameras with depth")
+
+
+def trace(view: View, past: list[View]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Where ``view``'s pixels were in each frame of ``past`` (the frames before it, the latest first): a list of
+    (xy [H, W, 2], valid [H, W]) as ``reproject_view`` gives for the previous frame, as long as the frames stay
+    linked (``linked``), which may be shorter than ``past``. Cameras with depth: each frame directly; motion
+    vectors: chained (module docstring, "Further back")."""
+    found: list[tuple[np.ndarray, np.ndarray]] = []
+    newer = view
+    for older in past:
+        how = linked(view, older) if view.motion is None else linked(newer, older)
+        if how is None:
+            break
+        if how == "camera":
+            found.append(reproject_view(view, older))
+        elif not found:
+            found.append(flow(newer.motion, older.motion))
+        else:
+            xy, valid = found[-1]
+            step_xy, step_valid = flow(newer.motion, older.motion)
+            h, w = step_valid.shape
+            xy, valid = xy.astype(np.float64), valid.copy()
+            idx = np.nonzero(valid)
+            if idx[0].size:
+                offset = np.where(np.isfinite(step_xy), step_xy - pixel_centres(w, h), 0.0)
+                spot = xy[idx]
+                xy[idx] = spot + _read(offset, _footprint(spot, w, h))
+                valid[idx] = step_valid[_pixel_of(spot[:, 1], h), _pixel_of(spot[:, 0], w)]
+                with np.errstate(invalid="ignore"):
+                    valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= w) & (xy[..., 1] >= 0) & (xy[..., 1] <= h)
+            xy[~valid] = np.nan
+            found.append((xy.astype(np.float32), valid))
+        newer = older
+    return found
 
 
 def warp_previous(image_prev: np.ndarray, view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:

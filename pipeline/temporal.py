@@ -1,9 +1,22 @@
-"""Time along a sequence: the classic temporal filter and the instability metric.
+"""Time along a sequence: the input averaged over the previous frames, the classic temporal filter, and the
+instability metric.
 
-Both work on images already brought into the current frame (``pipeline.motion.warp_previous``: the
-previous frame's image, read with the Catmull-Rom kernel, with its validity mask), so they know nothing about
-cameras. ``step`` is one frame
-of a temporal method, the warp included: what ``denoise --sequence`` and the sequence evaluation both run.
+``step`` is one frame of a temporal method, the reprojection included: what ``denoise --sequence`` and the
+sequence evaluation both run. First the frame's noisy input is averaged over a window of frames
+(``InputWindow``), then the per-frame denoiser runs on it, then its output is blended with its own previous
+output (the filter).
+
+**The input averaged** (``average_input``): the diffuse light (``diffuse_direct``, ``diffuse_indirect``) of
+frame t averaged with that of up to ``window - 1`` frames before it, each reprojected straight into frame t
+(``motion.trace``) and read at the pixel its spot falls in, over the frames valid at each pixel; emission and
+the reflections (the specular components) stay frame t's, since they do not follow the surface's motion. At
+4 spp, 8 frames give most surfaces 32 samples of diffuse light. The past pixels are read whole: an
+interpolated read correlates the noise of neighbouring pixels, and a denoiser trained on white noise keeps
+correlated noise as detail (docs/sequences.md, "Read without resampling", has both measurements).
+
+The filter and the metric work on images already brought into the current frame
+(``pipeline.motion.warp_previous``: the previous frame's image, read with the Catmull-Rom kernel, with its
+validity mask), so they know nothing about cameras.
 
 **The temporal filter** (``blend_history``) is what a renderer's TAA or a compositor's temporal
 denoise node does with a per-frame denoiser's outputs: an exponential moving average
@@ -35,6 +48,7 @@ import numpy as np
 from . import motion
 from .config import weight_problem
 from .metrics import reinhard
+from .schema import RADIANCE_COMPONENTS, beauty_from_components
 
 
 def neighbourhood_range(image: np.ndarray, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -74,9 +88,93 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
     return out
 
 
+# What ``average_input`` averages, per kind: every radiance buffer, or only the view-independent diffuse light
+# (the rest of the frame stays frame t's: reflections do not follow the surface's motion).
+AVERAGED = {"colour": ("color", *RADIANCE_COMPONENTS), "diffuse": ("diffuse_direct", "diffuse_indirect")}
+
+
+def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarray]],
+                  traced: list[tuple[np.ndarray, np.ndarray]], kind: str = "diffuse", kernel: str = "nearest"
+                  ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(frame t's ``buffers`` with its noisy radiance averaged over frame t and the ``past`` frames, the (H, W)
+    number of frames averaged at each pixel).
+
+    ``traced``: where frame t's pixels were in each past frame (``motion.trace``, one per frame of ``past``). A
+    past frame counts at a pixel where it is valid there, read at the pixel the spot falls in (``motion.warp``
+    with ``kernel="nearest"``: an interpolated read correlates the noise, and the denoiser keeps it,
+    docs/sequences.md; ``kernel`` is there to measure that). ``kind``
+    (``AVERAGED``): ``colour`` averages every radiance buffer present (the beauty and its components);
+    ``diffuse`` the two diffuse components, the beauty then their sum with frame t's other components (a frame
+    without the components is left alone: its beauty averaged would carry reflections along with the surface,
+    which loses up to 8 dB on glossy scenes, docs/sequences.md). A buffer's variance (the variance of the pixel
+    estimate) becomes the mean of the frames' divided by their number, each frame's noise independent of the
+    others'; the beauty's, for ``diffuse``, frame t's with its diffuse share so replaced. Every other buffer is
+    frame t's."""
+    if len(past) != len(traced):
+        raise ValueError(f"{len(past)} past frames but {len(traced)} traced")
+    if kind not in AVERAGED:
+        raise ValueError(f"kind must be one of {', '.join(AVERAGED)}, got {kind!r}")
+    count = np.ones(buffers["color"].shape[:2])
+    if kind == "diffuse" and not all(n in buffers for n in RADIANCE_COMPONENTS):
+        return dict(buffers), count     # no components to tell the diffuse light from the reflections: frame t alone
+    keys = [k for n in AVERAGED[kind] if n in buffers for k in (n, f"{n}.variance") if k in buffers]
+    total = {k: buffers[k].astype(np.float64) for k in keys}
+    for frame, (xy, valid) in zip(past, traced):
+        if not all(k in frame for k in keys):
+            break                       # a frame without those layers ends the window
+        for k in keys:
+            total[k] += motion.warp(frame[k], xy, valid, kernel=kernel)
+        count += valid
+    out = dict(buffers)
+    for k in keys:
+        out[k] = (total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1)).astype(np.float32)
+    if kind == "diffuse":
+        out["color"] = beauty_from_components(out)
+        if "color.variance" in buffers and all(f"{n}.variance" in buffers for n in AVERAGED["diffuse"]):
+            share = sum(out[f"{n}.variance"].astype(np.float64) - buffers[f"{n}.variance"] for n in AVERAGED["diffuse"])
+            out["color.variance"] = np.maximum(buffers["color.variance"] + share, 0).astype(np.float32)
+    return out, count
+
+
+class InputWindow:
+    """The noisy radiance and the views of the last ``frames - 1`` frames, which ``take`` averages each new
+    frame's input over (``average_input``); ``frames`` 1 averages nothing."""
+
+    def __init__(self, frames: int, kind: str = "diffuse"):
+        if frames < 1:
+            raise ValueError(f"a window of {frames} frames: must be >= 1")
+        if kind not in AVERAGED:
+            raise ValueError(f"kind must be one of {', '.join(AVERAGED)}, got {kind!r}")
+        self.frames, self.kind = frames, kind
+        self.past: list[tuple[dict[str, np.ndarray], motion.View | None]] = []    # the latest first
+        self.counts: list[float] = []              # per frame taken after the first, the mean frames per pixel
+
+    def take(self, buffers: dict[str, np.ndarray], view: motion.View | None) -> dict[str, np.ndarray]:
+        """This frame's buffers averaged over the window (then the frame joins it)."""
+        if self.frames == 1:
+            return buffers
+        traced = []
+        if view is not None:
+            linked_views = []
+            for _, v in self.past:
+                if v is None:
+                    break
+                linked_views.append(v)
+            traced = motion.trace(view, linked_views)
+        out, count = average_input(buffers, [b for b, _ in self.past[:len(traced)]], traced, self.kind)
+        if self.past:
+            self.counts.append(float(count.mean()))
+        if not traced:
+            out = buffers                  # the frame's own input, as the per-frame method saw it
+        # only what is averaged is kept (at 1920x1080 the diffuse light and its variance are 100 MB a frame)
+        kept = {k: buffers[k] for n in AVERAGED[self.kind] for k in (n, f"{n}.variance") if k in buffers}
+        self.past = [(kept, view), *self.past][: self.frames - 1]
+        return out
+
+
 def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: dict[str, np.ndarray],
          view: motion.View | None, previous: tuple[np.ndarray | None, motion.View | None] | None, weight: float,
-         learned: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
+         learned: bool, window: InputWindow | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """One frame of a temporal method: (its output, None where ``denoise`` failed; the history's (H, W) validity,
     None without a history).
 
@@ -85,7 +183,10 @@ def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: di
     where the two frames share no motion (``motion.linked``: motion vectors, or cameras with depth).
     ``denoise(buffers, history)`` is the per-frame method;
     ``learned``: it reads the history itself (a model with ``diffusion.history``) and its output is the frame's;
-    otherwise its output without history is blended with the history (``blend_history``, ``weight``)."""
+    otherwise its output without history is blended with the history (``blend_history``, ``weight``).
+    ``window``: the frame's input is first averaged over the window's frames (``InputWindow.take``)."""
+    if window is not None:
+        buffers = window.take(buffers, view)
     history = None
     if (previous is not None and previous[0] is not None and view is not None and previous[1] is not None
             and motion.linked(view, previous[1])):

@@ -54,14 +54,21 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     records = [read_header(tmp_path / "out" / f"f_{n:03d}.exr") for n in range(3)]
     assert records[0]["temporal"]["history_fraction"] is None
     assert all(r["temporal"]["history_fraction"] > 0.5 for r in records[1:])
-    # weight 1 keeps no history: each frame is OIDN's final-frame output alone, as denoise --exr writes it
+    # weight 1 and a window of 1 keep no history: each frame is OIDN's final-frame output alone, as denoise --exr
+    # writes it
     cli("denoise", "--sequence", frames, "--out", tmp_path / "one" / "f_###.exr", "--method", "oidn_prefilter",
-        "--spp", "4", "--temporal-weight", "1", "--quiet")
+        "--spp", "4", "--temporal-weight", "1", "--temporal-window", "1", "--quiet")
     single = tmp_path / "single.exr"
     cli("denoise", "--exr", frames.replace("###", "001"), "--out", single, "--method", "oidn_prefilter", "--quiet")
     colour = lambda path: read_layers(path)["color"]                  # noqa: E731
     assert np.array_equal(colour(tmp_path / "one" / "f_001.exr"), colour(single))
     assert not np.array_equal(colour(tmp_path / "out" / "f_001.exr"), colour(single))
+    # the diffuse light averaged over 3 frames: frame 0 as before, the later frames denoised from more samples
+    proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "avg" / "f_###.exr", "--method", "oidn_prefilter",
+               "--spp", "4", "--temporal-weight", "1", "--temporal-window", "3", "--quiet")
+    assert "diffuse light averaged over up to 3 frames" in proc.stdout, proc.stdout
+    assert np.array_equal(colour(tmp_path / "avg" / "f_000.exr"), colour(tmp_path / "one" / "f_000.exr"))
+    assert not np.array_equal(colour(tmp_path / "avg" / "f_002.exr"), colour(tmp_path / "one" / "f_002.exr"))
     # the outputs keep the input's camera: a compositor (or another pass) can still reproject them
     for result in (tmp_path / "out" / "f_002.exr", single):
         source = frames.replace("###", "002" if result.name == "f_002.exr" else "001")
@@ -78,8 +85,9 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
                "oidn_prefilter", "--spp", "4", "--quiet", check=False)
     assert proc.returncode == 2 and "prefilters albedo and normal" in proc.stderr   # OIDN's mode needs aux
     proc = cli("denoise", "--sequence", plain / "p_#.exr", "--out", tmp_path / "po" / "p_#.exr", "--spp", "4",
-               "--quiet")
+               "--temporal-window", "3", "--quiet")
     assert proc.stdout.count("no motion for that frame") == 1 and "history on 0 of 2 frames" in proc.stdout
+    assert "3 of 3 frames have no diffuse light layers" in proc.stdout, proc.stdout
     shutil.rmtree(plain)
 
 

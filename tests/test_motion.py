@@ -291,6 +291,72 @@ def test_views_link_by_motion_vectors_first_then_by_cameras():
         motion.reproject_view(by_motion, by_camera)
 
 
+def cycles_passes(cams: list[Camera], depths: list[np.ndarray]) -> list[np.ndarray]:
+    """Our motion (``from_blender_vectors`` of the Vector pass Cycles would write) of each frame of a static scene
+    seen by ``cams`` in order: to_prev into the frame before, to_next into the frame after (0 at the two ends)."""
+    centres = motion.pixel_centres(W, H)
+    out = []
+    for k, (cam, depth) in enumerate(zip(cams, depths)):
+        world = unproject(depth, cam)
+        to_prev = project(world, cams[k - 1])[0] - centres if k > 0 else np.zeros((H, W, 2))
+        to_next = project(world, cams[k + 1])[0] - centres if k + 1 < len(cams) else np.zeros((H, W, 2))
+        out.append(np.concatenate([to_prev, to_next], -1).astype(np.float32))
+    return out
+
+
+def test_trace_reaches_each_past_frame_directly_with_cameras_and_by_a_chain_with_vectors():
+    """Three frames of a camera translating over a plane slanted away from it (the shift varies across the
+    image). Cameras: each past frame is reproject()'s answer between the two frames. Vectors: t -> t-1 -> t-2
+    chained lands where the direct reprojection does, within the float32 vectors' round-off and the bilinear
+    read of a smooth offset field (below 0.01 pixel), with the same mask away from the image border."""
+    cams = [camera(origin=(-0.15 * k, 0.05 * k, 0), target=(-0.15 * k, 0.05 * k, -1)) for k in range(3)]
+    normal = np.array([0.3, 0.0, 1.0]) / np.linalg.norm([0.3, 0.0, 1.0])
+    depths = [plane_depth(c, normal, -4.0) for c in cams]
+    views = [motion.View(c, d) for c, d in zip(cams, depths)]
+    found = motion.trace(views[2], [views[1], views[0]])
+    for (xy, valid), k in zip(found, (1, 0)):
+        direct = reproject(depths[2], cams[2], cams[k], depth_prev=depths[k])
+        np.testing.assert_array_equal(xy, direct[0])
+        np.testing.assert_array_equal(valid, direct[1])
+    moving = [motion.View(None, None, motion=m) for m in cycles_passes(cams, depths)]
+    chained = motion.trace(moving[2], [moving[1], moving[0]])
+    assert len(chained) == 2
+    np.testing.assert_array_equal(chained[0][1], motion.flow(moving[2].motion, moving[1].motion)[1])
+    xy, valid = chained[1]
+    xy_direct, valid_direct = reproject(depths[2], cams[2], cams[0], depth_prev=depths[0])
+    both = valid & valid_direct
+    assert both.sum() > 0.7 * W * H and np.abs(xy - xy_direct)[both].max() < 0.01
+    # the masks differ only where a spot is within a pixel of frame t-2's border (half a pixel of chained error)
+    near_border = ((xy_direct[..., 0] < 1) | (xy_direct[..., 0] > W - 1) | (xy_direct[..., 1] < 1)
+                   | (xy_direct[..., 1] > H - 1))
+    assert not ((valid != valid_direct) & ~near_border).any()
+    assert np.isnan(xy[~valid]).all()
+
+
+def test_trace_stops_where_the_frames_stop_being_linked():
+    cam = camera()
+    depth = plane_depth(cam, (0, 0, 1), -5.0)
+    still = np.zeros((H, W, 4), np.float32)
+    by_camera, by_motion = motion.View(cam, depth), motion.View(None, None, motion=still)
+    assert len(motion.trace(by_camera, [by_camera, by_motion, by_camera])) == 1
+    assert len(motion.trace(by_motion, [by_motion, by_camera])) == 1
+    assert motion.trace(by_motion, [by_camera]) == []
+
+
+def test_nearest_reads_the_pixel_the_spot_falls_in():
+    image = np.arange(4 * 5 * 2, dtype=np.float32).reshape(4, 5, 2)
+    xy = np.array([[[0.5, 0.5], [1.99, 0.01], [2.0, 3.5], [5.7, -0.2]]])       # the last one clamped
+    valid = np.array([[True, True, True, False]])
+    out = warp(image, xy, valid, kernel="nearest")
+    np.testing.assert_array_equal(out[0, :3], [image[0, 0], image[0, 1], image[3, 2]])
+    np.testing.assert_array_equal(out[0, 3], 0)
+    xy[0, 3] = [5.7, -0.2]
+    valid[0, 3] = True
+    np.testing.assert_array_equal(warp(image, xy, valid, kernel="nearest")[0, 3], image[0, 4])
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        warp(image, xy, valid, kernel="lanczos")
+
+
 # ---- the cameras in files -----------------------------------------------------------------------
 
 def test_header_matrices_map_a_world_point_to_its_pixel(tmp_path):

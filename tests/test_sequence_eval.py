@@ -10,8 +10,9 @@ from mcdenoise.evaluate.methods import Method, MethodUnavailable, Noisy
 from mcdenoise.evaluate.run import run_eval
 from mcdenoise.evaluate.sequence import check_sequence_names, evaluate_sequences, load_sequence_methods, sequences
 from mcdenoise.evaluate.sequence_report import write_sequence_page
-from mcdenoise.pipeline import motion
+from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.config import ConfigError, load_config
+from mcdenoise.pipeline.schema import RADIANCE_COMPONENTS, beauty_from_components
 from mcdenoise.pipeline.store import FrameKey, Store
 
 from .helpers import TINY, look_at
@@ -195,3 +196,32 @@ def test_a_run_without_sequences_leaves_no_sequence_page(tmp_path):
     (tmp_path / "sequence.md").write_text("# an earlier run's page\n")
     assert write_sequence_page({}, {}, tmp_path, 1000, 0) == ""
     assert not (tmp_path / "sequence.md").exists()
+
+
+class _LitPlaneStore(_PlaneStore):
+    """The plane with its light in components, as the store writes them."""
+
+    def read(self, scene, frame, spp, stacks):
+        rng = np.random.default_rng(frame)
+        light = {n: rng.gamma(2.0, 0.05, (self.H, self.W, 3)).astype(np.float32) for n in RADIANCE_COMPONENTS}
+        return {**light, "color": beauty_from_components(light), **self.geometry()}
+
+
+def test_the_temporal_methods_denoise_the_input_averaged_over_the_window():
+    cfg = load_config(TINY, ["eval.metrics=[l1, psnr]", "eval.sequence_methods=[oidn_prefilter, oidn_prefilter_temporal]",
+                             "eval.temporal_window=3", "eval.temporal_weight=1"])
+    store = _LitPlaneStore([0, 1, 2, 3])
+    keys = [FrameKey("a", f) for f in range(4)]
+    result, strips = evaluate_sequences(cfg, store, keys, lambda k: "gt_clean", [4], _Bases(), lambda k, spp: [0],
+                                        ["l1", "psnr"])
+    outputs = strips["4"]["outputs"]
+    window = temporal.InputWindow(3)
+    for t, key in enumerate(keys):
+        buffers = store.read("a", t, 4, [0])
+        view = motion.View.of(store.camera("a", t), buffers)
+        np.testing.assert_array_equal(outputs["oidn_prefilter_temporal"][t], _Blur().denoise(window.take(buffers, view)))
+    np.testing.assert_array_equal(outputs["oidn_prefilter_temporal"][0], outputs["oidn_prefilter"][0])
+    assert not np.array_equal(outputs["oidn_prefilter_temporal"][2], outputs["oidn_prefilter"][2])
+    assert window.counts[-1] > 2.5                          # the plane slides a little: most pixels see 3 frames
+    assert result["window"] == 3
+    assert "on the diffuse light of 3 frames" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]

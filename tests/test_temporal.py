@@ -2,8 +2,17 @@
 import numpy as np
 import pytest
 
+from mcdenoise.pipeline import motion
 from mcdenoise.pipeline.metrics import reinhard
-from mcdenoise.pipeline.temporal import blend_history, instability, neighbourhood_range
+from mcdenoise.pipeline.motion import Camera
+from mcdenoise.pipeline.schema import RADIANCE_COMPONENTS, beauty_from_components
+from mcdenoise.pipeline.temporal import (
+    InputWindow,
+    average_input,
+    blend_history,
+    instability,
+    neighbourhood_range,
+)
 
 
 def test_neighbourhood_range_is_the_3x3_min_and_max():
@@ -81,3 +90,101 @@ def test_instability_of_fresh_noise_and_the_mask():
     a_bad[~valid] = 1e9                                               # invalid pixels do not count
     assert instability(a_bad, b, ref, ref, valid) == pytest.approx(expected, rel=1e-12)
     assert np.isnan(instability(a, b, ref, ref, np.zeros((32, 32), bool)))
+
+
+# ---- the input averaged over the previous frames ------------------------------------------------
+
+def frame_buffers(rng, h=6, w=8) -> dict[str, np.ndarray]:
+    """Noisy radiance components (and their variances), the beauty their sum, an albedo."""
+    out = {n: rng.uniform(0, 2, (h, w, 3)).astype(np.float32) for n in RADIANCE_COMPONENTS}
+    out["color"] = beauty_from_components(out)
+    for n in ("color", *RADIANCE_COMPONENTS):
+        out[f"{n}.variance"] = rng.uniform(0, 0.5, (h, w, 3)).astype(np.float32)
+    out["albedo"] = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    return out
+
+
+def still(h=6, w=8, shift=0.0, valid=None):
+    """motion.trace's answer for a past frame seen ``shift`` pixels to the left of frame t."""
+    xy = motion.pixel_centres(w, h) - [shift, 0]
+    return xy.astype(np.float32), np.ones((h, w), bool) if valid is None else valid
+
+
+def test_colour_average_is_the_mean_of_the_frames_and_divides_their_variance():
+    rng = np.random.default_rng(0)
+    frames = [frame_buffers(rng) for _ in range(3)]
+    mask = np.ones((6, 8), bool)
+    mask[2, 3] = False                                       # frame t-2 does not see this pixel
+    out, count = average_input(frames[0], frames[1:], [still(), still(valid=mask)], "colour")
+    for n in ("color", *RADIANCE_COMPONENTS):
+        mean = np.mean([f[n].astype(np.float64) for f in frames], axis=0)
+        np.testing.assert_allclose(out[n][mask], mean[mask], rtol=1e-6)
+        var = np.sum([f[f"{n}.variance"].astype(np.float64) for f in frames], axis=0) / 9
+        np.testing.assert_allclose(out[f"{n}.variance"][mask], var[mask], rtol=1e-6)
+    two = (frames[0]["color"][2, 3].astype(np.float64) + frames[1]["color"][2, 3]) / 2
+    np.testing.assert_allclose(out["color"][2, 3], two, rtol=1e-6)
+    assert count[2, 3] == 2 and (count[mask] == 3).all()
+    np.testing.assert_array_equal(out["albedo"], frames[0]["albedo"])        # not radiance: frame t's
+    # the beauty stays the sum of the components (each averaged the same way)
+    np.testing.assert_allclose(out["color"], beauty_from_components(out), rtol=1e-5, atol=1e-6)
+
+
+def test_diffuse_average_keeps_this_frames_reflections_and_emission():
+    rng = np.random.default_rng(1)
+    frames = [frame_buffers(rng) for _ in range(2)]
+    out, _ = average_input(frames[0], frames[1:], [still()], "diffuse")
+    for n in ("emission", "specular_direct", "specular_indirect"):
+        np.testing.assert_array_equal(out[n], frames[0][n])
+    for n in ("diffuse_direct", "diffuse_indirect"):
+        np.testing.assert_allclose(out[n], (frames[0][n].astype(np.float64) + frames[1][n]) / 2, rtol=1e-6)
+        np.testing.assert_allclose(out[f"{n}.variance"],
+                                   (frames[0][f"{n}.variance"].astype(np.float64) + frames[1][f"{n}.variance"]) / 4,
+                                   rtol=1e-6)
+    np.testing.assert_allclose(out["color"], beauty_from_components(out), rtol=1e-6)
+    # the beauty's variance: frame t's, its diffuse share replaced by the averaged one
+    share = sum(out[f"{n}.variance"].astype(np.float64) - frames[0][f"{n}.variance"]
+                for n in ("diffuse_direct", "diffuse_indirect"))
+    np.testing.assert_allclose(out["color.variance"], np.maximum(frames[0]["color.variance"] + share, 0),
+                               rtol=1e-5, atol=1e-7)
+    # a frame without components (a user's beauty only) is left alone
+    bare = [{"color": f["color"]} for f in frames]
+    out, count = average_input(bare[0], bare[1:], [still()], "diffuse")
+    np.testing.assert_array_equal(out["color"], bare[0]["color"])
+    assert (count == 1).all()
+
+
+def test_past_frames_are_read_whole_at_the_pixel_the_spot_falls_in():
+    """A past frame seen 1.3 pixels to the left: each pixel takes the past pixel 1.3 to its left falls in,
+    unmixed with its neighbours (the noise stays white)."""
+    rng = np.random.default_rng(2)
+    frames = [frame_buffers(rng) for _ in range(2)]
+    valid = np.ones((6, 8), bool)
+    valid[:, :2] = False                                     # off the left edge of the past frame
+    out, _ = average_input(frames[0], frames[1:], [still(shift=1.3, valid=valid)], "colour")
+    past = np.zeros_like(frames[1]["color"])
+    # column i's centre i + 0.5 lands at i - 0.8, in past column i - 1
+    past[:, 2:] = frames[1]["color"][:, np.floor(np.arange(2, 8) + 0.5 - 1.3).astype(int)]
+    expected = np.where(valid[..., None], (frames[0]["color"].astype(np.float64) + past) / 2, frames[0]["color"])
+    np.testing.assert_allclose(out["color"], expected, rtol=1e-6)
+
+
+def test_the_window_keeps_its_last_frames_and_stops_at_a_frame_without_motion():
+    rng = np.random.default_rng(3)
+    cam = Camera(np.eye(4), 50.0, 8, 6)
+    view = motion.View(cam, np.full((6, 8), 3.0))
+    frames = [frame_buffers(rng) for _ in range(5)]
+    window = InputWindow(3, "colour")
+    np.testing.assert_array_equal(window.take(frames[0], view)["color"], frames[0]["color"])
+    window.take(frames[1], view)
+    out = window.take(frames[2], view)                       # frames 0, 1, 2: the window is full
+    np.testing.assert_allclose(out["color"], np.mean([f["color"].astype(np.float64) for f in frames[:3]], 0),
+                               rtol=1e-6)
+    out = window.take(frames[3], view)                       # frames 1, 2, 3: frame 0 has left
+    np.testing.assert_allclose(out["color"], np.mean([f["color"].astype(np.float64) for f in frames[1:4]], 0),
+                               rtol=1e-6)
+    assert window.counts == [2.0, 3.0, 3.0] and len(window.past) == 2
+    window.take(frames[4], None)                             # no motion: alone, and it cuts the window
+    np.testing.assert_array_equal(window.take(frames[0], view)["color"], frames[0]["color"])
+    assert InputWindow(1).take(frames[0], view) is frames[0]
+    with pytest.raises(ValueError, match="must be >= 1"):
+        InputWindow(0)

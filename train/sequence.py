@@ -3,10 +3,12 @@
     python -m pipeline denoise --sequence 'in/frame_####.exr' --out 'out/####.exr'
     python -m pipeline denoise --sequence 'data/default/scenes/ext_room/###/s00.exr' --out 'out/room_###.exr'
 
-Each frame is denoised as ``denoise --exr`` does (``--method ours`` or ``oidn_prefilter``), then the
-temporal filter of ``pipeline.temporal`` blends it with the previous output brought into this frame
-(``pipeline.motion``: the renderer's motion vectors, or the frame's depth and the two cameras), where the
-history is valid:
+Each frame's noisy diffuse light is first averaged over it and the frames before it (``--temporal-window``,
+default ``eval.temporal_window``: 8 frames, each reprojected; ``pipeline.temporal.average_input``; frames
+without the light components, a plain beauty, are not averaged). Then the frame is denoised as ``denoise
+--exr`` does (``--method ours`` or ``oidn_prefilter``), and the temporal filter of ``pipeline.temporal``
+blends it with the previous output brought into this frame (``pipeline.motion``: the renderer's motion
+vectors, or the frame's depth and the two cameras), where the history is valid:
 
     out_t = w · y_t + (1 − w) · clamp(warp(out_{t−1}))        (w: ``--temporal-weight``, default
                                                               ``eval.temporal_weight``)
@@ -136,11 +138,15 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
 
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
                          weight: float | None = None, quiet: bool = False, model: Path | None = None,
-                         device: str | None = None, precision: str = "auto", seed: int | None = None) -> int:
+                         device: str | None = None, precision: str = "auto", seed: int | None = None,
+                         window: int | None = None) -> int:
     """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
     weight = cfg.eval.temporal_weight if weight is None else float(weight)
     if (why := weight_problem(weight)) is not None:
         raise TrainError(f"--temporal-weight: {why}")
+    window = cfg.eval.temporal_window if window is None else int(window)
+    if window < 1:
+        raise TrainError(f"--temporal-window: must be >= 1 (1: no averaging), got {window}")
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
     inputs = {p.resolve() for _, p in files}
@@ -159,13 +165,15 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
+    inputs_window, bare = temporal.InputWindow(window), 0
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
         passes: dict = {}
         buffers = read_layers(path, passes=passes)
         view, why = frame_view(path, buffers, passes.get("Vector"))
         alone = alone or (f"{path}: {why}" if view is None else "")
         # a model that reads its own previous output has no filter after it (``temporal.step``)
-        hdr, valid = temporal.step(run, buffers, view, previous, weight, learned)
+        bare += not all(n in buffers for n in temporal.AVERAGED["diffuse"])     # nothing to average there
+        hdr, valid = temporal.step(run, buffers, view, previous, weight, learned, inputs_window)
         if valid is not None:
             took.append(float(valid.mean()))
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -179,6 +187,10 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
     how = (f"{method} reading its own warped previous output (learned history)" if learned
            else f"{method} + temporal filter, weight {weight:g}")
+    if window > 1:
+        how += (f", diffuse light averaged over up to {window} frames"
+                + (f" ({np.mean(inputs_window.counts):.1f} per pixel)" if inputs_window.counts else "")
+                + (f" ({bare} of {len(files)} frames have no diffuse light layers: those not)" if bare else ""))
     print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "
           f"history on {len(took)} of {len(files) - 1} frames"
           + (f", {100 * float(np.mean(took)):.0f} % of their pixels" if took else "")

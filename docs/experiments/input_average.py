@@ -20,52 +20,16 @@ import numpy as np
 from history_clamp import arguments, oidn_sequences
 
 from mcdenoise.evaluate.scoring import score
-from mcdenoise.pipeline import motion, schema, temporal
+from mcdenoise.pipeline import motion, temporal
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
-DIFFUSE = ("diffuse_direct", "diffuse_indirect")
-
-
-def read_past(image: np.ndarray, xy: np.ndarray, valid: np.ndarray, kernel: str) -> np.ndarray:
-    """``image`` of a past frame at ``xy`` (0 where not ``valid``): ``motion.warp`` with ``kernel``, or the pixel
-    ``xy`` falls in (``nearest``: each past pixel whole, its noise white)."""
-    if kernel != "nearest":
-        return motion.warp(image, xy, valid, kernel=kernel)
-    h, w = image.shape[:2]
-    out = np.zeros(valid.shape + image.shape[2:], image.dtype)
-    ix = np.clip(np.floor(xy[valid][:, 0]).astype(int), 0, w - 1)
-    iy = np.clip(np.floor(xy[valid][:, 1]).astype(int), 0, h - 1)
-    out[valid] = image[iy, ix]
-    return out
-
 
 def averaged(frames, t: int, window: int, kind: str, kernel: str) -> dict[str, np.ndarray]:
-    """Frame t's buffers with its radiance averaged over frame t and the frames t-window+1 .. t-1 valid at each
-    pixel, every one read straight into frame t: all of it (``colour``: the beauty and every component) or the two
-    diffuse components, the beauty their sum with frame t's others (``diffuse``). A buffer's variance: the mean of
-    the frames' divided by their number (the colour's, for ``diffuse``: frame t's, its diffuse share so
-    replaced). The other buffers are frame t's."""
-    own = frames[t].buffers
-    names = ["color", *schema.RADIANCE_COMPONENTS] if kind == "colour" else list(DIFFUSE)
-    keys = [k for n in names for k in (n, f"{n}.variance")]
-    total = {k: own[k].astype(np.float64) for k in keys}
-    count = np.ones(own["color"].shape[:2])
-    for k in range(max(0, t - window + 1), t):
-        xy, valid = motion.reproject_view(frames[t].views["input"], frames[k].views["input"])
-        for key in keys:
-            total[key] += read_past(frames[k].buffers[key], xy, valid, kernel)
-        count += valid
-    out = dict(own)
-    for key in keys:
-        n = count[..., None] ** (2 if key.endswith(".variance") else 1)
-        out[key] = (total[key] / n).astype(np.float32)
-    if kind == "diffuse":
-        out["color"] = schema.beauty_from_components(out)
-        own_share = sum(own[f"{n}.variance"] for n in DIFFUSE)
-        new_share = sum(out[f"{n}.variance"] for n in DIFFUSE)
-        out["color.variance"] = np.maximum(own["color.variance"] - own_share + new_share, 0).astype(np.float32)
-    return out
+    """Frame t's buffers, its input averaged (``temporal.average_input``) over it and the frames t-window+1 .. t-1."""
+    past = frames[max(0, t - window + 1):t][::-1]
+    traced = motion.trace(frames[t].views["input"], [f.views["input"] for f in past])
+    return temporal.average_input(frames[t].buffers, [f.buffers for f in past], traced, kind, kernel)[0]
 
 
 def filtered(outputs, frames, weight):
