@@ -94,8 +94,8 @@ AVERAGED = {"colour": ("color", *RADIANCE_COMPONENTS), "diffuse": ("diffuse_dire
 
 
 def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarray]],
-                  traced: list[tuple[np.ndarray, np.ndarray]], kind: str = "diffuse", kernel: str = "nearest"
-                  ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                  traced: list[tuple[np.ndarray, np.ndarray]], kind: str = "diffuse", kernel: str = "nearest",
+                  gate: float | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(frame t's ``buffers`` with its noisy radiance averaged over frame t and the ``past`` frames, the (H, W)
     number of frames averaged at each pixel).
 
@@ -109,7 +109,10 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
     which loses up to 8 dB on glossy scenes, docs/sequences.md). A buffer's variance (the variance of the pixel
     estimate) becomes the mean of the frames' divided by their number, each frame's noise independent of the
     others'; the beauty's, for ``diffuse``, frame t's with its diffuse share so replaced. Every other buffer is
-    frame t's."""
+    frame t's. ``gate`` (where the variances are there): a past frame counts at a pixel only where, in every
+    channel, its averaged light (summed over the buffers averaged) differs from frame t's by at most ``gate``
+    standard deviations of the difference, sqrt(var_t + var_past): what differs by more than noise is another
+    surface, another part of a texture or light that changed with the view."""
     if len(past) != len(traced):
         raise ValueError(f"{len(past)} past frames but {len(traced)} traced")
     if kind not in AVERAGED:
@@ -119,11 +122,21 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
         return dict(buffers), count     # no components to tell the diffuse light from the reflections: frame t alone
     keys = [k for n in AVERAGED[kind] if n in buffers for k in (n, f"{n}.variance") if k in buffers]
     total = {k: buffers[k].astype(np.float64) for k in keys}
+    names = [k for k in keys if not k.endswith(".variance")]
+    gated = gate is not None and all(f"{n}.variance" in buffers for n in names)
+    if gated:
+        mine = sum(buffers[n].astype(np.float64) for n in names)
+        my_var = sum(buffers[f"{n}.variance"].astype(np.float64) for n in names)
     for frame, (xy, valid) in zip(past, traced):
         if not all(k in frame for k in keys):
             break                       # a frame without those layers ends the window
+        read = {k: motion.warp(frame[k], xy, valid, kernel=kernel).astype(np.float64) for k in keys}
+        if gated:
+            theirs = sum(read[n] for n in names)
+            spread = np.sqrt(my_var + sum(read[f"{n}.variance"] for n in names))
+            valid = valid & (np.abs(theirs - mine) <= gate * spread).all(axis=-1)
         for k in keys:
-            total[k] += motion.warp(frame[k], xy, valid, kernel=kernel)
+            total[k] += read[k] * valid[..., None]
         count += valid
     out = dict(buffers)
     for k in keys:
@@ -140,12 +153,12 @@ class InputWindow:
     """The noisy radiance and the views of the last ``frames - 1`` frames, which ``take`` averages each new
     frame's input over (``average_input``); ``frames`` 1 averages nothing."""
 
-    def __init__(self, frames: int, kind: str = "diffuse"):
+    def __init__(self, frames: int, kind: str = "diffuse", gate: float | None = None):
         if frames < 1:
             raise ValueError(f"a window of {frames} frames: must be >= 1")
         if kind not in AVERAGED:
             raise ValueError(f"kind must be one of {', '.join(AVERAGED)}, got {kind!r}")
-        self.frames, self.kind = frames, kind
+        self.frames, self.kind, self.gate = frames, kind, gate
         self.past: list[tuple[dict[str, np.ndarray], motion.View | None]] = []    # the latest first
         self.counts: list[float] = []              # per frame taken after the first, the mean frames per pixel
 
@@ -161,7 +174,8 @@ class InputWindow:
                     break
                 linked_views.append(v)
             traced = motion.trace(view, linked_views)
-        out, count = average_input(buffers, [b for b, _ in self.past[:len(traced)]], traced, self.kind)
+        out, count = average_input(buffers, [b for b, _ in self.past[:len(traced)]], traced, self.kind,
+                                   gate=self.gate)
         if self.past:
             self.counts.append(float(count.mean()))
         if not traced:

@@ -188,3 +188,21 @@ def test_the_window_keeps_its_last_frames_and_stops_at_a_frame_without_motion():
     assert InputWindow(1).take(frames[0], view) is frames[0]
     with pytest.raises(ValueError, match="must be >= 1"):
         InputWindow(0)
+
+
+def test_the_gate_keeps_a_past_frame_only_where_it_agrees_within_noise():
+    """Frame t-1's diffuse light is frame t's plus 1.5 standard deviations of the difference on the left half and
+    plus 4 on the right half: a gate of 3 keeps the left half and rejects the right, no gate keeps both."""
+    rng = np.random.default_rng(4)
+    now = frame_buffers(rng)
+    past = {k: v.copy() for k, v in now.items()}
+    spread = np.sqrt(sum(now[f"{n}.variance"].astype(np.float64) + past[f"{n}.variance"]
+                         for n in ("diffuse_direct", "diffuse_indirect")))
+    shift = np.where(np.arange(8)[None, :, None] < 4, 1.5, 4.0) * spread
+    past["diffuse_direct"] = (now["diffuse_direct"] + shift).astype(np.float32)
+    _, count = average_input(now, [past], [still()], "diffuse", gate=3.0)
+    np.testing.assert_array_equal(count, np.where(np.arange(8)[None, :] < 4, 2, 1) * np.ones((6, 1)))
+    _, count = average_input(now, [past], [still()], "diffuse")
+    assert (count == 2).all()
+    out, _ = average_input(now, [past], [still()], "diffuse", gate=3.0)
+    np.testing.assert_array_equal(out["diffuse_direct"][:, 4:], now["diffuse_direct"][:, 4:])

@@ -25,11 +25,11 @@ from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
 
-def averaged(frames, t: int, window: int, kind: str, kernel: str) -> dict[str, np.ndarray]:
+def averaged(frames, t: int, window: int, kind: str, kernel: str, gate: float | None = None) -> dict[str, np.ndarray]:
     """Frame t's buffers, its input averaged (``temporal.average_input``) over it and the frames t-window+1 .. t-1."""
     past = frames[max(0, t - window + 1):t][::-1]
     traced = motion.trace(frames[t].views["input"], [f.views["input"] for f in past])
-    return temporal.average_input(frames[t].buffers, [f.buffers for f in past], traced, kind, kernel)[0]
+    return temporal.average_input(frames[t].buffers, [f.buffers for f in past], traced, kind, kernel, gate)[0]
 
 
 def filtered(outputs, frames, weight):
@@ -56,6 +56,9 @@ def main() -> int:
     ap.add_argument("--kernel", default="catmull_rom", choices=["nearest", "bilinear", "catmull_rom"],
                     help="how a past frame's input is read")
     ap.add_argument("--windows", default="8", help="frames averaged, frame t included (comma-separated)")
+    ap.add_argument("--kinds", default="colour,diffuse", help="what is averaged: colour, diffuse (comma-separated)")
+    ap.add_argument("--gates", default="none",
+                    help="temporal.average_input's gate: none, or standard deviations (comma-separated)")
     ap.add_argument("--ours", metavar="CANDIDATE",
                     help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
                          "ours and ours_filter")
@@ -63,31 +66,36 @@ def main() -> int:
     store = Store(args.store)
     spps = [int(s) for s in args.spp.split(",")]
     windows = [int(w) for w in args.windows.split(",")]
-    candidates = [(kind, w, f) for kind in ("colour", "diffuse") for w in windows for f in (False, True)]
-    label = lambda kind, w, f: f"{kind}/{w}" + ("+filter" if f else "")  # noqa: E731
+    gates = [None if g == "none" else float(g) for g in args.gates.split(",")]
+    candidates = [(kind, w, g, f) for kind in args.kinds.split(",") for w in windows for g in gates
+                  for f in (False, True)]
+    label = lambda kind, w, g, f: f"{kind}/{w}" + (f"@{g:g}" if g else "") + ("+filter" if f else "")  # noqa: E731
     names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates)]
     if args.ours:
         from mcdenoise.train.infer import load_denoiser
         model = load_denoiser("train/shipped")
-        kind, rest = args.ours.split("/")
-        ours_window, ours_filter = int(rest.removesuffix("+filter")), rest.endswith("+filter")
+        ours_kind, rest = args.ours.split("/")
+        ours_filter, rest = rest.endswith("+filter"), rest.removesuffix("+filter")
+        ours_window, _, gate_text = rest.partition("@")
+        ours_window, ours_gate = int(ours_window), float(gate_text) if gate_text else None
         names += ["ours", "ours_filter", f"ours {args.ours}"]
     gain: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     unsteady: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
             runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight)}
-            for kind, w, with_filter in candidates:
+            for kind, w, g, with_filter in candidates:
                 if with_filter:
-                    runs[label(kind, w, True)] = filtered(runs[label(kind, w, False)], frames, args.weight)
+                    runs[label(kind, w, g, True)] = filtered(runs[label(kind, w, g, False)], frames, args.weight)
                     continue
-                runs[label(kind, w, False)] = [
+                runs[label(kind, w, g, False)] = [
                     oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
-                    for b in (averaged(frames, t, w, kind, args.kernel) for t in range(len(frames)))]
+                    for b in (averaged(frames, t, w, kind, args.kernel, g) for t in range(len(frames)))]
             if args.ours:
                 ours = [model.denoise(f.buffers, spp) for f in frames]
                 runs["ours"], runs["ours_filter"] = ours, filtered(ours, frames, args.weight)
-                avg = [model.denoise(averaged(frames, t, ours_window, kind, args.kernel), spp) for t in range(len(frames))]
+                avg = [model.denoise(averaged(frames, t, ours_window, ours_kind, args.kernel, ours_gate), spp)
+                       for t in range(len(frames))]
                 runs[f"ours {args.ours}"] = filtered(avg, frames, args.weight) if ours_filter else avg
             psnr = {n: [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                     for n, out in runs.items()}
