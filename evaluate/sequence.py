@@ -122,14 +122,14 @@ def score_sequence(frames_out: dict[str, list[np.ndarray | None]], frames: list[
 
 
 def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods: dict, temporal_names: list[str],
-                 ref_name: str, weight: float, window: int = 1) -> tuple[dict, dict, list[Frame]]:
+                 ref_name: str, weight: float, window: int = 1, gate: float = 0.0) -> tuple[dict, dict, list[Frame]]:
     """Along one sequence, every per-frame method of ``methods`` and the temporal methods ``temporal_names`` (their
-    bases among ``methods``, their input averaged over ``window`` frames): ({method: [output per frame]},
+    bases among ``methods``, their input averaged over ``window`` frames with ``gate``): ({method: [output per frame]},
     {method: [seconds per frame]}, frames)."""
     frames: list[Frame] = []
     outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
-    windows = {n: temporal.InputWindow(window) for n in temporal_names}
+    windows = {n: temporal.InputWindow(window, gate=gate or None) for n in temporal_names}
     for t, key in enumerate(seq):
         fr = read_frame(store, key, spp, stacks_of(key), ref_name)
         frames.append(fr)
@@ -218,7 +218,8 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
     seqs = sequences(keys)
     names = [m for m in SEQUENCE_METRICS if m in metric_names]
     result = {"scenes": {s: [str(k) for k in ks] for s, ks in seqs.items()}, "spp": {},
-              "weight": e.temporal_weight, "window": e.temporal_window, "metrics": names}
+              "weight": e.temporal_weight, "window": e.temporal_window,
+              "gate": e.temporal_gate, "metrics": names}
     strips = {}
     for spp in spps:
         methods, rows = load_sequence_methods(loader, e.sequence_methods, spp, e.temporal_window)
@@ -228,7 +229,8 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
         for scene, seq in seqs.items():
             outputs, seconds, frames = run_sequence(store, seq, spp, lambda k: stacks_for(k, spp), methods,
                                                     [n for n in rows if n in TEMPORAL and rows[n]["available"]],
-                                                    ref_name(seq[0]), e.temporal_weight, e.temporal_window)
+                                                    ref_name(seq[0]), e.temporal_weight, e.temporal_window,
+                                                    e.temporal_gate)
             scored = score_sequence({n: outputs[n] for n in rows if rows[n]["available"]}, frames, names,
                                     {"display": e.fvvdp_display})
             for name, recs in scored.items():

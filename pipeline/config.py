@@ -605,6 +605,10 @@ class EvalConfig(Section):
                                "its spot falls in; reflections and emission stay this frame's; 1: no averaging. "
                                "8: the rule of docs/sequences.md (\"Read without resampling\") on the val split "
                                "and the val_* scenes.", 8)
+    temporal_gate: float = doc("A past frame's diffuse light counts in that average only where it differs from "
+                               "this frame's by at most this many standard deviations of the difference (from the "
+                               "variance layers); 0: no gate. 2: the rule of docs/sequences.md (\"A gate on the "
+                               "averaged light\").", 2.0)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
@@ -620,6 +624,8 @@ class EvalConfig(Section):
             bad("temporal_weight", why)
         if self.temporal_window < 1:
             bad("temporal_window", f"must be >= 1 (1: no averaging), got {self.temporal_window}")
+        if not self.temporal_gate >= 0:
+            bad("temporal_gate", f"must be >= 0 (0: no gate), got {self.temporal_gate}")
         if self.sequence_fps <= 0:
             bad("sequence_fps", f"must be > 0, got {self.sequence_fps}")
 

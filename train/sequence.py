@@ -136,17 +136,23 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
     return run, weights_text(folder, den.meta), learned, lacked
 
 
-def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
-                         weight: float | None = None, quiet: bool = False, model: Path | None = None,
-                         device: str | None = None, precision: str = "auto", seed: int | None = None,
-                         window: int | None = None) -> int:
-    """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
+def _temporal_settings(cfg: Config, weight: float | None, window: int | None) -> tuple[float, int]:
+    """(--temporal-weight, --temporal-window), the config's where not given; TrainError naming a bad one."""
     weight = cfg.eval.temporal_weight if weight is None else float(weight)
     if (why := weight_problem(weight)) is not None:
         raise TrainError(f"--temporal-weight: {why}")
     window = cfg.eval.temporal_window if window is None else int(window)
     if window < 1:
         raise TrainError(f"--temporal-window: must be >= 1 (1: no averaging), got {window}")
+    return weight, window
+
+
+def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
+                         weight: float | None = None, quiet: bool = False, model: Path | None = None,
+                         device: str | None = None, precision: str = "auto", seed: int | None = None,
+                         window: int | None = None) -> int:
+    """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
+    weight, window = _temporal_settings(cfg, weight, window)
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
     inputs = {p.resolve() for _, p in files}
@@ -165,7 +171,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
-    inputs_window, bare = temporal.InputWindow(window), 0
+    inputs_window, bare = temporal.InputWindow(window, gate=cfg.eval.temporal_gate or None), 0
     for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
         passes: dict = {}
         buffers = read_layers(path, passes=passes)
