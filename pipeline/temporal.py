@@ -8,7 +8,8 @@ output (the filter).
 
 **The input averaged** (``average_input``): the diffuse light (``diffuse_direct``, ``diffuse_indirect``) of
 frame t averaged with that of up to ``window - 1`` frames before it, each reprojected straight into frame t
-(``motion.trace``) and read at the pixel its spot falls in, over the frames valid at each pixel; emission and
+(``motion.trace``) and read at the pixel its spot falls in, over the frames valid at each pixel and, with a
+``gate``, agreeing with frame t within that many standard deviations of the difference; emission and
 the reflections (the specular components) stay frame t's, since they do not follow the surface's motion. At
 4 spp, 8 frames give most surfaces 32 samples of diffuse light. The past pixels are read whole: an
 interpolated read correlates the noise of neighbouring pixels, and a denoiser trained on white noise keeps

@@ -4,7 +4,8 @@
     python -m pipeline denoise --sequence 'data/default/scenes/ext_room/###/s00.exr' --out 'out/room_###.exr'
 
 Each frame's noisy diffuse light is first averaged over it and the frames before it (``--temporal-window``,
-default ``eval.temporal_window``: 8 frames, each reprojected; ``pipeline.temporal.average_input``; frames
+default ``eval.temporal_window``: 8 frames, each reprojected, a past pixel counting where it agrees within
+``eval.temporal_gate`` standard deviations; ``pipeline.temporal.average_input``; frames
 without the light components, a plain beauty, are not averaged). Then the frame is denoised as ``denoise
 --exr`` does (``--method ours`` or ``oidn_prefilter``), and the temporal filter of ``pipeline.temporal``
 blends it with the previous output brought into this frame (``pipeline.motion``: the renderer's motion
