@@ -194,7 +194,9 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
     how = (f"{method} reading its own warped previous output (learned history)" if learned
            else f"{method} + temporal filter, weight {weight:g}")
-    if window > 1:
+    if window > 1 and bare == len(files):
+        how += ", input not averaged (no frame has diffuse light layers)"
+    elif window > 1:
         how += (f", diffuse light averaged over up to {window} frames"
                 + (f" ({np.mean(inputs_window.counts):.1f} per pixel)" if inputs_window.counts else "")
                 + (f" ({bare} of {len(files)} frames have no diffuse light layers: those not)" if bare else ""))
