@@ -129,7 +129,8 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
     frames: list[Frame] = []
     outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
-    windows = {n: temporal.InputWindow(window, gate=gate or None) for n in temporal_names}
+    # the input averaged once per frame, for every temporal method
+    inputs_window = temporal.InputWindow(window, gate=gate or None)
     for t, key in enumerate(seq):
         fr = read_frame(store, key, spp, stacks_of(key), ref_name)
         frames.append(fr)
@@ -138,36 +139,40 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
             oc = run_method(method, fr.buffers)
             outputs[name].append(finite_output(oc) if oc.output is not None else None)
             seconds[name].append(oc.seconds)
+        t0 = time.perf_counter()
+        averaged = inputs_window.take(fr.buffers, fr.views["input"]) if temporal_names else fr.buffers
+        averaging = time.perf_counter() - t0       # every temporal method's, which each would pay alone
         for name in temporal_names:
             base = TEMPORAL[name]
             previous = (outputs[name][t - 1], frames[t - 1].views["input"]) if t > 0 else None
             y, secs = temporal_frame(methods[base], outputs[base][t], seconds[base][t], fr, previous, weight,
-                                     name in LEARNED, windows[name])
+                                     name in LEARNED, averaged)
             outputs[name].append(y)
-            seconds[name].append(secs)
+            seconds[name].append(secs + averaging)
     return outputs, seconds, frames
 
 
 def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, fr: Frame, previous, weight: float,
-                   learned: bool, window: temporal.InputWindow | None = None) -> tuple[np.ndarray | None, float]:
+                   learned: bool, buffers: dict | None = None) -> tuple[np.ndarray | None, float]:
     """One frame of a temporal method on ``method`` (``temporal.step``, the history warped with the input's own
-    depth and normal, the input averaged over ``window``), and its seconds: the step's own (reprojection, warp,
-    averaging, blend) plus the method's, whose output on the frame's own input without history (``base_output``,
-    ``base_seconds``) is reused rather than run again."""
+    depth and normal) given the frame's input ``buffers`` (averaged over the previous frames; default the frame's
+    own), and its seconds: the step's own (reprojection, warp, blend) plus the method's, whose output on the
+    frame's own input without history (``base_output``, ``base_seconds``) is reused rather than run again."""
+    buffers = fr.buffers if buffers is None else buffers
     inside = {"wall": 0.0, "method": 0.0}      # the time spent in ``denoise``, and the method's share of it
 
-    def denoise(buffers, history):
-        if history is None and buffers is fr.buffers:
+    def denoise(given, history):
+        if history is None and given is fr.buffers:
             inside["method"] += base_seconds
             return base_output
         t0 = time.perf_counter()
-        oc = run_method(method, buffers, history=history)
+        oc = run_method(method, given, history=history)
         inside["wall"] += time.perf_counter() - t0
         inside["method"] += oc.seconds
         return finite_output(oc) if oc.output is not None else None
 
     t0 = time.perf_counter()
-    y, _ = temporal.step(denoise, fr.buffers, fr.views["input"], previous, weight, learned, window)
+    y, _ = temporal.step(denoise, buffers, fr.views["input"], previous, weight, learned)
     return y, time.perf_counter() - t0 - inside["wall"] + inside["method"]
 
 

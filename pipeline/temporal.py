@@ -189,7 +189,7 @@ class InputWindow:
 
 def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: dict[str, np.ndarray],
          view: motion.View | None, previous: tuple[np.ndarray | None, motion.View | None] | None, weight: float,
-         learned: bool, window: InputWindow | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+         learned: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
     """One frame of a temporal method: (its output, None where ``denoise`` failed; the history's (H, W) validity,
     None without a history).
 
@@ -199,9 +199,8 @@ def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: di
     ``denoise(buffers, history)`` is the per-frame method;
     ``learned``: it reads the history itself (a model with ``diffusion.history``) and its output is the frame's;
     otherwise its output without history is blended with the history (``blend_history``, ``weight``).
-    ``window``: the frame's input is first averaged over the window's frames (``InputWindow.take``)."""
-    if window is not None:
-        buffers = window.take(buffers, view)
+    ``buffers``: the frame's input as the method denoises it, averaged over the previous frames where the caller
+    keeps an ``InputWindow`` (one window serves every temporal method of a sequence)."""
     history = None
     if (previous is not None and previous[0] is not None and view is not None and previous[1] is not None
             and motion.linked(view, previous[1])):

@@ -180,7 +180,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         alone = alone or (f"{path}: {why}" if view is None else "")
         # a model that reads its own previous output has no filter after it (``temporal.step``)
         bare += not all(n in buffers for n in temporal.AVERAGED["diffuse"])     # nothing to average there
-        hdr, valid = temporal.step(run, buffers, view, previous, weight, learned, inputs_window)
+        hdr, valid = temporal.step(run, inputs_window.take(buffers, view), view, previous, weight, learned)
         if valid is not None:
             took.append(float(valid.mean()))
         out.parent.mkdir(parents=True, exist_ok=True)
