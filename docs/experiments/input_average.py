@@ -9,10 +9,11 @@ Per sequence of the split and per spp (the first noise realization): frame t's i
 window - 1 frames before it, each read straight into frame t (``motion.reproject_view`` between the two frames,
 then ``--kernel``), over the frames valid at each pixel: all the radiance (``colour/W``) or only the diffuse
 components (``diffuse/W``); OIDN's final-frame mode on it; each also with the temporal filter on its output
-(``+filter``). The baseline ``filter`` is ``oidn_prefilter_temporal``. ``--ours CANDIDATE`` adds train/shipped's
-model on that candidate's input, beside ``ours`` and ``ours_filter``. Prints per method and spp the mean over
-sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean instability (as the sequence page measures
-it, through GT1's motion) and the sequences below oidn_prefilter.
+(``+filter``, or ``+filter:W`` for each of ``--weights``). The baseline ``filter`` is
+``oidn_prefilter_temporal``. ``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside
+``ours`` and ``ours_filter``. Prints per method and spp the mean over sequences of (mean over t >= 1 of PSNR -
+oidn_prefilter's), the mean instability (as the sequence page measures it, through GT1's motion) and the
+sequences below oidn_prefilter.
 """
 from __future__ import annotations
 
@@ -59,6 +60,8 @@ def main() -> int:
     ap.add_argument("--kinds", default="colour,diffuse", help="what is averaged: colour, diffuse (comma-separated)")
     ap.add_argument("--gates", default="none",
                     help="temporal.average_input's gate: none, or standard deviations (comma-separated)")
+    ap.add_argument("--weights", help="the filter's weights on the averaged input (comma-separated; default "
+                                     "--weight): each candidate with the filter once per weight, labelled +filter:W")
     ap.add_argument("--ours", metavar="CANDIDATE",
                     help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
                          "ours and ours_filter")
@@ -67,9 +70,12 @@ def main() -> int:
     spps = [int(s) for s in args.spp.split(",")]
     windows = [int(w) for w in args.windows.split(",")]
     gates = [None if g == "none" else float(g) for g in args.gates.split(",")]
+    weights = [float(w) for w in args.weights.split(",")] if args.weights else [args.weight]
+    # f: the filter's weight, or None without the filter
     candidates = [(kind, w, g, f) for kind in args.kinds.split(",") for w in windows for g in gates
-                  for f in (False, True)]
-    label = lambda kind, w, g, f: f"{kind}/{w}" + (f"@{g:g}" if g else "") + ("+filter" if f else "")  # noqa: E731
+                  for f in (None, *weights)]
+    label = lambda kind, w, g, f: (f"{kind}/{w}" + (f"@{g:g}" if g else "") + ("" if f is None else  # noqa: E731
+                                   "+filter" if not args.weights else f"+filter:{f:g}"))
     names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates)]
     if args.ours:
         from mcdenoise.train.infer import load_denoiser
@@ -84,11 +90,11 @@ def main() -> int:
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
             runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight)}
-            for kind, w, g, with_filter in candidates:
-                if with_filter:
-                    runs[label(kind, w, g, True)] = filtered(runs[label(kind, w, g, False)], frames, args.weight)
+            for kind, w, g, weight in candidates:
+                if weight is not None:
+                    runs[label(kind, w, g, weight)] = filtered(runs[label(kind, w, g, None)], frames, weight)
                     continue
-                runs[label(kind, w, g, False)] = [
+                runs[label(kind, w, g, None)] = [
                     oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
                     for b in (averaged(frames, t, w, kind, args.kernel, g) for t in range(len(frames)))]
             if args.ours:
