@@ -408,8 +408,10 @@ class DiffusionConfig(TrainingConfig):
                          "the material buffers; each on its own), so one model serves inputs without them.", 0.15)
     history: bool = doc("The model reads the past (docs/sequences.md): its condition gets the previous frame's "
                         "output warped into this frame, its validity and has.history; it trains on the frames t >= 1 "
-                        "(0-based) of each scene, their history OIDN's final-frame output of frame t-1, warped with "
-                        "the noisy input's depth and normal; its packs are <split>_oidn_base*_history. With init, a "
+                        "(0-based) of each scene, their input averaged as the temporal methods average it "
+                        "(eval.temporal_window, eval.temporal_gate), their history OIDN's final-frame output of "
+                        "frame t-1's averaged input, warped with the noisy input's depth and normal; its packs are "
+                        "<split>_oidn_base*_history. With init, a "
                         "model without history starts with the new channels' weights zero (it starts as that "
                         "model). false: the per-frame model (44 condition channels).", False)
     history_dropout: float = doc("With history: probability that a training crop has no history (its history "
@@ -604,7 +606,8 @@ class EvalConfig(Section):
                                "diffuse light before denoising, each past frame reprojected and read at the pixel "
                                "its spot falls in; reflections and emission stay this frame's; 1: no averaging. "
                                "8: the rule of docs/sequences.md (\"Read without resampling\") on the val split "
-                               "and the val_* scenes.", 8)
+                               "and the val_* scenes. A model that reads the past (diffusion.history) trains on the "
+                               "input averaged so.", 8)
     temporal_gate: float = doc("A past frame's diffuse light counts in that average only where it differs from "
                                "this frame's by at most this many standard deviations of the difference (from the "
                                "variance layers); 0: no gate. 2: the rule of docs/sequences.md (\"A gate on the "

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.pipeline import motion, schema
+from mcdenoise.pipeline import motion, schema, temporal
 from mcdenoise.pipeline.errors import TrainError
 from mcdenoise.pipeline.store import FrameKey
+from mcdenoise.train import history as history_mod
 from mcdenoise.train.data import Crops
-from mcdenoise.train.history import previous_frames, with_history
+from mcdenoise.train.history import SequenceInputs, previous_frames, with_history
 from mcdenoise.train.infer import load_denoiser
 from mcdenoise.train.model import (
     HISTORY_CHANNELS,
@@ -200,6 +201,94 @@ def test_a_pack_without_history_has_no_history_group():
     assert crops[0]["cond"].shape[0] == len(cond_names())
 
 
+# ---- the input a model that reads the past trains on (train.history.SequenceInputs) ---------------------
+
+
+class _Frames:
+    """A store's camera and frame records for a slanted plane seen by a camera sliding sideways: frame f of scene
+    "a" rendered unless in ``missing``; ``read(f)`` its buffers (a fixed noisy frame of its own seed, depth of the
+    plane)."""
+
+    def __init__(self, missing=()):
+        self.missing, self.reads = set(missing), []
+
+    def frame_record(self, scene, frame):
+        return None if frame in self.missing else {"frame": frame}
+
+    def camera(self, scene, frame):
+        return motion.Camera(look_at([0.05 * frame, 0, -3], [0.05 * frame, 0, 0], [0, 1, 0]), 40.0, 32, 24)
+
+    def read(self, frame):
+        self.reads.append(frame)
+        buffers = fixed_frame(seed=10 + frame)
+        buffers["depth"] = np.full((24, 32, 1), 3.0, np.float32)
+        return buffers
+
+
+@pytest.fixture
+def cheap_oidn(monkeypatch):
+    """OIDN's output replaced by a cheap function of the colour: the tests check what is fed where."""
+    monkeypatch.setattr(history_mod, "oidn_output", lambda b: b["color"] * 0.5 + 0.1)
+
+
+def expected(frames: _Frames, t: int, window: int, gate=None, first: int = 0):
+    """Frame t's input averaged over the window and its history, built from temporal.InputWindow directly."""
+    win, views, outs = temporal.InputWindow(window, gate=gate), {}, {}
+    for f in range(first, t + 1):
+        b = frames.read(f)
+        views[f] = motion.View.of(frames.camera("a", f), b)
+        outs[f] = win.take(b, views[f])
+    hist = motion.warp_previous(outs[t - 1]["color"] * 0.5 + 0.1, views[t], views[t - 1]) if t - 1 >= first else None
+    return outs[t], hist
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_sequence_inputs_average_the_input_and_give_oidns_output_of_the_averaged_frame_before(cheap_oidn, window):
+    frames = _Frames()
+    walks = SequenceInputs(frames, window, gate=2.0)
+    for t in (1, 2, 3):                             # consecutive frames: one walk
+        got = walks.of(FrameKey("a", t), (0,), frames.read)
+        avg, (warped, valid) = expected(_Frames(), t, window, 2.0)
+        for k in avg:
+            np.testing.assert_array_equal(got[k], avg[k], err_msg=k)
+        np.testing.assert_array_equal(got["history"], warped)
+        np.testing.assert_array_equal(got["history_valid"], valid.astype(np.float32))
+        assert 0.5 < valid.mean() < 1                # the slide leaves a strip unseen
+    # every frame read once: the walk continues from the frame before
+    assert frames.reads == [0, 1, 2, 3]
+    if window == 1:                                 # the frame's own input, as before averaging existed
+        np.testing.assert_array_equal(got["color"], _Frames().read(3)["color"])
+    else:                                           # the diffuse light of 3 frames: less than one frame's noise
+        assert not np.array_equal(got["diffuse_indirect"], _Frames().read(3)["diffuse_indirect"])
+        np.testing.assert_array_equal(got["specular_direct"], _Frames().read(3)["specular_direct"])
+
+
+def test_sequence_inputs_asked_out_of_order_start_the_window_over(cheap_oidn):
+    frames = _Frames()
+    walks = SequenceInputs(frames, 3)
+    walks.of(FrameKey("a", 5), (0,), frames.read)
+    assert frames.reads == [2, 3, 4, 5]              # frame 4's window (2-4), then 5
+    got = walks.of(FrameKey("a", 2), (0,), frames.read)
+    avg, (warped, _) = expected(_Frames(), 2, 3)
+    np.testing.assert_array_equal(got["diffuse_direct"], avg["diffuse_direct"])
+    np.testing.assert_array_equal(got["history"], warped)
+    # another stack selection walks on its own
+    walks.of(FrameKey("a", 3), (1,), frames.read)
+    assert frames.reads[-3:] == [1, 2, 3]
+
+
+def test_sequence_inputs_stop_at_a_frame_not_rendered(cheap_oidn):
+    frames = _Frames(missing={1})
+    walks = SequenceInputs(frames, 8)
+    got = walks.of(FrameKey("a", 3), (0,), frames.read)
+    assert frames.reads == [2, 3]                   # frame 0 is before the gap
+    avg, (warped, _) = expected(_Frames(), 3, 8, first=2)
+    np.testing.assert_array_equal(got["diffuse_indirect"], avg["diffuse_indirect"])
+    np.testing.assert_array_equal(got["history"], warped)
+    first = walks.of(FrameKey("a", 2), (0,), _Frames(missing={1}).read)
+    assert "history" not in first                   # its frame before is not rendered: no history
+
+
 # ---- on the tiny store: the history pack, a temporal run through the command line, its sequence --------
 
 
@@ -227,6 +316,7 @@ def test_the_history_pack_holds_frames_after_the_first_with_their_warped_history
     train = Store(store).frames_with("train")
     assert frames == [f"{k.scene}/{k.frame}" for k in train if k.frame >= 1] and frames
     assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter, catmull_rom"
+    assert meta["input"] == "diffuse over 8 frames, gate 2"            # eval.temporal_window, eval.temporal_gate
     names = cond_names(True)
     assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history"), :24, :32] == 1)
     valid = cond[:, names.index("history.valid"), :24, :32].float()

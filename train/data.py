@@ -9,9 +9,10 @@ of the colour channels for every colour-like channel and the target, one of the 
 the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
 
 A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only the frames whose
-previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each with the history channels of
-``train.history`` (OIDN's output of frame t − 1 on the same stacks, warped into frame t); its crops lose the
-history with ``diffusion.history_dropout``.
+previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each as ``train.history`` serves it:
+its input averaged over the frames before it (``eval.temporal_window``, ``eval.temporal_gate``) and the
+history channels (OIDN's output of frame t − 1's input, on the same stacks, warped into frame t); its crops
+lose the history with ``diffusion.history_dropout``.
 """
 from __future__ import annotations
 
@@ -90,21 +91,28 @@ def _previous_frames(keys: list[FrameKey], history: bool) -> dict:
     return previous_frames(keys)
 
 
-def _store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, buffers_prev: dict) -> dict:
-    """``buffers`` with the history of ``key`` (``train.history.store_history``)."""
-    from .history import store_history, with_history
-    return with_history(buffers, store_history(store, key, prev, buffers, buffers_prev))
+def _sequence_inputs(store: Store, window: tuple[int, float | None]):
+    """``train.history.SequenceInputs`` of ``store`` averaging over ``window`` = (frames, gate)."""
+    from .history import SequenceInputs
+    return SequenceInputs(store, *window)
+
+
+def input_record(window: tuple[int, float | None]) -> str:
+    """How a history pack's input is averaged, for its metadata: a pack averaged otherwise is built again."""
+    frames, gate = window
+    return f"diffuse over {frames} frames" + (f", gate {gate:g}" if gate else "")
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
-               history: bool = False) -> Path:
+               history: bool = False, window: tuple[int, float | None] = (1, None)) -> Path:
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
-    ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), with their history
-    (``train.history.store_history``, on the same stacks)."""
+    ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), each as
+    ``train.history.SequenceInputs`` serves it (input averaged over ``window`` = (frames, gate), history on the
+    same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
-    prev_of = _previous_frames(keys, history)
     keys = pack_keys(keys, history)
+    walks = _sequence_inputs(store, window) if history else None
     if not keys:
         raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
                          "needs scenes of two or more frames with gt_clean)")
@@ -115,15 +123,13 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
         variants = fit_variants(PACK_VARIANTS, n, total)
         need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
         images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
-        prev = prev_of.get(key)
-        before = {s: store.read_image(prev.scene, prev.frame, stack_name(s))[0] for s in need} if prev else {}
         for spp, count in sorted(variants.items()):
             for v in range(count):
                 stacks = variant_stacks(spp, n, v, total)
                 buffers = combine_stacks([images[s] for s in stacks], n)
-                if prev is not None:
-                    buffers_prev = combine_stacks([before[s] for s in stacks], n)
-                    buffers = _store_history(store, key, prev, buffers, buffers_prev)
+                if walks is not None:
+                    buffers = walks.of(key, tuple(stacks), lambda f, b=buffers, k=key, st=stacks: (
+                        b if f == k.frame else store.read(k.scene, f, spp, stacks=st)))
                 x, cond, scale = inputs(buffers, spp, clean_aux=clean_aux, history=history)
                 xs.append(x.astype(np.float16))
                 conds.append(cond.astype(np.float16))
@@ -142,7 +148,8 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
             "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(s) for s in sizes]),
-            "aux": _aux_kind(clean_aux), **({"history": HISTORY_SOURCE} if history else {})}
+            "aux": _aux_kind(clean_aux),
+            **({"history": HISTORY_SOURCE, "input": input_record(window)} if history else {})}
     save_safetensors(path, tensors, meta)
     return path
 
@@ -152,9 +159,9 @@ def _aux_kind(clean_aux: bool) -> str:
 
 
 def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
-                history: bool = False) -> Path:
-    """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout or
-    other aux."""
+                history: bool = False, window: tuple[int, float | None] = (1, None)) -> Path:
+    """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout, other aux
+    or (with history) another averaging."""
     if path.exists():
         from safetensors import safe_open
         with safe_open(str(path), framework="pt") as f:
@@ -163,9 +170,10 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
                 and json.loads(meta.get("cond", "[]")) == cond_names(history)
                 and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in pack_keys(keys, history)]
                 and meta.get("aux", "rendered") == _aux_kind(clean_aux)
-                and meta.get("history") == (HISTORY_SOURCE if history else None)):
+                and meta.get("history") == (HISTORY_SOURCE if history else None)
+                and meta.get("input") == (input_record(window) if history else None)):
             return path
-    return build_pack(store, keys, path, quiet, clean_aux, history)
+    return build_pack(store, keys, path, quiet, clean_aux, history, window)
 
 
 def load_pack(path: Path) -> dict[str, torch.Tensor]:
@@ -303,6 +311,8 @@ class StoreSource:
         from .oidn import clean_aux
         self.clean_aux = clean_aux(network or cfg.diffusion.base_network)
         self.history = cfg.diffusion.history if history is None else bool(history)
+        # a model that reads the past trains on the input the temporal methods give it (train.history)
+        self.window = (cfg.eval.temporal_window, cfg.eval.temporal_gate or None)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 
@@ -311,10 +321,10 @@ class StoreSource:
 
     def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
         packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux,
-                                       self.history))]
+                                       self.history, self.window))]
         for i, (store, keys) in enumerate(self.extra):
             packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux,
-                                               self.history)))
+                                               self.history, self.window)))
         return concat_packs(packs)
 
     def pack_path(self, split: str) -> Path:
@@ -322,15 +332,13 @@ class StoreSource:
 
     def val_items(self, spps: list[int], frames: int) -> list[dict]:
         items = []
-        prev_of = _previous_frames(self.val_keys, self.history)
+        walks = _sequence_inputs(self.store, self.window) if self.history else None
         for key in pack_keys(self.val_keys, self.history)[:frames]:
             ref = self.store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
             for spp in sorted({spps[0], spps[len(spps) // 2], spps[-1]}):
                 buffers = self.store.read(key.scene, key.frame, spp)
-                if key in prev_of:      # the first stacks of both frames, as a sequence is evaluated
-                    prev = prev_of[key]
-                    before = self.store.read(prev.scene, prev.frame, spp)
-                    buffers = _store_history(self.store, key, prev, buffers, before)
+                if walks is not None:   # the first stacks of every frame, as a sequence is evaluated
+                    buffers = walks.of(key, (spp,), lambda f, k=key, s=spp: self.store.read(k.scene, f, s))
                 x, cond, scale = inputs(buffers, spp, clean_aux=self.clean_aux, history=self.history)
                 items.append({"x": torch.from_numpy(x)[None], "cond": torch.from_numpy(cond)[None], "scale": scale,
                               "ref": ref, "spp": spp})
@@ -344,6 +352,7 @@ def cmd_pack(cfg: Config, splits: list[str], quiet: bool = False) -> int:
         keys = source.store.frames_with(split)
         if not keys:
             raise StoreError(f"{source.store.root}: no {split} frame with gt_clean; run `make gt-clean`")
-        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux, source.history)
+        path = ensure_pack(source.store, keys, source.pack_path(split), quiet, source.clean_aux, source.history,
+                           source.window)
         print(f"pack {split}: {len(pack_keys(keys, source.history))} frames -> {path} ({path.stat().st_size / 2**20:.1f} MiB)", flush=True)
     return 0

@@ -1,23 +1,31 @@
-"""The past a model that reads history (``diffusion.history``) is given: for frame t of a scene, an output of
-frame t−1 brought into frame t (``pipeline.motion``: the noisy input's own depth and normal and the two
-cameras, as a user's renderer would give them) with its validity mask; ``train.model.inputs`` encodes it.
+"""What a model that reads the past (``diffusion.history``) trains on: frame t's input as the temporal methods
+serve it, and the history beside it.
 
-In training the previous output is **OIDN's final-frame output** of frame t−1 (the same stacks as frame t's
-input), computed once when the pack is built. Why not the model's own output: that output depends on the
-weights being trained, so it would have to be recomputed every epoch (or the training unrolled over frames),
-and the pack could not be shared by runs; OIDN's output does not change, costs one OIDN pass per pack variant
-(``train.data.PACK_VARIANTS``: a (spp, stacks) input of the frame, up to 4 per frame) and two camera reads
-each, and is what the model's output starts from (the Control Module corrects OIDN's estimate), so at
-inference, fed its own output, the model gets a history at least as good as the one it trained on. A frame without a previous
-frame (t = 0) gets no history: its history channels and ``has.history`` are zero.
+- **The input**: frame t's noisy diffuse light averaged over it and the frames before it as
+  ``pipeline.temporal.InputWindow`` averages it at inference (``eval.temporal_window`` frames, gated at
+  ``eval.temporal_gate``; 1 frame: the frame's own input), so the model trains on the input
+  ``denoise --sequence`` and the sequence evaluation give it.
+- **The history**: an output of frame t−1, brought into frame t (``pipeline.motion``: the noisy input's own depth
+  and normal and the two cameras, as a user's renderer would give them) with its validity mask;
+  ``train.model.inputs`` encodes it. In training that output is **OIDN's final-frame output** of frame t−1's
+  input (averaged as above, the same stacks as frame t's), computed once when the pack is built. Why not the
+  model's own output: that output depends on the weights being trained, so it would have to be recomputed every
+  epoch (or the training unrolled over frames), and the pack could not be shared by runs; OIDN's output does not
+  change, costs one OIDN pass per pack variant (``train.data.PACK_VARIANTS``: a (spp, stacks) input of the
+  frame, up to 4 per frame), and is what the model's output starts from (the Control Module corrects OIDN's
+  estimate), so at inference, fed its own output, the model gets a history at least as good as the one it
+  trained on. A frame without a previous frame (t = 0) gets no history: its history channels and
+  ``has.history`` are zero.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mcdenoise.pipeline import motion
+from mcdenoise.pipeline import motion, temporal
 
 if TYPE_CHECKING:
     from mcdenoise.pipeline.store import FrameKey, Store
@@ -45,9 +53,47 @@ def oidn_output(buffers: dict[str, np.ndarray]) -> np.ndarray:
     return oidn.denoise({k: buffers[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
 
 
-def store_history(store: Store, key: FrameKey, prev: FrameKey, buffers: dict, buffers_prev: dict
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The training history of ``key``: OIDN's output of ``prev`` (read as ``buffers_prev``) warped into it with
-    both frames' noisy depth and normal (``motion.warp_previous``)."""
-    return motion.warp_previous(oidn_output(buffers_prev), motion.View.of(store.camera(key.scene, key.frame), buffers),
-                                motion.View.of(store.camera(prev.scene, prev.frame), buffers_prev))
+@dataclass
+class _Walk:
+    """One stack selection's way along a scene: the window, the last frame taken, its averaged input and view."""
+    scene: str
+    window: temporal.InputWindow
+    frame: int = -1
+    averaged: dict | None = None
+    view: motion.View | None = None
+
+
+class SequenceInputs:
+    """Frames of a store as a model that reads the past trains on them (the module docstring): ``of(key, stacks,
+    read)`` is frame ``key``'s input on ``stacks`` averaged over the window, with the history of its previous
+    frame. Each stack selection walks its scene's frames in order, so a pack of consecutive frames averages each
+    frame once; a frame asked out of order starts a new walk from the window's first frame."""
+
+    def __init__(self, store: Store, window: int = 1, gate: float | None = None):
+        self.store, self.window, self.gate = store, int(window), gate
+        self.walks: dict[tuple, _Walk] = {}
+
+    def of(self, key: FrameKey, stacks: tuple, read: Callable[[int], dict]) -> dict[str, np.ndarray]:
+        """``stacks``: the stack selection (any hashable that names it); ``read(frame)``: the buffers of
+        ``key.scene``'s ``frame`` on it."""
+        walk = self.walks.get(stacks)
+        if walk is None or walk.scene != key.scene or walk.frame != key.frame - 1:
+            walk = self.walks[stacks] = _Walk(key.scene, temporal.InputWindow(self.window, gate=self.gate))
+            for f in range(self._first(key), key.frame):        # the window of frame t - 1: frames t - W .. t - 1
+                self._take(walk, f, read(f))
+        before, before_view, had = walk.averaged, walk.view, walk.frame == key.frame - 1
+        self._take(walk, key.frame, read(key.frame))
+        history = (motion.warp_previous(oidn_output(before), walk.view, before_view)
+                   if had and motion.linked(walk.view, before_view) else None)
+        return with_history(walk.averaged, history)
+
+    def _first(self, key: FrameKey) -> int:
+        """The earliest frame of the run of rendered frames just before ``key`` within the window of frame t − 1."""
+        first = key.frame
+        while first > max(0, key.frame - self.window) and self.store.frame_record(key.scene, first - 1) is not None:
+            first -= 1
+        return first
+
+    def _take(self, walk: _Walk, frame: int, buffers: dict) -> None:
+        walk.view = motion.View.of(self.store.camera(walk.scene, frame), buffers)
+        walk.averaged, walk.frame = walk.window.take(buffers, walk.view), frame

@@ -43,7 +43,7 @@ from mcdenoise.pipeline.store import sha256
 from mcdenoise.pipeline.weights import read_tza
 
 from . import oidn
-from .data import Crops, StoreSource, pack_keys
+from .data import Crops, StoreSource, input_record, pack_keys
 from .loss import relative_loss
 from .model import (
     FORMAT,
@@ -242,7 +242,9 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
                    "formulation": form.record(), "train_steps": train_steps,
                    **{k: getattr(d, k) for k in FINGERPRINT_KEYS},
                    # only with history: the fingerprint of a run without it stays what it was (it still resumes)
-                   **({"history": True, "history_dropout": d.history_dropout} if history else {})}
+                   **({"history": True, "history_dropout": d.history_dropout} if history else {}),
+                   # the input a model that reads the past trains on, where it is averaged (train.history)
+                   **({"input": input_record(source.window)} if history and source.window[0] > 1 else {})}
     return Run(cfg, folder.name, folder, source, spps, device, rank, world, says, autocast_dtype(d.precision, device),
                model, blob, base_what, network, base_blend, form, train_steps, kept, params, opt,
                make_ema(model.control, d.ema), fingerprint)
