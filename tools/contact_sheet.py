@@ -3,7 +3,7 @@ rendered small with the pipeline's integrator into one labelled PNG grid (``pipe
 each tile exposed by itself), with the build and render seconds per frame of each kind (docs/scenes.md shows
 both).
 
-    python -m tools.contact_sheet [--out docs/figures/scenes.png] [--interiors 80] [--products 48] [--objects 32]
+    python -m tools.contact_sheet [--out docs/figures/scenes.png] [--interiors 160] [--products 80] [--objects 60]
                                   [--res 64] [--spp 32]
 
 (``make contact-sheet``.) Scenes come from configs/default.yaml's scene section with only the kind's
@@ -65,9 +65,9 @@ def main(argv=None) -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="docs/figures/scenes.png")
-    ap.add_argument("--interiors", type=int, default=80)
-    ap.add_argument("--products", type=int, default=48)
-    ap.add_argument("--objects", type=int, default=32)
+    ap.add_argument("--interiors", type=int, default=160)
+    ap.add_argument("--products", type=int, default=80)
+    ap.add_argument("--objects", type=int, default=60)
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--spp", type=int, default=32)
     args = ap.parse_args(argv)
