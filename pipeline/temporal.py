@@ -89,41 +89,60 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
     return out
 
 
-# What ``average_input`` averages, per kind: every radiance buffer, or only the view-independent diffuse light
-# (the rest of the frame stays frame t's: reflections do not follow the surface's motion).
-AVERAGED = {"colour": ("color", *RADIANCE_COMPONENTS), "diffuse": ("diffuse_direct", "diffuse_indirect")}
+# What ``average_input`` averages, per kind, in groups that its gate tests together: every radiance buffer as
+# one, only the view-independent diffuse light (the rest of the frame stays frame t's: reflections do not follow
+# the surface's motion), or every component with the diffuse light and each reflection gated apart.
+GATE_GROUPS = {"colour": (("color", *RADIANCE_COMPONENTS),),
+               "diffuse": (("diffuse_direct", "diffuse_indirect"),),
+               "components": (("diffuse_direct", "diffuse_indirect"), ("specular_direct",), ("specular_indirect",))}
+AVERAGED = {kind: tuple(n for g in groups for n in g) for kind, groups in GATE_GROUPS.items()}
 
 
 def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarray]],
                   traced: list[tuple[np.ndarray, np.ndarray]], kind: str = "diffuse", kernel: str = "nearest",
                   gate: float | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(frame t's ``buffers`` with its noisy radiance averaged over frame t and the ``past`` frames, the (H, W)
-    number of frames averaged at each pixel).
+    number of frames averaged at each pixel, of the first group).
 
     ``traced``: where frame t's pixels were in each past frame (``motion.trace``, one per frame of ``past``). A
     past frame counts at a pixel where it is valid there, read at the pixel the spot falls in (``motion.warp``
     with ``kernel="nearest"``: an interpolated read correlates the noise, and the denoiser keeps it,
-    docs/sequences.md; ``kernel`` is there to measure that). ``kind``
-    (``AVERAGED``): ``colour`` averages every radiance buffer present (the beauty and its components);
-    ``diffuse`` the two diffuse components, the beauty then their sum with frame t's other components (a frame
-    without the components is left alone: its beauty averaged would carry reflections along with the surface,
-    which loses up to 8 dB on glossy scenes, docs/sequences.md). A buffer's variance (the variance of the pixel
-    estimate) becomes the mean of the frames' divided by their number, each frame's noise independent of the
-    others'; the beauty's, for ``diffuse``, frame t's with its diffuse share so replaced. Every other buffer is
-    frame t's. ``gate`` (where the variances are there): a past frame counts at a pixel only where, in every
-    channel, its averaged light (summed over the buffers averaged) differs from frame t's by at most ``gate``
-    standard deviations of the difference, sqrt(var_t + var_past): what differs by more than noise is another
-    surface, another part of a texture or light that changed with the view."""
+    docs/sequences.md; ``kernel`` is there to measure that). ``kind`` (``GATE_GROUPS``): ``colour`` averages
+    every radiance buffer present (the beauty and its components); ``diffuse`` the two diffuse components,
+    ``components`` the diffuse and the specular ones, the beauty then the sum of the components (the averaged
+    ones and frame t's others) with frame t's emission (a frame without the components is left alone: its beauty
+    averaged would carry reflections along with the surface, which loses up to 8 dB on glossy scenes,
+    docs/sequences.md). A buffer's variance (the variance of the pixel estimate) becomes the mean of the frames'
+    divided by their number, each frame's noise independent of the others'; the beauty's, for ``diffuse`` and
+    ``components``, frame t's with the averaged components' share so replaced. Every other buffer is frame t's.
+    ``gate`` (where the variances are there): a past frame counts at a pixel only where, in every channel, the
+    light of a group (summed over its buffers) differs from frame t's by at most ``gate`` standard deviations of
+    the difference, sqrt(var_t + var_past): what differs by more than noise is another surface, another part of a
+    texture or light that changed with the view. Each group is gated (and counted) apart."""
     if len(past) != len(traced):
         raise ValueError(f"{len(past)} past frames but {len(traced)} traced")
-    if kind not in AVERAGED:
-        raise ValueError(f"kind must be one of {', '.join(AVERAGED)}, got {kind!r}")
+    if kind not in GATE_GROUPS:
+        raise ValueError(f"kind must be one of {', '.join(GATE_GROUPS)}, got {kind!r}")
+    out, counts = dict(buffers), []
+    if kind != "colour" and not all(n in buffers for n in RADIANCE_COMPONENTS):
+        return out, np.ones(buffers["color"].shape[:2])  # no components to tell the diffuse light from reflections
+    for names in GATE_GROUPS[kind]:
+        averaged, count = _average_group(buffers, past, traced, [n for n in names if n in buffers], kernel, gate)
+        out.update(averaged)
+        counts.append(count)
+    if kind != "colour":
+        out["color"] = beauty_from_components(out)
+        if all(f"{n}.variance" in buffers for n in ("color", *AVERAGED[kind])):
+            share = sum(out[f"{n}.variance"].astype(np.float64) - buffers[f"{n}.variance"] for n in AVERAGED[kind])
+            out["color.variance"] = np.maximum(buffers["color.variance"] + share, 0).astype(np.float32)
+    return out, counts[0]
+
+
+def _average_group(buffers, past, traced, names, kernel, gate) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(the buffers ``names`` and their variances averaged as ``average_input`` says, their count (H, W))."""
     count = np.ones(buffers["color"].shape[:2])
-    if kind == "diffuse" and not all(n in buffers for n in RADIANCE_COMPONENTS):
-        return dict(buffers), count     # no components to tell the diffuse light from the reflections: frame t alone
-    keys = [k for n in AVERAGED[kind] if n in buffers for k in (n, f"{n}.variance") if k in buffers]
+    keys = [k for n in names for k in (n, f"{n}.variance") if k in buffers]
     total = {k: buffers[k].astype(np.float64) for k in keys}
-    names = [k for k in keys if not k.endswith(".variance")]
     gated = gate is not None and all(f"{n}.variance" in buffers for n in names)
     if gated:
         mine = sum(buffers[n].astype(np.float64) for n in names)
@@ -139,15 +158,8 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
         for k in keys:
             total[k] += read[k] * valid[..., None]
         count += valid
-    out = dict(buffers)
-    for k in keys:
-        out[k] = (total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1)).astype(np.float32)
-    if kind == "diffuse":
-        out["color"] = beauty_from_components(out)
-        if "color.variance" in buffers and all(f"{n}.variance" in buffers for n in AVERAGED["diffuse"]):
-            share = sum(out[f"{n}.variance"].astype(np.float64) - buffers[f"{n}.variance"] for n in AVERAGED["diffuse"])
-            out["color.variance"] = np.maximum(buffers["color.variance"] + share, 0).astype(np.float32)
-    return out, count
+    return {k: (total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1)).astype(np.float32)
+            for k in keys}, count
 
 
 class InputWindow:
@@ -157,8 +169,8 @@ class InputWindow:
     def __init__(self, frames: int, kind: str = "diffuse", gate: float | None = None):
         if frames < 1:
             raise ValueError(f"a window of {frames} frames: must be >= 1")
-        if kind not in AVERAGED:
-            raise ValueError(f"kind must be one of {', '.join(AVERAGED)}, got {kind!r}")
+        if kind not in GATE_GROUPS:
+            raise ValueError(f"kind must be one of {', '.join(GATE_GROUPS)}, got {kind!r}")
         self.frames, self.kind, self.gate = frames, kind, gate
         self.past: list[tuple[dict[str, np.ndarray], motion.View | None]] = []    # the latest first
         self.counts: list[float] = []              # per frame taken after the first, the mean frames per pixel

@@ -7,6 +7,7 @@ from mcdenoise.pipeline.metrics import reinhard
 from mcdenoise.pipeline.motion import Camera
 from mcdenoise.pipeline.schema import RADIANCE_COMPONENTS, beauty_from_components
 from mcdenoise.pipeline.temporal import (
+    AVERAGED,
     InputWindow,
     average_input,
     blend_history,
@@ -206,3 +207,34 @@ def test_the_gate_keeps_a_past_frame_only_where_it_agrees_within_noise():
     assert (count == 2).all()
     out, _ = average_input(now, [past], [still()], "diffuse", gate=3.0)
     np.testing.assert_array_equal(out["diffuse_direct"][:, 4:], now["diffuse_direct"][:, 4:])
+
+
+def test_components_gate_each_reflection_apart_from_the_diffuse_light():
+    """A reflection that moved (frame t-1's specular_direct far off frame t's on the right half): with
+    ``components`` the diffuse light and specular_indirect average everywhere, specular_direct only on the left
+    half; the beauty is the sum of the averaged components and frame t's emission, its variance frame t's with
+    every averaged component's share replaced."""
+    rng = np.random.default_rng(5)
+    now = frame_buffers(rng)
+    past = frame_buffers(rng)
+    for n in RADIANCE_COMPONENTS:                  # within noise of frame t everywhere ...
+        past[n] = now[n].copy()
+    right = np.arange(8)[None, :, None] >= 4       # ... but the reflection moved on the right half
+    past["specular_direct"] = np.where(right, now["specular_direct"] + 100, now["specular_direct"]).astype(np.float32)
+    out, count = average_input(now, [past], [still()], "components", gate=2.0)
+    assert (count == 2).all()                      # the first group's count: the diffuse light
+    for n in ("diffuse_direct", "diffuse_indirect", "specular_indirect"):
+        np.testing.assert_allclose(out[f"{n}.variance"], (now[f"{n}.variance"].astype(np.float64)
+                                                          + past[f"{n}.variance"]) / 4, rtol=1e-6)
+    spec = np.where(right, now["specular_direct"], (now["specular_direct"].astype(np.float64) + past["specular_direct"]) / 2)
+    np.testing.assert_allclose(out["specular_direct"], spec, rtol=1e-6)
+    var = np.where(right, now["specular_direct.variance"],
+                   (now["specular_direct.variance"].astype(np.float64) + past["specular_direct.variance"]) / 4)
+    np.testing.assert_allclose(out["specular_direct.variance"], var, rtol=1e-6)
+    np.testing.assert_array_equal(out["emission"], now["emission"])
+    np.testing.assert_allclose(out["color"], beauty_from_components(out), rtol=1e-6)
+    share = sum(out[f"{n}.variance"].astype(np.float64) - now[f"{n}.variance"] for n in AVERAGED["components"])
+    np.testing.assert_allclose(out["color.variance"], np.maximum(now["color.variance"] + share, 0), rtol=1e-5, atol=1e-7)
+    # diffuse: the reflections are frame t's whatever the gate
+    out, _ = average_input(now, [past], [still()], "diffuse", gate=2.0)
+    np.testing.assert_array_equal(out["specular_indirect"], now["specular_indirect"])
