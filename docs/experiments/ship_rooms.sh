@@ -31,12 +31,14 @@ make train CONFIG=$C SPP=any runs=runs/ship_rooms_scratch
 # scored as the rule says: every noise realization, val_* at 4 spp, default val at 4 spp (train/shipped too:
 # a runs folder without a run scores the model that ships)
 score() {   # score NAME RUNS
-  [ -s "$OUT/$1_val.txt" ] || $PY docs/oidn_guards/realizations.py --reference oidn_prefilter --methods ours \
-    --store data/external --prefix ext_val --spp 4 --json "$OUT/$1_val.json" -- runs="$2" > "$OUT/$1_val.txt.tmp" \
-    && mv "$OUT/$1_val.txt.tmp" "$OUT/$1_val.txt"
-  [ -s "$OUT/$1_default_val.txt" ] || $PY docs/oidn_guards/realizations.py --reference oidn_prefilter --methods ours \
-    --store data/default --split val --prefix "" --spp 4 --json "$OUT/$1_default_val.json" -- runs="$2" \
-    > "$OUT/$1_default_val.txt.tmp" && mv "$OUT/$1_default_val.txt.tmp" "$OUT/$1_default_val.txt"
+  local f
+  for f in val default_val; do
+    [ -s "$OUT/$1_$f.txt" ] && continue
+    if [ $f = val ]; then where="--store data/external --prefix ext_val"; else where="--store data/default --split val --prefix="; fi
+    $PY docs/oidn_guards/realizations.py --reference oidn_prefilter --methods ours $where --spp 4 \
+      --json "$OUT/$1_$f.json" -- runs="$2" > "$OUT/$1_$f.txt.tmp"
+    mv "$OUT/$1_$f.txt.tmp" "$OUT/$1_$f.txt"
+  done
 }
 score shipped runs/none_shipped
 for r in 1pf 8pf warm scratch; do score $r runs/ship_rooms_$r; done
