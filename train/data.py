@@ -97,10 +97,11 @@ def _sequence_inputs(store: Store, window: tuple[int, float | None]):
     return SequenceInputs(store, *window)
 
 
-def input_record(window: tuple[int, float | None]) -> str:
-    """How a history pack's input is averaged, for its metadata: a pack averaged otherwise is built again."""
+def input_record(window: tuple[int, float | None]) -> str | None:
+    """How a history pack's input is averaged, for its metadata and the run's fingerprint (a pack averaged
+    otherwise is built again); None for a window of 1 frame, the input as packs had it before averaging."""
     frames, gate = window
-    return f"diffuse over {frames} frames" + (f", gate {gate:g}" if gate else "")
+    return None if frames <= 1 else f"diffuse over {frames} frames" + (f", gate {gate:g}" if gate else "")
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
@@ -149,7 +150,8 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
             "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(s) for s in sizes]),
             "aux": _aux_kind(clean_aux),
-            **({"history": HISTORY_SOURCE, "input": input_record(window)} if history else {})}
+            **({"history": HISTORY_SOURCE} if history else {}),
+            **({"input": input_record(window)} if history and input_record(window) else {})}
     save_safetensors(path, tensors, meta)
     return path
 
@@ -171,7 +173,7 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
                 and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in pack_keys(keys, history)]
                 and meta.get("aux", "rendered") == _aux_kind(clean_aux)
                 and meta.get("history") == (HISTORY_SOURCE if history else None)
-                and meta.get("input") == (input_record(window) if history else None)):
+                and meta.get("input") == (input_record(window) if history else None)):     # None: not averaged
             return path
     return build_pack(store, keys, path, quiet, clean_aux, history, window)
 

@@ -244,7 +244,7 @@ def setup(cfg: Config, spp, quiet: bool) -> Run:
                    # only with history: the fingerprint of a run without it stays what it was (it still resumes)
                    **({"history": True, "history_dropout": d.history_dropout} if history else {}),
                    # the input a model that reads the past trains on, where it is averaged (train.history)
-                   **({"input": input_record(source.window)} if history and source.window[0] > 1 else {})}
+                   **({"input": input_record(source.window)} if history and input_record(source.window) else {})}
     return Run(cfg, folder.name, folder, source, spps, device, rank, world, says, autocast_dtype(d.precision, device),
                model, blob, base_what, network, base_blend, form, train_steps, kept, params, opt,
                make_ema(model.control, d.ema), fingerprint)
