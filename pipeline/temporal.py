@@ -38,7 +38,10 @@ the reference's, each tonemapped (x/(1+x), the metrics' tonemap):
 A denoiser whose error is the same in both frames (it follows the image) scores 0 however large
 that error; noise that changes from frame to frame scores about its mean absolute size. Subtracting
 the reference's change removes what legitimately changes (view-dependent shading, the reprojection's
-own resampling), so a still, perfect sequence and a moving, perfect one both score 0.
+own resampling), so a still, perfect sequence and a moving, perfect one both score 0 against a
+noiseless reference. A reference with noise of its own (GT1 of an external scene) changes by that
+noise too, which no method can follow: the true image then scores E|ΔGT1|, between half and all
+of GT2's score (docs/sequences.md, "What the instability can measure").
 """
 from __future__ import annotations
 
