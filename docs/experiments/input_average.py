@@ -10,7 +10,9 @@ window - 1 frames before it, each read straight into frame t (``motion.reproject
 then ``--kernel``), over the frames valid at each pixel: all the radiance (``colour/W``) or only the diffuse
 components (``diffuse/W``); OIDN's final-frame mode on it; each also with the temporal filter on its output
 (``+filter``, or ``+filter:W`` for each of ``--weights``). The baseline ``filter`` is
-``oidn_prefilter_temporal``. ``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside
+``oidn_prefilter_temporal``. ``--specular R,...`` adds, for each radius R, the filter whose weight per pixel is ``w + (1 - w) * s`` with
+``s`` the share of reflected light in the denoiser's input (``specular_share``), labelled +spec:R.
+``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside
 ``ours`` and ``ours_filter``. Prints per method and spp the mean over sequences of (mean over t >= 1 of PSNR -
 oidn_prefilter's), the mean instability (as the sequence page measures it, through GT1's motion) and the
 sequences below oidn_prefilter.
@@ -22,6 +24,7 @@ from history_clamp import arguments, oidn_sequences
 
 from mcdenoise.evaluate.scoring import score
 from mcdenoise.pipeline import motion, temporal
+from mcdenoise.pipeline.schema import RADIANCE_COMPONENTS
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
@@ -33,12 +36,36 @@ def averaged(frames, t: int, window: int, kind: str, kernel: str, gate: float | 
     return temporal.average_input(frames[t].buffers, [f.buffers for f in past], traced, kind, kernel, gate)[0]
 
 
-def filtered(outputs, frames, weight):
-    """The temporal filter along ``outputs`` (its own previous output as the history)."""
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float64)
+
+
+def specular_share(buffers: dict[str, np.ndarray], radius: int) -> np.ndarray:
+    """(H, W) share of the specular components in the luminance of all radiance components, each box-filtered
+    over a (2 radius + 1)^2 window first (edge pixels over the window's part inside the image); 0 where no light."""
+    def box(image):
+        lum = np.maximum(np.asarray(image, np.float64) @ LUMINANCE, 0.0)
+        padded = np.pad(lum, radius)
+        h, w = lum.shape
+        return sum(padded[dy:dy + h, dx:dx + w] for dy in range(2 * radius + 1) for dx in range(2 * radius + 1))
+    spec = box(buffers["specular_direct"] + buffers["specular_indirect"])
+    total = box(sum(buffers[n] for n in RADIANCE_COMPONENTS))
+    return np.clip(np.divide(spec, total, out=np.zeros_like(spec), where=total > 0), 0.0, 1.0)
+
+
+def filtered(outputs, frames, weight, shares=None):
+    """The temporal filter along ``outputs`` (its own previous output as the history); with ``shares`` (per frame,
+    (H, W)) the new frame's weight per pixel is weight + (1 - weight) * share."""
     out = [outputs[0]]
     for t in range(1, len(frames)):
-        history = motion.warp_previous(out[t - 1], frames[t].views["input"], frames[t - 1].views["input"])
-        out.append(temporal.blend_history(outputs[t], *history, weight))
+        history, valid = motion.warp_previous(out[t - 1], frames[t].views["input"], frames[t - 1].views["input"])
+        if shares is None:
+            out.append(temporal.blend_history(outputs[t], history, valid, weight))
+            continue
+        current = np.asarray(outputs[t], np.float32)
+        lo, hi = temporal.neighbourhood_range(current)
+        w = (weight + (1.0 - weight) * shares[t])[..., None].astype(np.float32)
+        y = w * current + (1.0 - w) * np.clip(history, lo, hi)
+        out.append(np.where(valid[..., None], y, current))
     return out
 
 
@@ -63,6 +90,8 @@ def main() -> int:
                     help="temporal.average_input's gate: none, or standard deviations (comma-separated)")
     ap.add_argument("--weights", help="the filter's weights on the averaged input (comma-separated; default "
                                      "--weight): each candidate with the filter once per weight, labelled +filter:W")
+    ap.add_argument("--specular", default="", help="box radii of the reflected share's per-pixel filter weight "
+                                                  "(comma-separated; each filtered candidate once more per radius)")
     ap.add_argument("--ours", metavar="CANDIDATE",
                     help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
                          "ours and ours_filter")
@@ -77,7 +106,10 @@ def main() -> int:
                   for f in (None, *weights)]
     label = lambda kind, w, g, f: (f"{kind}/{w}" + (f"@{g:g}" if g else "") + ("" if f is None else  # noqa: E731
                                    "+filter" if not args.weights else f"+filter:{f:g}"))
-    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates)]
+    radii = [int(r) for r in args.specular.split(",") if r]
+    spec_names = [f"{base}+spec:{r}" for base in ["filter", *(label(*c) for c in candidates if c[3] is not None)]
+                  for r in radii]
+    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates), *spec_names]
     if args.ours:
         from mcdenoise.train.infer import load_denoiser
         model = load_denoiser("train/shipped")
@@ -91,13 +123,22 @@ def main() -> int:
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
             runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight)}
+            for r in radii:
+                runs[f"filter+spec:{r}"] = filtered(base, frames, args.weight,
+                                                    [specular_share(f.buffers, r) for f in frames])
+            inputs = {}
             for kind, w, g, weight in candidates:
                 if weight is not None:
-                    runs[label(kind, w, g, weight)] = filtered(runs[label(kind, w, g, None)], frames, weight)
+                    unfiltered = runs[label(kind, w, g, None)]
+                    runs[label(kind, w, g, weight)] = filtered(unfiltered, frames, weight)
+                    for r in radii:
+                        runs[f"{label(kind, w, g, weight)}+spec:{r}"] = filtered(
+                            unfiltered, frames, weight, [specular_share(b, r) for b in inputs[kind, w, g]])
                     continue
+                inputs[kind, w, g] = [averaged(frames, t, w, kind, args.kernel, g) for t in range(len(frames))]
                 runs[label(kind, w, g, None)] = [
                     oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
-                    for b in (averaged(frames, t, w, kind, args.kernel, g) for t in range(len(frames)))]
+                    for b in inputs[kind, w, g]]
             if args.ours:
                 ours = [model.denoise(f.buffers, spp) for f in frames]
                 runs["ours"], runs["ours_filter"] = ours, filtered(ours, frames, args.weight)
