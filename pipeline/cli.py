@@ -370,7 +370,7 @@ def _denoise(args) -> int:
     if args.store is not None:
         args.overrides = [*args.overrides, f"store={args.store}"]
     # without a config (or a runs folder) the shipped model, whatever a runs folder here holds
-    own_runs = args.config is not None or any(o.startswith("runs=") for o in args.overrides)
+    own_runs = args.config is not None or any(o.startswith(("runs=", "diffusion.model=")) for o in args.overrides)
     model = None if own_runs else SHIPPED_MODEL
     if args.sequence is not None:
         from mcdenoise.train.sequence import cmd_denoise_sequence

@@ -369,6 +369,10 @@ class DiffusionConfig(TrainingConfig):
                     "starts from: its frozen base replaces diffusion.base and its Control Module trains on (a warm "
                     "start, e.g. on new data) with that model's formulation and train_steps (the config's are not "
                     "used; the run says which differ); empty: a new, zero-initialised Control Module.", "")
+    model: str = doc("A model folder (a run folder or an exported one) that the methods without a run variant "
+                     "(ours, ours_filter, ours_temporal) and denoise run, whatever the runs folder holds: to score "
+                     "a model trained on another store on this one. Empty: this config's run, else train/shipped.",
+                     "")
     epochs: int = override("epochs", 16, "An epoch: crops_per_frame crops of every train frame, at most "
                                          "epoch_steps steps.")
     batch_size: int = override("batch_size", 8, "Per process under torchrun.")

@@ -127,3 +127,25 @@ def test_eval_loads_the_run_that_diffusion_name_named(tmp_path):
     assert loader.diffusion_folder(4, parse("ours_y").variant) == tmp_path / "diffusion_sppany_y"
     unnamed = Loader(load_config(None, [f"runs={tmp_path}"]))
     assert unnamed.diffusion_folder(4, parse("ours").variant) == tmp_path / "diffusion_sppany"
+
+
+def test_diffusion_model_names_the_model_ours_runs_whatever_the_runs_folder_holds(tmp_path):
+    """``diffusion.model`` scores a model trained on another store (its model.json names that store) on this
+    one: the lookup without a variant returns it, past the runs folder's own run; ``ours_y`` still picks its run;
+    a folder without model.json is an error naming the key."""
+    import json
+
+    from mcdenoise.evaluate.methods import Loader, MethodUnavailable, parse
+
+    for name, store in (("diffusion_sppany", "mine"), ("diffusion_sppany_y", "mine"), ("elsewhere", "other")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "model.json").write_text(json.dumps({"store": str(tmp_path / store)}))
+    cfg = load_config(None, [f"store={tmp_path / 'mine'}", f"runs={tmp_path}",
+                             f"diffusion.model={tmp_path / 'elsewhere'}"])
+    loader = Loader(cfg)
+    assert loader.diffusion_folder(4, parse("ours").variant) == tmp_path / "elsewhere"
+    assert loader.diffusion_folder(16, parse("ours").variant) == tmp_path / "elsewhere"
+    assert loader.diffusion_folder(4, parse("ours_y").variant) == tmp_path / "diffusion_sppany_y"
+    missing = Loader(load_config(None, [f"runs={tmp_path}", f"diffusion.model={tmp_path / 'none'}"]))
+    with pytest.raises(MethodUnavailable, match=r"^diffusion\.model: .*none has no model\.json"):
+        missing.diffusion_folder(4, parse("ours").variant)

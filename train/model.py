@@ -600,7 +600,14 @@ def find_run(cfg: Config, spp: int | str, variant: str | None = None) -> Path:
     ``diffusion_sppany[_variant]`` (one model serves every sample count), else (no variant, and
     ``diffusion.shipped``) the model shipped with the repository (``SHIPPED_MODEL``); CheckpointError (a StoreError)
     if none. A run trained on another store than the config's (its model.json's ``store``) is passed over, said in
-    one line: another config's run in a shared folder is not this config's model."""
+    one line: another config's run in a shared folder is not this config's model. ``diffusion.model``, where set,
+    is the model of the lookup without a variant, whatever the runs folder holds."""
+    if variant is None and cfg.diffusion.model:
+        folder = Path(cfg.diffusion.model)
+        if not (folder / "model.json").is_file():
+            raise CheckpointError(f"diffusion.model: {folder} has no model.json (expected a run folder or an "
+                                  "exported model such as train/shipped)")
+        return folder
     named = variant if variant is not None else cfg.diffusion.name
     shipped = SHIPPED_MODEL if not named and cfg.diffusion.shipped else None
     folder = config_mod.find_run(cfg, "diffusion", spp, "model.json", variant)

@@ -28,20 +28,20 @@ done
 make train CONFIG=$C SPP=any runs=runs/ship_rooms_warm diffusion.init=train/shipped
 make train CONFIG=$C SPP=any runs=runs/ship_rooms_scratch
 
-# scored as the rule says: every noise realization, val_* at 4 spp, default val at 4 spp (train/shipped too:
-# a runs folder without a run scores the model that ships)
-score() {   # score NAME RUNS
+# scored as the rule says: every noise realization, val_* at 4 spp, default val at 4 spp (train/shipped too);
+# diffusion.model names the candidate (a run trained on another store than the scored one is otherwise passed over)
+score() {   # score NAME MODEL
   local f
   for f in val default_val; do
     [ -s "$OUT/$1_$f.txt" ] && continue
     if [ $f = val ]; then where="--store data/external --prefix ext_val"; else where="--store data/default --split val --prefix="; fi
     $PY docs/oidn_guards/realizations.py --reference oidn_prefilter --methods ours $where --spp 4 \
-      --json "$OUT/$1_$f.json" -- runs="$2" > "$OUT/$1_$f.txt.tmp"
+      --json "$OUT/$1_$f.json" -- diffusion.model="$2" > "$OUT/$1_$f.txt.tmp"
     mv "$OUT/$1_$f.txt.tmp" "$OUT/$1_$f.txt"
   done
 }
-score shipped runs/none_shipped
-for r in 1pf 8pf warm scratch; do score $r runs/ship_rooms_$r; done
+score shipped train/shipped
+for r in 1pf 8pf warm scratch; do score $r runs/ship_rooms_$r/diffusion_sppany; done
 
 # the model that reads the past (docs/sequences.md, "The same on configs/ship_rooms.yaml"): warm-started from
 # train/shipped here; if the rule above ships a candidate, start from it instead (diffusion.init=<its folder>)
@@ -56,7 +56,7 @@ seqeval() {   # seqeval STORE NAME METHOD OVERRIDES...
     && mv "$OUT/${name}_$(basename "$store").txt.tmp" "$OUT/${name}_$(basename "$store").txt"; }
 }
 for store in data/sequence data/val_seq; do
-  seqeval $store history ours_temporal runs=runs/ship_rooms diffusion.name=history
-  seqeval $store filter ours_filter runs=runs/none_shipped
+  seqeval $store history ours_temporal diffusion.model=runs/ship_rooms/diffusion_sppany_history
+  seqeval $store filter ours_filter diffusion.model=train/shipped
 done
 echo "all scored: $OUT"
