@@ -147,7 +147,7 @@ TRAINER_KEYS = {
     "afgsa": SHARED | {"target", "crops_per_frame", "lr_critic", "adv_weight", "gp_weight", "channels",
                        "extractor_channels", "blocks", "heads", "block_size", "halo", "critic_channels",
                        "critic_levels", "tile"},
-    "diffusion": SHARED | {"base", "base_network", "extra_stores", "init", "crops_per_frame", "epoch_steps",
+    "diffusion": SHARED | {"base", "base_network", "extra_stores", "init", "model", "crops_per_frame", "epoch_steps",
                            "history", "history_dropout",
                            "weight_decay", "warmup_steps", "precision", "shipped", "name", "schedule",
                            "residual_scale", "snr_gamma", "snr_floor", "hdr_weight", "dropout", "t_focus",
