@@ -95,10 +95,15 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
 # What ``average_input`` averages, per kind, in groups that its gate tests together: every radiance buffer as
 # one, only the view-independent diffuse light (the rest of the frame stays frame t's: reflections do not follow
 # the surface's motion), or every component with the diffuse light and each reflection gated apart.
+# ``irradiance`` is the diffuse light demodulated by the albedo: averaged as the diffuse light divided by each
+# frame's own albedo, then multiplied by frame t's, so a texture stays frame t's (SVGF, Schied et al. 2017).
 GATE_GROUPS = {"colour": (("color", *RADIANCE_COMPONENTS),),
                "diffuse": (("diffuse_direct", "diffuse_indirect"),),
+               "irradiance": (("diffuse_direct", "diffuse_indirect"),),
                "components": (("diffuse_direct", "diffuse_indirect"), ("specular_direct",), ("specular_indirect",))}
 AVERAGED = {kind: tuple(n for g in groups for n in g) for kind, groups in GATE_GROUPS.items()}
+DEMODULATED = {"irradiance"}
+ALBEDO_FLOOR = 1e-3     # below it a channel's albedo is black: its light is averaged as it is, not divided
 
 
 def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarray]],
@@ -112,7 +117,9 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
     with ``kernel="nearest"``: an interpolated read correlates the noise, and the denoiser keeps it,
     docs/sequences.md; ``kernel`` is there to measure that). ``kind`` (``GATE_GROUPS``): ``colour`` averages
     every radiance buffer present (the beauty and its components); ``diffuse`` the two diffuse components,
-    ``components`` the diffuse and the specular ones, the beauty then the sum of the components (the averaged
+    ``components`` the diffuse and the specular ones, ``irradiance`` the diffuse ones divided by each frame's albedo
+    (per channel, where above ``ALBEDO_FLOOR``; a past pixel counts only where the same channels are), then
+    multiplied by frame t's, the beauty then the sum of the components (the averaged
     ones and frame t's others) with frame t's emission (a frame without the components is left alone: its beauty
     averaged would carry reflections along with the surface, which loses up to 8 dB on glossy scenes,
     docs/sequences.md). A buffer's variance (the variance of the pixel estimate) becomes the mean of the frames'
@@ -129,8 +136,10 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
     out, counts = dict(buffers), []
     if kind != "colour" and not all(n in buffers for n in RADIANCE_COMPONENTS):
         return out, np.ones(buffers["color"].shape[:2])  # no components to tell the diffuse light from reflections
+    albedo = kind in DEMODULATED and "albedo" in buffers
     for names in GATE_GROUPS[kind]:
-        averaged, count = _average_group(buffers, past, traced, [n for n in names if n in buffers], kernel, gate)
+        averaged, count = _average_group(buffers, past, traced, [n for n in names if n in buffers], kernel, gate,
+                                         albedo)
         out.update(averaged)
         counts.append(count)
     if kind != "colour":
@@ -141,19 +150,27 @@ def average_input(buffers: dict[str, np.ndarray], past: list[dict[str, np.ndarra
     return out, counts[0]
 
 
-def _average_group(buffers, past, traced, names, kernel, gate) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """(the buffers ``names`` and their variances averaged as ``average_input`` says, their count (H, W))."""
+def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(the buffers ``names`` and their variances averaged as ``average_input`` says, their count (H, W)); with
+    ``albedo``, averaged as the light divided by each frame's albedo, then multiplied by frame t's."""
     count = np.ones(buffers["color"].shape[:2])
     keys = [k for n in names for k in (n, f"{n}.variance") if k in buffers]
-    total = {k: buffers[k].astype(np.float64) for k in keys}
+    albedo = albedo and all("albedo" in frame for frame in past)
+    mine_lit = buffers["albedo"].astype(np.float64) > ALBEDO_FLOOR if albedo else None
+    total = _demodulated({k: buffers[k].astype(np.float64) for k in keys}, buffers, mine_lit)
     gated = gate is not None and all(f"{n}.variance" in buffers for n in names)
     if gated:
-        mine = sum(buffers[n].astype(np.float64) for n in names)
-        my_var = sum(buffers[f"{n}.variance"].astype(np.float64) for n in names)
+        mine = sum(total[n] for n in names)
+        my_var = sum(total[f"{n}.variance"] for n in names)
     for frame, (xy, valid) in zip(past, traced):
         if not all(k in frame for k in keys):
             break                       # a frame without those layers ends the window
-        read = {k: motion.warp(frame[k], xy, valid, kernel=kernel).astype(np.float64) for k in keys}
+        read = {k: motion.warp(frame[k], xy, valid, kernel=kernel).astype(np.float64) for k in (*keys, "albedo")
+                if k in keys or albedo}
+        if albedo:
+            lit = read["albedo"] > ALBEDO_FLOOR
+            valid = valid & (lit == mine_lit).all(axis=-1)      # a channel black in one frame only: another surface
+            read = _demodulated(read, read, lit)
         if gated:
             theirs = sum(read[n] for n in names)
             spread = np.sqrt(my_var + sum(read[f"{n}.variance"] for n in names))
@@ -161,8 +178,20 @@ def _average_group(buffers, past, traced, names, kernel, gate) -> tuple[dict[str
         for k in keys:
             total[k] += read[k] * valid[..., None]
         count += valid
-    return {k: (total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1)).astype(np.float32)
-            for k in keys}, count
+    mean = {k: total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1) for k in keys}
+    if albedo:                          # modulated again by frame t's albedo: the texture is this frame's
+        a = np.where(mine_lit, buffers["albedo"].astype(np.float64), 1.0)
+        mean = {k: v * (a * a if k.endswith(".variance") else a) for k, v in mean.items()}
+    return {k: v.astype(np.float32) for k, v in mean.items()}, count
+
+
+def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], lit: np.ndarray | None) -> dict:
+    """``values`` (light and variances) divided by ``frame``'s albedo (squared for a variance) in the channels
+    where ``lit`` (albedo above ``ALBEDO_FLOOR``); as they are without ``lit``."""
+    if lit is None:
+        return values
+    a = np.where(lit, frame["albedo"].astype(np.float64), 1.0)
+    return {k: v / (a * a if k.endswith(".variance") else a) for k, v in values.items() if k != "albedo"}
 
 
 class InputWindow:
@@ -198,6 +227,8 @@ class InputWindow:
             out = buffers                  # the frame's own input, as the per-frame method saw it
         # only what is averaged is kept (at 1920x1080 the diffuse light and its variance are 100 MB a frame)
         kept = {k: buffers[k] for n in AVERAGED[self.kind] for k in (n, f"{n}.variance") if k in buffers}
+        if self.kind in DEMODULATED and "albedo" in buffers:
+            kept["albedo"] = buffers["albedo"]
         self.past = [(kept, view), *self.past][: self.frames - 1]
         return out
 

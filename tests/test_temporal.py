@@ -209,6 +209,70 @@ def test_the_gate_keeps_a_past_frame_only_where_it_agrees_within_noise():
     np.testing.assert_array_equal(out["diffuse_direct"][:, 4:], now["diffuse_direct"][:, 4:])
 
 
+def test_irradiance_average_keeps_this_frames_texture_and_averages_the_light_under_it():
+    """Each frame's diffuse light is its albedo times a noisy irradiance; frame t-1 sees another albedo (a texture
+    half a pixel off). ``irradiance`` gives frame t's albedo times the mean irradiance, its variance frame t's
+    albedo squared times the mean of the irradiance variances over 2 squared; where a channel's albedo is black in
+    one frame only, the past pixel does not count."""
+    rng = np.random.default_rng(7)
+    frames = [frame_buffers(rng) for _ in range(2)]
+    for f in frames:
+        f["albedo"] = rng.uniform(0.1, 0.9, (6, 8, 3)).astype(np.float32)
+    frames[1]["albedo"][1, 2, 0] = 0.0                       # black in frame t-1 only: another surface there
+    frames[0]["albedo"][4, 5, 1] = frames[1]["albedo"][4, 5, 1] = 0.0   # black in both: averaged as it is
+    out, count = average_input(frames[0], frames[1:], [still()], "irradiance")
+    assert count[1, 2] == 1 and (np.delete(count.ravel(), 1 * 8 + 2) == 2).all()
+    a = [np.where(f["albedo"] > 1e-3, f["albedo"].astype(np.float64), 1.0) for f in frames]
+    for n in ("diffuse_direct", "diffuse_indirect"):
+        light = a[0] * (frames[0][n] / a[0] + frames[1][n] / a[1]) / 2
+        light[1, 2] = frames[0][n][1, 2]
+        np.testing.assert_allclose(out[n], light, rtol=1e-5)
+        v = [f[f"{n}.variance"] / (ai * ai) for f, ai in zip(frames, a)]
+        var = a[0] ** 2 * (v[0] + v[1]) / 4
+        var[1, 2] = frames[0][f"{n}.variance"][1, 2]
+        np.testing.assert_allclose(out[f"{n}.variance"], var, rtol=1e-5)
+    for n in ("emission", "specular_direct", "specular_indirect", "albedo"):
+        np.testing.assert_array_equal(out[n], frames[0][n])
+    np.testing.assert_allclose(out["color"], beauty_from_components(out), rtol=1e-5)
+
+
+def test_irradiance_gate_passes_a_texture_the_diffuse_gate_refuses():
+    """The same irradiance under another albedo in frame t-1 (no noise between them): the diffuse light differs by
+    far more than its standard deviation, so ``diffuse`` gated at 2 refuses every past pixel, while ``irradiance``
+    counts them all and gives frame t's light back exactly."""
+    rng = np.random.default_rng(8)
+    now = frame_buffers(rng)
+    irradiance = {n: rng.uniform(0.5, 2, (6, 8, 3)) for n in ("diffuse_direct", "diffuse_indirect")}
+    past = {k: v.copy() for k, v in now.items()}
+    now["albedo"], past["albedo"] = (np.full((6, 8, 3), 0.2, np.float32), np.full((6, 8, 3), 0.8, np.float32))
+    for f in (now, past):
+        for n, e in irradiance.items():
+            f[n] = (f["albedo"] * e).astype(np.float32)
+            f[f"{n}.variance"] = np.full((6, 8, 3), 1e-4, np.float32)
+    _, count = average_input(now, [past], [still()], "diffuse", gate=2.0)
+    assert (count == 1).all()
+    out, count = average_input(now, [past], [still()], "irradiance", gate=2.0)
+    assert (count == 2).all()
+    for n in irradiance:
+        np.testing.assert_allclose(out[n], now[n], rtol=1e-5)
+        # each frame's variance divided by its albedo squared, averaged over 2 frames, times frame t's albedo squared
+        np.testing.assert_allclose(out[f"{n}.variance"], 0.2 ** 2 * (1e-4 / 0.04 + 1e-4 / 0.64) / 4, rtol=1e-5)
+
+
+def test_input_window_keeps_the_albedo_it_demodulates_by():
+    rng = np.random.default_rng(9)
+    frames = [frame_buffers(rng) for _ in range(3)]
+    view = motion.View(Camera(np.eye(4), 60.0, 8, 6), np.full((6, 8), 2.0, np.float32), None)
+    window = InputWindow(3, "irradiance")
+    for f in frames[:2]:
+        window.take(f, view)
+    assert all("albedo" in past for past, _ in window.past)
+    out = window.take(frames[2], view)
+    expected, _ = average_input(frames[2], frames[1::-1], motion.trace(view, [view, view]), "irradiance")
+    for n in ("diffuse_direct", "diffuse_direct.variance", "color"):
+        np.testing.assert_allclose(out[n], expected[n], rtol=1e-6)
+
+
 def test_components_gate_each_reflection_apart_from_the_diffuse_light():
     """A reflection that moved (frame t-1's specular_direct far off frame t's on the right half): with
     ``components`` the diffuse light and specular_indirect average everywhere, specular_direct only on the left

@@ -85,7 +85,7 @@ def main() -> int:
                     help="how a past frame's input is read")
     ap.add_argument("--windows", default="8", help="frames averaged, frame t included (comma-separated)")
     ap.add_argument("--kinds", default="colour,diffuse",
-                    help="what is averaged: colour, diffuse, components (comma-separated)")
+                    help="what is averaged: colour, diffuse, irradiance, components (comma-separated)")
     ap.add_argument("--gates", default="none",
                     help="temporal.average_input's gate: none, or standard deviations (comma-separated)")
     ap.add_argument("--weights", help="the filter's weights on the averaged input (comma-separated; default "
