@@ -25,8 +25,9 @@ not read the past); ``ours_temporal``: the model loaded for ``ours`` given its o
 this frame (``Denoiser.denoise(history=...)``, what ``denoise --sequence`` runs for it), available when that
 model reads the past (``diffusion.history``). Each frame of a temporal method is one ``pipeline.temporal.step``,
 as in ``denoise --sequence``; without a history (t = 0, or after a frame where the method failed) it is its
-per-frame method's output. t = 0 is reported apart. Only the methods listed run, with the per-frame methods
-their temporal ones build on.
+per-frame method's output on the frame's input as the temporal methods average it (at t = 0 with the frames after
+it, ``eval.temporal_ahead``; without them, the per-frame output itself). t = 0 is reported apart. Only the
+methods listed run, with the per-frame methods their temporal ones build on.
 """
 from __future__ import annotations
 
@@ -122,25 +123,26 @@ def score_sequence(frames_out: dict[str, list[np.ndarray | None]], frames: list[
 
 
 def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods: dict, temporal_names: list[str],
-                 ref_name: str, weight: float, window: int = 1, gate: float = 0.0) -> tuple[dict, dict, list[Frame]]:
+                 ref_name: str, weight: float, window: int = 1, gate: float = 0.0,
+                 ahead: int = 0) -> tuple[dict, dict, list[Frame]]:
     """Along one sequence, every per-frame method of ``methods`` and the temporal methods ``temporal_names`` (their
-    bases among ``methods``, their input averaged over ``window`` frames with ``gate``): ({method: [output per frame]},
-    {method: [seconds per frame]}, frames)."""
-    frames: list[Frame] = []
+    bases among ``methods``, their input averaged over ``window`` frames and the ``ahead`` frames after, with
+    ``gate``): ({method: [output per frame]}, {method: [seconds per frame]}, frames)."""
+    frames = [read_frame(store, key, spp, stacks_of(key), ref_name) for key in seq]
     outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
     # the input averaged once per frame, for every temporal method
-    inputs_window = temporal.InputWindow(window, gate=gate or None)
-    for t, key in enumerate(seq):
-        fr = read_frame(store, key, spp, stacks_of(key), ref_name)
-        frames.append(fr)
+    inputs_window = temporal.InputWindow(window, gate=gate or None, ahead=ahead)
+    for t, fr in enumerate(frames):
+        key = seq[t]
         for name, method in methods.items():
             method.set_frame(store, key)
             oc = run_method(method, fr.buffers)
             outputs[name].append(finite_output(oc) if oc.output is not None else None)
             seconds[name].append(oc.seconds)
         t0 = time.perf_counter()
-        averaged = inputs_window.take(fr.buffers, fr.views["input"]) if temporal_names else fr.buffers
+        later = [(inputs_window.keep(f.buffers), f.views["input"]) for f in frames[t + 1:t + 1 + ahead]]
+        averaged = inputs_window.take(fr.buffers, fr.views["input"], later) if temporal_names else fr.buffers
         averaging = time.perf_counter() - t0       # every temporal method's, which each would pay alone
         for name in temporal_names:
             base = TEMPORAL[name]
@@ -176,9 +178,11 @@ def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, 
     return y, time.perf_counter() - t0 - inside["wall"] + inside["method"]
 
 
-def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: int = 1) -> tuple[dict, dict]:
+def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: int = 1,
+                          ahead: int = 0) -> tuple[dict, dict]:
     """(the per-frame methods the available rows need: theirs or their temporal method's base; a row per name;
-    ``window``: the frames a temporal method averages the input over, said in its label)."""
+    ``window``, ``ahead``: the frames up to and after this one that a temporal method averages the input over,
+    said in its label)."""
     methods, rows = {}, {}
     for name in names:
         base = TEMPORAL.get(name, name)
@@ -190,7 +194,8 @@ def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: in
                 raise MethodUnavailable(f"the model of {base} ({methods[base].checkpoint}) does not read history: "
                                         "train one with diffusion.history=true (ours_filter is the temporal filter "
                                         "on it)")
-            averaged = f" on the diffuse light of {window} frames" if window > 1 and name != base else ""
+            averaged = ((f" on the diffuse light of {window} frames" + (f" and {ahead} after" if ahead else ""))
+                        if (window > 1 or ahead) and name != base else "")
             suffix = averaged + (" reading its previous output" if name in LEARNED
                                  else " + temporal filter" if name != base else "")
             rows[name] = {"label": label(base) + suffix, "available": True,
@@ -223,11 +228,12 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
     seqs = sequences(keys)
     names = [m for m in SEQUENCE_METRICS if m in metric_names]
     result = {"scenes": {s: [str(k) for k in ks] for s, ks in seqs.items()}, "spp": {},
-              "weight": e.temporal_weight, "window": e.temporal_window,
+              "weight": e.temporal_weight, "window": e.temporal_window, "ahead": e.temporal_ahead,
               "gate": e.temporal_gate, "metrics": names}
     strips = {}
     for spp in spps:
-        methods, rows = load_sequence_methods(loader, e.sequence_methods, spp, e.temporal_window)
+        methods, rows = load_sequence_methods(loader, e.sequence_methods, spp, e.temporal_window,
+                                              e.temporal_ahead)
         for name in rows:
             rows[name].update(per_frame=[], video={})
         strip = None
@@ -235,7 +241,7 @@ def evaluate_sequences(cfg: Config, store: Store, keys: list[FrameKey], ref_name
             outputs, seconds, frames = run_sequence(store, seq, spp, lambda k: stacks_for(k, spp), methods,
                                                     [n for n in rows if n in TEMPORAL and rows[n]["available"]],
                                                     ref_name(seq[0]), e.temporal_weight, e.temporal_window,
-                                                    e.temporal_gate)
+                                                    e.temporal_gate, e.temporal_ahead)
             scored = score_sequence({n: outputs[n] for n in rows if rows[n]["available"]}, frames, names,
                                     {"display": e.fvvdp_display})
             for name, recs in scored.items():

@@ -229,6 +229,23 @@ def _training_commands(sub) -> None:
     p.set_defaults(fn=_export)
 
 
+def _sequence_options(p) -> None:
+    """denoise's --sequence and the options that go with it."""
+    p.add_argument("--sequence", default=None, metavar="PATTERN",
+                   help="a rendered sequence, e.g. 'in/frame_####.exr' (# the zero-padded frame number): every frame "
+                        "denoised (--method ours or oidn_prefilter) and blended with its warped history, using "
+                        "Blender's Vector pass, or the EXR headers' worldToCamera/worldToNDC and the depth channel Z "
+                        "(without either, frame by frame, said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
+    p.add_argument("--temporal-weight", type=float, default=None,
+                   help="--sequence: the new frame's share of the blend (1: no history; default eval.temporal_weight)")
+    p.add_argument("--temporal-window", type=int, default=None,
+                   help="--sequence: frames over which the noisy diffuse light is averaged before denoising (1: none; "
+                        "default eval.temporal_window)")
+    p.add_argument("--ahead", type=int, default=None,
+                   help="--sequence: frames after each one averaged too, with cameras and depth (0: the frames before "
+                        "alone, as frames that arrive one at a time; default eval.temporal_ahead)")
+
+
 def _inference_commands(sub) -> None:
     p = with_config(command(sub, "pack", "decode the store once into compact training packs (train/data.py)"))
     p.add_argument("--split", action="append", default=None, help="split to pack (repeatable; default: train, val)")
@@ -249,16 +266,7 @@ def _inference_commands(sub) -> None:
                                                  "the command that denoises what it rendered)")
     p.add_argument("--store", default=None, help="the store --frame reads (default: the config's store)")
     p.add_argument("--exr", default=None, help="an EXR with R,G,B (and optionally our feature layers)")
-    p.add_argument("--sequence", default=None, metavar="PATTERN",
-                   help="a rendered sequence, e.g. 'in/frame_####.exr' (# the zero-padded frame number): every frame "
-                        "denoised (--method ours or oidn_prefilter) and blended with its warped history, using "
-                        "Blender's Vector pass, or the EXR headers' worldToCamera/worldToNDC and the depth channel Z "
-                        "(without either, frame by frame, said in one line); --out is then a pattern too, e.g. 'out/####.exr'")
-    p.add_argument("--temporal-weight", type=float, default=None,
-                   help="--sequence: the new frame's share of the blend (1: no history; default eval.temporal_weight)")
-    p.add_argument("--temporal-window", type=int, default=None,
-                   help="--sequence: frames over which the noisy diffuse light is averaged before denoising (1: none; "
-                        "default eval.temporal_window)")
+    _sequence_options(p)
     p.add_argument("--out", required=True, help="output EXR (with --sequence: a pattern with one run of #)")
     p.add_argument("--skip", type=int, default=None, help="sampler steps to skip (default: the run's)")
     p.add_argument("--steps", type=int, default=None, help="sampler steps (default: the model's)")
@@ -377,7 +385,8 @@ def _denoise(args) -> int:
         if args.exr is not None or args.frame is not None:
             raise ConfigError("give one of --sequence PATTERN, --exr FILE or --frame SCENE/FRAME")
         return cmd_denoise_sequence(config(args), args.sequence, args.out, args.spp, method=args.method,
-                                    weight=args.temporal_weight, window=args.temporal_window, quiet=args.quiet,
+                                    weight=args.temporal_weight, window=args.temporal_window, ahead=args.ahead,
+                                    quiet=args.quiet,
                                     model=model, device=args.device,
                                     precision=args.precision, seed=args.seed)
     if args.method != "ours" or args.oidn_weights:

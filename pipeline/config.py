@@ -616,6 +616,12 @@ class EvalConfig(Section):
                                "this frame's by at most this many standard deviations of the difference (from the "
                                "variance layers); 0: no gate. 2: the rule of docs/sequences.md (\"A gate on the "
                                "averaged light\").", 2.0)
+    temporal_ahead: int = doc("Frames after this one that the temporal methods average too, for a sequence on disk "
+                              "whole (a shot rendered offline; make eval and denoise --sequence): each reprojected "
+                              "with the cameras and depth (motion vectors point back only, so a sequence with "
+                              "vectors alone averages the frames before); the filter stays causal. 0: the frames "
+                              "before alone, as frames that arrive one at a time. 7: the rule of "
+                              "docs/sequences.md (\"Frames after this one too\").", 7)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")
@@ -631,6 +637,8 @@ class EvalConfig(Section):
             bad("temporal_weight", why)
         if self.temporal_window < 1:
             bad("temporal_window", f"must be >= 1 (1: no averaging), got {self.temporal_window}")
+        if self.temporal_ahead < 0:
+            bad("temporal_ahead", f"must be >= 0 (0: the frames before alone), got {self.temporal_ahead}")
         if not self.temporal_gate >= 0:
             bad("temporal_gate", f"must be >= 0 (0: no gate), got {self.temporal_gate}")
         if self.sequence_fps <= 0:

@@ -196,22 +196,36 @@ def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], li
 
 class InputWindow:
     """The noisy radiance and the views of the last ``frames - 1`` frames, which ``take`` averages each new
-    frame's input over (``average_input``); ``frames`` 1 averages nothing."""
+    frame's input over (``average_input``), with up to ``ahead`` frames after it that the caller gives (a sequence
+    on disk whole); ``frames`` 1 and ``ahead`` 0 average nothing."""
 
-    def __init__(self, frames: int, kind: str = "diffuse", gate: float | None = None):
+    def __init__(self, frames: int, kind: str = "diffuse", gate: float | None = None, ahead: int = 0):
         if frames < 1:
             raise ValueError(f"a window of {frames} frames: must be >= 1")
+        if ahead < 0:
+            raise ValueError(f"{ahead} frames ahead: must be >= 0")
         if kind not in GATE_GROUPS:
             raise ValueError(f"kind must be one of {', '.join(GATE_GROUPS)}, got {kind!r}")
-        self.frames, self.kind, self.gate = frames, kind, gate
+        self.frames, self.kind, self.gate, self.ahead = frames, kind, gate, ahead
         self.past: list[tuple[dict[str, np.ndarray], motion.View | None]] = []    # the latest first
-        self.counts: list[float] = []              # per frame taken after the first, the mean frames per pixel
+        self.counts: list[float] = []              # per frame averaged with another, the mean frames per pixel
 
-    def take(self, buffers: dict[str, np.ndarray], view: motion.View | None) -> dict[str, np.ndarray]:
-        """This frame's buffers averaged over the window (then the frame joins it)."""
-        if self.frames == 1:
+    def keep(self, buffers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """What of a frame's buffers the window averages (at 1920x1080 the diffuse light and its variance are
+        100 MB a frame): all a caller needs to hold of the frames ahead."""
+        kept = {k: buffers[k] for n in AVERAGED[self.kind] for k in (n, f"{n}.variance") if k in buffers}
+        if self.kind in DEMODULATED and "albedo" in buffers:
+            kept["albedo"] = buffers["albedo"]
+        return kept
+
+    def take(self, buffers: dict[str, np.ndarray], view: motion.View | None,
+             upcoming: list[tuple[dict[str, np.ndarray], motion.View | None]] = ()) -> dict[str, np.ndarray]:
+        """This frame's buffers averaged over the window and the first ``ahead`` frames of ``upcoming`` (the
+        frames after it, in order; ``keep`` of their buffers is enough), then the frame joins the window. A later
+        frame counts only with cameras and depth: motion vectors point back, to the frame before."""
+        if self.frames == 1 and self.ahead == 0:
             return buffers
-        traced = []
+        traced, others = [], []
         if view is not None:
             linked_views = []
             for _, v in self.past:
@@ -219,17 +233,18 @@ class InputWindow:
                     break
                 linked_views.append(v)
             traced = motion.trace(view, linked_views)
-        out, count = average_input(buffers, [b for b, _ in self.past[:len(traced)]], traced, self.kind,
-                                   gate=self.gate)
-        if self.past:
+            others = [b for b, _ in self.past[:len(traced)]]
+            for b, v in list(upcoming)[:self.ahead]:
+                if v is None or motion.linked(view, v) != "camera":
+                    break
+                traced.append(motion.reproject_view(view, v))
+                others.append(b)
+        out, count = average_input(buffers, others, traced, self.kind, gate=self.gate)
+        if others:
             self.counts.append(float(count.mean()))
-        if not traced:
+        else:
             out = buffers                  # the frame's own input, as the per-frame method saw it
-        # only what is averaged is kept (at 1920x1080 the diffuse light and its variance are 100 MB a frame)
-        kept = {k: buffers[k] for n in AVERAGED[self.kind] for k in (n, f"{n}.variance") if k in buffers}
-        if self.kind in DEMODULATED and "albedo" in buffers:
-            kept["albedo"] = buffers["albedo"]
-        self.past = [(kept, view), *self.past][: self.frames - 1]
+        self.past = [(self.keep(buffers), view), *self.past][: self.frames - 1]
         return out
 
 

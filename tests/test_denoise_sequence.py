@@ -54,10 +54,10 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     records = [read_header(tmp_path / "out" / f"f_{n:03d}.exr") for n in range(3)]
     assert records[0]["temporal"]["history_fraction"] is None
     assert all(r["temporal"]["history_fraction"] > 0.5 for r in records[1:])
-    # weight 1 and a window of 1 keep no history: each frame is OIDN's final-frame output alone, as denoise --exr
-    # writes it
+    # weight 1, a window of 1 and none ahead keep no history: each frame is OIDN's final-frame output alone, as
+    # denoise --exr writes it
     cli("denoise", "--sequence", frames, "--out", tmp_path / "one" / "f_###.exr", "--method", "oidn_prefilter",
-        "--spp", "4", "--temporal-weight", "1", "--temporal-window", "1", "--quiet")
+        "--spp", "4", "--temporal-weight", "1", "--temporal-window", "1", "--ahead", "0", "--quiet")
     single = tmp_path / "single.exr"
     cli("denoise", "--exr", frames.replace("###", "001"), "--out", single, "--method", "oidn_prefilter", "--quiet")
     colour = lambda path: read_layers(path)["color"]                  # noqa: E731
@@ -65,10 +65,17 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     assert not np.array_equal(colour(tmp_path / "out" / "f_001.exr"), colour(single))
     # the diffuse light averaged over 3 frames: frame 0 as before, the later frames denoised from more samples
     proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "avg" / "f_###.exr", "--method", "oidn_prefilter",
-               "--spp", "4", "--temporal-weight", "1", "--temporal-window", "3", "--quiet")
-    assert "diffuse light averaged over up to 3 frames" in proc.stdout, proc.stdout
+               "--spp", "4", "--temporal-weight", "1", "--temporal-window", "3", "--ahead", "0", "--quiet")
+    assert "diffuse light averaged over up to 3 frames and 0 after" in proc.stdout, proc.stdout
     assert np.array_equal(colour(tmp_path / "avg" / "f_000.exr"), colour(tmp_path / "one" / "f_000.exr"))
     assert not np.array_equal(colour(tmp_path / "avg" / "f_002.exr"), colour(tmp_path / "one" / "f_002.exr"))
+    # and the frame after each: frame 0 averages frame 1 too, the last frame has none after it
+    proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "ahead" / "f_###.exr", "--method",
+               "oidn_prefilter", "--spp", "4", "--temporal-weight", "1", "--temporal-window", "3", "--ahead", "1",
+               "--quiet")
+    assert "diffuse light averaged over up to 3 frames and 1 after" in proc.stdout, proc.stdout
+    assert not np.array_equal(colour(tmp_path / "ahead" / "f_000.exr"), colour(tmp_path / "one" / "f_000.exr"))
+    assert np.array_equal(colour(tmp_path / "ahead" / "f_002.exr"), colour(tmp_path / "avg" / "f_002.exr"))
     # the outputs keep the input's camera: a compositor (or another pass) can still reproject them
     for result in (tmp_path / "out" / "f_002.exr", single):
         source = frames.replace("###", "002" if result.name == "f_002.exr" else "001")

@@ -209,11 +209,11 @@ class _Frames:
     "a" rendered unless in ``missing``; ``read(f)`` its buffers (a fixed noisy frame of its own seed, depth of the
     plane)."""
 
-    def __init__(self, missing=()):
-        self.missing, self.reads = set(missing), []
+    def __init__(self, missing=(), last=None):
+        self.missing, self.last, self.reads = set(missing), last, []
 
     def frame_record(self, scene, frame):
-        return None if frame in self.missing else {"frame": frame}
+        return None if frame in self.missing or (self.last is not None and frame > self.last) else {"frame": frame}
 
     def camera(self, scene, frame):
         return motion.Camera(look_at([0.05 * frame, 0, -3], [0.05 * frame, 0, 0], [0, 1, 0]), 40.0, 32, 24)
@@ -261,6 +261,28 @@ def test_sequence_inputs_average_the_input_and_give_oidns_output_of_the_averaged
     else:                                           # the diffuse light of 3 frames: less than one frame's noise
         assert not np.array_equal(got["diffuse_indirect"], _Frames().read(3)["diffuse_indirect"])
         np.testing.assert_array_equal(got["specular_direct"], _Frames().read(3)["specular_direct"])
+
+
+def test_sequence_inputs_average_the_frames_after_each_frame_as_the_window_does(cheap_oidn):
+    """Frames 0-5 rendered (6 is not): frame t's input averages 2 frames before it and the 2 after it that are
+    there, as ``InputWindow`` with those frames given ahead; each frame read once along the walk."""
+    frames = _Frames(last=5)
+    walks = SequenceInputs(frames, 3, gate=2.0, ahead=2)
+    got = {t: walks.of(FrameKey("a", t), (0,), frames.read) for t in (1, 2, 3, 4, 5)}
+    assert frames.reads == [0, 1, 2, 3, 4, 5]
+    win, views, outs, clean = temporal.InputWindow(3, gate=2.0, ahead=2), {}, {}, _Frames()
+    read = {f: clean.read(f) for f in range(6)}
+    for f in range(6):
+        views[f] = motion.View.of(clean.camera("a", f), read[f])
+        ahead = [(win.keep(read[g]), motion.View.of(clean.camera("a", g), read[g])) for g in range(f + 1, min(f + 3, 6))]
+        outs[f] = win.take(read[f], views[f], ahead)
+    for t in (1, 2, 3, 4, 5):
+        np.testing.assert_array_equal(got[t]["diffuse_direct"], outs[t]["diffuse_direct"])
+        warped, _ = motion.warp_previous(outs[t - 1]["color"] * 0.5 + 0.1, views[t], views[t - 1])
+        np.testing.assert_array_equal(got[t]["history"], warped)
+    assert win.counts[-1] < win.counts[2]           # frame 5: nothing after it
+    # frame 1 averages frame 0 and frames 2, 3: not its own input
+    assert not np.array_equal(got[1]["diffuse_direct"], read[1]["diffuse_direct"])
 
 
 def test_sequence_inputs_asked_out_of_order_start_the_window_over(cheap_oidn):
@@ -316,7 +338,7 @@ def test_the_history_pack_holds_frames_after_the_first_with_their_warped_history
     train = Store(store).frames_with("train")
     assert frames == [f"{k.scene}/{k.frame}" for k in train if k.frame >= 1] and frames
     assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter, catmull_rom"
-    assert meta["input"] == "diffuse over 8 frames, gate 2"            # eval.temporal_window, eval.temporal_gate
+    assert meta["input"] == "diffuse over 8 frames and 7 after, gate 2"   # eval.temporal_window, _ahead, _gate
     names = cond_names(True)
     assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history"), :24, :32] == 1)
     valid = cond[:, names.index("history.valid"), :24, :32].float()
@@ -359,7 +381,7 @@ def test_the_sequence_evaluation_runs_the_model_with_its_own_history_as_ours_tem
     assert "diffusion_sppany" in rows["ours_temporal"]["checkpoint"]
     ours, learned, filtered = (rows[n]["per_frame"] for n in ("ours", "ours_temporal", "ours_filter"))
     for a, b, c in zip(ours, learned, filtered):
-        if a["index"] == 0:                    # no history yet: the model's single-frame output
-            assert b["metrics"] == a["metrics"] == c["metrics"]
+        if a["index"] == 0:                    # no history yet: the model on the input averaged with the frames after
+            assert b["metrics"] == c["metrics"] != a["metrics"]
         else:                                  # its own previous output, warped, changes what it makes
             assert b["metrics"]["psnr"] != a["metrics"]["psnr"] and "instability" in b["metrics"]

@@ -45,11 +45,9 @@ def test_every_test_scene_is_scored_frame_by_frame(report):
             if r["index"] > 0:
                 assert 0 <= r["metrics"]["instability"] < 1 and 0.5 < r["valid_fraction"] <= 1
     base, filtered = rows["oidn_prefilter"]["per_frame"], rows["oidn_prefilter_temporal"]["per_frame"]
-    for a, b in zip(base, filtered):
-        if a["index"] == 0:                            # no history yet: the per-frame output itself
-            assert b["metrics"] == a["metrics"]
-        else:                                          # the history changes the output
-            assert b["metrics"]["psnr"] != a["metrics"]["psnr"]
+    assert cfg.eval.temporal_ahead > 0
+    for a, b in zip(base, filtered):                   # the history, and at t = 0 the frames after it, change it
+        assert b["metrics"]["psnr"] != a["metrics"]["psnr"]
     # the noisy input flickers more than OIDN's output: fresh noise in every frame
     assert rows["noisy"]["mean"]["later"]["instability"] > 2 * rows["oidn_prefilter"]["mean"]["later"]["instability"]
 
@@ -207,21 +205,26 @@ class _LitPlaneStore(_PlaneStore):
         return {**light, "color": beauty_from_components(light), **self.geometry()}
 
 
-def test_the_temporal_methods_denoise_the_input_averaged_over_the_window():
+@pytest.mark.parametrize("ahead", [0, 2])
+def test_the_temporal_methods_denoise_the_input_averaged_over_the_window(ahead):
     cfg = load_config(TINY, ["eval.metrics=[l1, psnr]", "eval.sequence_methods=[oidn_prefilter, oidn_prefilter_temporal]",
-                             "eval.temporal_window=3", "eval.temporal_weight=1"])
+                             "eval.temporal_window=3", "eval.temporal_weight=1", f"eval.temporal_ahead={ahead}"])
     store = _LitPlaneStore([0, 1, 2, 3])
     keys = [FrameKey("a", f) for f in range(4)]
     result, strips = evaluate_sequences(cfg, store, keys, lambda k: "gt_clean", [4], _Bases(), lambda k, spp: [0],
                                         ["l1", "psnr"])
     outputs = strips["4"]["outputs"]
-    window = temporal.InputWindow(3)
-    for t, key in enumerate(keys):
-        buffers = store.read("a", t, 4, [0])
-        view = motion.View.of(store.camera("a", t), buffers)
-        np.testing.assert_array_equal(outputs["oidn_prefilter_temporal"][t], _Blur().denoise(window.take(buffers, view)))
-    np.testing.assert_array_equal(outputs["oidn_prefilter_temporal"][0], outputs["oidn_prefilter"][0])
+    window = temporal.InputWindow(3, ahead=ahead)
+    frames = [store.read("a", t, 4, [0]) for t in range(4)]
+    views = [motion.View.of(store.camera("a", t), b) for t, b in enumerate(frames)]
+    for t in range(4):
+        later = [(window.keep(frames[u]), views[u]) for u in range(t + 1, min(t + 1 + ahead, 4))]
+        np.testing.assert_array_equal(outputs["oidn_prefilter_temporal"][t],
+                                      _Blur().denoise(window.take(frames[t], views[t], later)))
+    # the first frame: its own input without frames after it, averaged with them otherwise
+    assert np.array_equal(outputs["oidn_prefilter_temporal"][0], outputs["oidn_prefilter"][0]) == (ahead == 0)
     assert not np.array_equal(outputs["oidn_prefilter_temporal"][2], outputs["oidn_prefilter"][2])
     assert window.counts[-1] > 2.5                          # the plane slides a little: most pixels see 3 frames
-    assert result["window"] == 3
+    assert result["window"] == 3 and result["ahead"] == ahead
+    assert ("and 2 after" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]) == (ahead == 2)
     assert "on the diffuse light of 3 frames" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]

@@ -191,6 +191,29 @@ def test_the_window_keeps_its_last_frames_and_stops_at_a_frame_without_motion():
         InputWindow(0)
 
 
+def test_the_window_averages_the_frames_ahead_it_is_given_with_cameras_only():
+    rng = np.random.default_rng(10)
+    cam = Camera(np.eye(4), 50.0, 8, 6)
+    view = motion.View(cam, np.full((6, 8), 3.0))
+    frames = [frame_buffers(rng) for _ in range(5)]
+    window = InputWindow(2, "colour", ahead=2)
+    mean = lambda fs: np.mean([f["color"].astype(np.float64) for f in fs], 0)  # noqa: E731
+    ahead = [(window.keep(f), view) for f in frames[1:4]]         # three given, two used
+    np.testing.assert_allclose(window.take(frames[0], view, ahead)["color"], mean(frames[:3]), rtol=1e-6)
+    # frame 1: frame 0 behind it, frames 2 and 3 ahead
+    out = window.take(frames[1], view, [(window.keep(f), view) for f in frames[2:4]])
+    np.testing.assert_allclose(out["color"], mean(frames[:4]), rtol=1e-6)
+    # a frame ahead with motion vectors only does not count (they point back), nor those after it
+    vectors = motion.View(None, None, motion=np.zeros((6, 8, 4), np.float32))
+    out = window.take(frames[2], view, [(window.keep(frames[3]), vectors), (window.keep(frames[4]), view)])
+    np.testing.assert_allclose(out["color"], mean(frames[1:3]), rtol=1e-6)
+    assert window.counts == [3.0, 4.0, 2.0]
+    # nothing behind and nothing ahead: the frame's own buffers
+    assert InputWindow(1, ahead=2).take(frames[0], view) is frames[0]
+    with pytest.raises(ValueError, match="ahead: must be >= 0"):
+        InputWindow(2, ahead=-1)
+
+
 def test_the_gate_keeps_a_past_frame_only_where_it_agrees_within_noise():
     """Frame t-1's diffuse light is frame t's plus 1.5 standard deviations of the difference on the left half and
     plus 4 on the right half: a gate of 3 keeps the left half and rejects the right, no gate keeps both."""

@@ -10,7 +10,8 @@ the group dropout; the target is PU(GT_clean × the item's exposure), the space 
 
 A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only the frames whose
 previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each as ``train.history`` serves it:
-its input averaged over the frames before it (``eval.temporal_window``, ``eval.temporal_gate``) and the
+its input averaged over the frames before and after it (``eval.temporal_window``, ``eval.temporal_gate``,
+``eval.temporal_ahead``) and the
 history channels (OIDN's output of frame t − 1's input, on the same stacks, warped into frame t); its crops
 lose the history with ``diffusion.history_dropout``.
 """
@@ -91,25 +92,29 @@ def _previous_frames(keys: list[FrameKey], history: bool) -> dict:
     return previous_frames(keys)
 
 
-def _sequence_inputs(store: Store, window: tuple[int, float | None]):
-    """``train.history.SequenceInputs`` of ``store`` averaging over ``window`` = (frames, gate)."""
+def _sequence_inputs(store: Store, window: tuple):
+    """``train.history.SequenceInputs`` of ``store`` averaging over ``window`` = (frames, gate, frames ahead)."""
     from .history import SequenceInputs
     return SequenceInputs(store, *window)
 
 
-def input_record(window: tuple[int, float | None]) -> str | None:
+def input_record(window: tuple) -> str | None:
     """How a history pack's input is averaged, for its metadata and the run's fingerprint (a pack averaged
-    otherwise is built again); None for a window of 1 frame, the input as packs had it before averaging."""
-    frames, gate = window
-    return None if frames <= 1 else f"diffuse over {frames} frames" + (f", gate {gate:g}" if gate else "")
+    otherwise is built again); None for a window of 1 frame and none ahead, the input as packs had it before
+    averaging."""
+    frames, gate, ahead = window
+    if frames <= 1 and not ahead:
+        return None
+    return (f"diffuse over {frames} frames" + (f" and {ahead} after" if ahead else "")
+            + (f", gate {gate:g}" if gate else ""))
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
-               history: bool = False, window: tuple[int, float | None] = (1, None)) -> Path:
+               history: bool = False, window: tuple = (1, None, 0)) -> Path:
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
     ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), each as
-    ``train.history.SequenceInputs`` serves it (input averaged over ``window`` = (frames, gate), history on the
-    same stacks)."""
+    ``train.history.SequenceInputs`` serves it (input averaged over ``window`` = (frames, gate, frames ahead),
+    history on the same stacks)."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
 
     keys = pack_keys(keys, history)
@@ -161,7 +166,7 @@ def _aux_kind(clean_aux: bool) -> str:
 
 
 def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
-                history: bool = False, window: tuple[int, float | None] = (1, None)) -> Path:
+                history: bool = False, window: tuple = (1, None, 0)) -> Path:
     """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout, other aux
     or (with history) another averaging."""
     if path.exists():
@@ -314,7 +319,7 @@ class StoreSource:
         self.clean_aux = clean_aux(network or cfg.diffusion.base_network)
         self.history = cfg.diffusion.history if history is None else bool(history)
         # a model that reads the past trains on the input the temporal methods give it (train.history)
-        self.window = (cfg.eval.temporal_window, cfg.eval.temporal_gate or None)
+        self.window = (cfg.eval.temporal_window, cfg.eval.temporal_gate or None, cfg.eval.temporal_ahead)
         self.train_keys, self.val_keys = self.store.training_frames()
         self.extra = [(store, store.training_frames()[0]) for store in map(Store, cfg.diffusion.extra_stores)]
 

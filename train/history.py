@@ -1,10 +1,10 @@
 """What a model that reads the past (``diffusion.history``) trains on: frame t's input as the temporal methods
 serve it, and the history beside it.
 
-- **The input**: frame t's noisy diffuse light averaged over it and the frames before it as
+- **The input**: frame t's noisy diffuse light averaged over it, the frames before it and those after it as
   ``pipeline.temporal.InputWindow`` averages it at inference (``eval.temporal_window`` frames, gated at
-  ``eval.temporal_gate``; 1 frame: the frame's own input), so the model trains on the input
-  ``denoise --sequence`` and the sequence evaluation give it.
+  ``eval.temporal_gate``, ``eval.temporal_ahead`` frames after; 1 frame and none after: the frame's own
+  input), so the model trains on the input ``denoise --sequence`` and the sequence evaluation give it.
 - **The history**: an output of frame t−1, brought into frame t (``pipeline.motion``: the noisy input's own depth
   and normal and the two cameras, as a user's renderer would give them) with its validity mask;
   ``train.model.inputs`` encodes it. In training that output is **OIDN's final-frame output** of frame t−1's
@@ -20,7 +20,7 @@ serve it, and the history beside it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -61,6 +61,7 @@ class _Walk:
     frame: int = -1
     averaged: dict | None = None
     view: motion.View | None = None
+    ahead: dict = field(default_factory=dict)      # {frame: (its buffers, its view)}, read ahead
 
 
 class SequenceInputs:
@@ -69,8 +70,8 @@ class SequenceInputs:
     frame. Each stack selection walks its scene's frames in order, so a pack of consecutive frames averages each
     frame once; a frame asked out of order starts a new walk from the window's first frame."""
 
-    def __init__(self, store: Store, window: int = 1, gate: float | None = None):
-        self.store, self.window, self.gate = store, int(window), gate
+    def __init__(self, store: Store, window: int = 1, gate: float | None = None, ahead: int = 0):
+        self.store, self.window, self.gate, self.ahead = store, int(window), gate, int(ahead)
         self.walks: dict[tuple, _Walk] = {}
 
     def of(self, key: FrameKey, stacks: tuple, read: Callable[[int], dict]) -> dict[str, np.ndarray]:
@@ -78,11 +79,12 @@ class SequenceInputs:
         ``key.scene``'s ``frame`` on it."""
         walk = self.walks.get(stacks)
         if walk is None or walk.scene != key.scene or walk.frame != key.frame - 1:
-            walk = self.walks[stacks] = _Walk(key.scene, temporal.InputWindow(self.window, gate=self.gate))
+            walk = self.walks[stacks] = _Walk(key.scene, temporal.InputWindow(self.window, gate=self.gate,
+                                                                              ahead=self.ahead))
             for f in range(self._first(key), key.frame):        # the window of frame t - 1: frames t - W .. t - 1
-                self._take(walk, f, read(f))
+                self._take(walk, f, read)
         before, before_view, had = walk.averaged, walk.view, walk.frame == key.frame - 1
-        self._take(walk, key.frame, read(key.frame))
+        self._take(walk, key.frame, read)
         history = (motion.warp_previous(oidn_output(before), walk.view, before_view)
                    if had and motion.linked(walk.view, before_view) else None)
         return with_history(walk.averaged, history)
@@ -94,6 +96,21 @@ class SequenceInputs:
             first -= 1
         return first
 
-    def _take(self, walk: _Walk, frame: int, buffers: dict) -> None:
-        walk.view = motion.View.of(self.store.camera(walk.scene, frame), buffers)
-        walk.averaged, walk.frame = walk.window.take(buffers, walk.view), frame
+    def _take(self, walk: _Walk, frame: int, read: Callable[[int], dict]) -> None:
+        """Frame ``frame`` into the walk, with the rendered frames right after it (each read once: kept until
+        its own turn)."""
+        buffers, walk.view = walk.ahead.pop(frame, None) or self._read(walk.scene, frame, read)
+        walk.ahead = {f: v for f, v in walk.ahead.items() if f > frame}
+        upcoming = []
+        for f in range(frame + 1, frame + 1 + self.ahead):
+            if f not in walk.ahead:
+                if self.store.frame_record(walk.scene, f) is None:
+                    break
+                walk.ahead[f] = self._read(walk.scene, f, read)
+            later, view = walk.ahead[f]
+            upcoming.append((walk.window.keep(later), view))
+        walk.averaged, walk.frame = walk.window.take(buffers, walk.view, upcoming), frame
+
+    def _read(self, scene: str, frame: int, read: Callable[[int], dict]) -> tuple[dict, motion.View]:
+        buffers = read(frame)
+        return buffers, motion.View.of(self.store.camera(scene, frame), buffers)

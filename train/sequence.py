@@ -3,8 +3,10 @@
     python -m pipeline denoise --sequence 'in/frame_####.exr' --out 'out/####.exr'
     python -m pipeline denoise --sequence 'data/default/scenes/ext_room/###/s00.exr' --out 'out/room_###.exr'
 
-Each frame's noisy diffuse light is first averaged over it and the frames before it (``--temporal-window``,
-default ``eval.temporal_window``: 8 frames, each reprojected, a past pixel counting where it agrees within
+Each frame's noisy diffuse light is first averaged over it, the frames before it (``--temporal-window``,
+default ``eval.temporal_window``: 8 frames) and those after it (``--ahead``, default ``eval.temporal_ahead``: 7;
+with cameras and depth only, motion vectors point back; 0 for frames that arrive one at a time), each
+reprojected, a past pixel counting where it agrees within
 ``eval.temporal_gate`` standard deviations; ``pipeline.temporal.average_input``; frames
 without the light components, a plain beauty, are not averaged). Then the frame is denoised as ``denoise
 --exr`` does (``--method ours`` or ``oidn_prefilter``), and the temporal filter of ``pipeline.temporal``
@@ -137,23 +139,40 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
     return run, weights_text(folder, den.meta), learned, lacked
 
 
-def _temporal_settings(cfg: Config, weight: float | None, window: int | None) -> tuple[float, int]:
-    """(--temporal-weight, --temporal-window), the config's where not given; TrainError naming a bad one."""
+def _temporal_settings(cfg: Config, weight: float | None, window: int | None,
+                       ahead: int | None) -> tuple[float, int, int]:
+    """(--temporal-weight, --temporal-window, --ahead), the config's where not given; TrainError naming a bad one."""
     weight = cfg.eval.temporal_weight if weight is None else float(weight)
     if (why := weight_problem(weight)) is not None:
         raise TrainError(f"--temporal-weight: {why}")
     window = cfg.eval.temporal_window if window is None else int(window)
     if window < 1:
         raise TrainError(f"--temporal-window: must be >= 1 (1: no averaging), got {window}")
-    return weight, window
+    ahead = cfg.eval.temporal_ahead if ahead is None else int(ahead)
+    if ahead < 0:
+        raise TrainError(f"--ahead: must be >= 0 (0: the frames before alone), got {ahead}")
+    return weight, window, ahead
+
+
+def _frames_ahead(files: list, i: int, ahead: int, cache: dict, window: temporal.InputWindow) -> list:
+    """[(what ``window`` averages of a frame, its view)] of the ``ahead`` frames after frame ``i`` of ``files``,
+    read once each into ``cache`` (only those layers are held: the frame is read whole again at its turn)."""
+    for j in [j for j in cache if j <= i]:
+        del cache[j]
+    for j in range(i + 1, min(i + 1 + ahead, len(files))):
+        if j not in cache:
+            passes: dict = {}
+            buffers = read_layers(files[j][1], passes=passes)
+            cache[j] = window.keep(buffers), frame_view(files[j][1], buffers, passes.get("Vector"))[0]
+    return [cache[j] for j in range(i + 1, min(i + 1 + ahead, len(files)))]
 
 
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
                          weight: float | None = None, quiet: bool = False, model: Path | None = None,
                          device: str | None = None, precision: str = "auto", seed: int | None = None,
-                         window: int | None = None) -> int:
+                         window: int | None = None, ahead: int | None = None) -> int:
     """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
-    weight, window = _temporal_settings(cfg, weight, window)
+    weight, window, ahead = _temporal_settings(cfg, weight, window, ahead)
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
     inputs = {p.resolve() for _, p in files}
@@ -172,15 +191,17 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
-    inputs_window, bare = temporal.InputWindow(window, gate=cfg.eval.temporal_gate or None), 0
-    for (number, path), out in progress(list(zip(files, outs)), desc="denoise sequence", unit="frame", disable=quiet):
+    inputs_window, bare, cache = temporal.InputWindow(window, gate=cfg.eval.temporal_gate or None, ahead=ahead), 0, {}
+    for i, ((number, path), out) in enumerate(progress(list(zip(files, outs)), desc="denoise sequence", unit="frame",
+                                                       disable=quiet)):
         passes: dict = {}
         buffers = read_layers(path, passes=passes)
         view, why = frame_view(path, buffers, passes.get("Vector"))
         alone = alone or (f"{path}: {why}" if view is None else "")
         # a model that reads its own previous output has no filter after it (``temporal.step``)
         bare += not all(n in buffers for n in temporal.AVERAGED["diffuse"])     # nothing to average there
-        hdr, valid = temporal.step(run, inputs_window.take(buffers, view), view, previous, weight, learned)
+        averaged = inputs_window.take(buffers, view, _frames_ahead(files, i, ahead, cache, inputs_window))
+        hdr, valid = temporal.step(run, averaged, view, previous, weight, learned)
         if valid is not None:
             took.append(float(valid.mean()))
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -194,10 +215,10 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
     how = (f"{method} reading its own warped previous output (learned history)" if learned
            else f"{method} + temporal filter, weight {weight:g}")
-    if window > 1 and bare == len(files):
+    if (window > 1 or ahead) and bare == len(files):
         how += ", input not averaged (no frame has diffuse light layers)"
-    elif window > 1:
-        how += (f", diffuse light averaged over up to {window} frames"
+    elif window > 1 or ahead:
+        how += (f", diffuse light averaged over up to {window} frames and {ahead} after"
                 + (f" ({np.mean(inputs_window.counts):.1f} per pixel)" if inputs_window.counts else "")
                 + (f" ({bare} of {len(files)} frames have no diffuse light layers: those not)" if bare else ""))
     print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "

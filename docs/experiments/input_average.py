@@ -12,6 +12,7 @@ components (``diffuse/W``); OIDN's final-frame mode on it; each also with the te
 (``+filter``, or ``+filter:W`` for each of ``--weights``). The baseline ``filter`` is
 ``oidn_prefilter_temporal``. ``--specular R,...`` adds, for each radius R, the filter whose weight per pixel is ``w + (1 - w) * s`` with
 ``s`` the share of reflected light in the denoiser's input (``specular_share``), labelled +spec:R.
+``--ahead A,...`` averages the A frames after frame t too (labelled ``/W>A``).
 ``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside
 ``ours`` and ``ours_filter``. Prints per method and spp the mean over sequences of (mean over t >= 1 of PSNR -
 oidn_prefilter's), the mean instability (as the sequence page measures it, through GT1's motion) and the
@@ -29,9 +30,11 @@ from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
 
-def averaged(frames, t: int, window: int, kind: str, kernel: str, gate: float | None = None) -> dict[str, np.ndarray]:
-    """Frame t's buffers, its input averaged (``temporal.average_input``) over it and the frames t-window+1 .. t-1."""
-    past = frames[max(0, t - window + 1):t][::-1]
+def averaged(frames, t: int, window: int, kind: str, kernel: str, gate: float | None = None,
+             ahead: int = 0) -> dict[str, np.ndarray]:
+    """Frame t's buffers, its input averaged (``temporal.average_input``) over it, the frames t-window+1 .. t-1 and
+    the ``ahead`` frames after it (those in the sequence)."""
+    past = frames[max(0, t - window + 1):t][::-1] + frames[t + 1:t + 1 + ahead]
     traced = motion.trace(frames[t].views["input"], [f.views["input"] for f in past])
     return temporal.average_input(frames[t].buffers, [f.buffers for f in past], traced, kind, kernel, gate)[0]
 
@@ -88,6 +91,8 @@ def main() -> int:
                     help="what is averaged: colour, diffuse, irradiance, components (comma-separated)")
     ap.add_argument("--gates", default="none",
                     help="temporal.average_input's gate: none, or standard deviations (comma-separated)")
+    ap.add_argument("--ahead", default="0", help="frames after frame t averaged too (comma-separated; the window "
+                                                 "counts frame t and those before it)")
     ap.add_argument("--weights", help="the filter's weights on the averaged input (comma-separated; default "
                                      "--weight): each candidate with the filter once per weight, labelled +filter:W")
     ap.add_argument("--specular", default="", help="box radii of the reflected share's per-pixel filter weight "
@@ -101,11 +106,12 @@ def main() -> int:
     windows = [int(w) for w in args.windows.split(",")]
     gates = [None if g == "none" else float(g) for g in args.gates.split(",")]
     weights = [float(w) for w in args.weights.split(",")] if args.weights else [args.weight]
-    # f: the filter's weight, or None without the filter
-    candidates = [(kind, w, g, f) for kind in args.kinds.split(",") for w in windows for g in gates
-                  for f in (None, *weights)]
-    label = lambda kind, w, g, f: (f"{kind}/{w}" + (f"@{g:g}" if g else "") + ("" if f is None else  # noqa: E731
-                                   "+filter" if not args.weights else f"+filter:{f:g}"))
+    aheads = [int(a) for a in args.ahead.split(",")]
+    # a: frames ahead; f: the filter's weight, or None without the filter
+    candidates = [(kind, w, g, a, f) for kind in args.kinds.split(",") for w in windows for g in gates
+                  for a in aheads for f in (None, *weights)]
+    label = lambda kind, w, g, a, f: (f"{kind}/{w}" + (f">{a}" if a else "") + (f"@{g:g}" if g else "")  # noqa: E731
+                                      + ("" if f is None else "+filter" if not args.weights else f"+filter:{f:g}"))
     radii = [int(r) for r in args.specular.split(",") if r]
     spec_names = [f"{base}+spec:{r}" for base in ["filter", *(label(*c) for c in candidates if c[3] is not None)]
                   for r in radii]
@@ -116,10 +122,12 @@ def main() -> int:
         ours_kind, rest = args.ours.split("/")
         ours_filter, rest = rest.endswith("+filter"), rest.removesuffix("+filter")
         ours_window, _, gate_text = rest.partition("@")
+        ours_window, _, ahead_text = ours_window.partition(">")
         ours_window, ours_gate = int(ours_window), float(gate_text) if gate_text else None
         names += ["ours", "ours_filter", f"ours {args.ours}"]
     gain: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     unsteady: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
+    first: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}   # t = 0
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
             runs = {"oidn_prefilter": base, "filter": filtered(base, frames, args.weight)}
@@ -127,42 +135,45 @@ def main() -> int:
                 runs[f"filter+spec:{r}"] = filtered(base, frames, args.weight,
                                                     [specular_share(f.buffers, r) for f in frames])
             inputs = {}
-            for kind, w, g, weight in candidates:
+            for kind, w, g, a, weight in candidates:
                 if weight is not None:
-                    unfiltered = runs[label(kind, w, g, None)]
-                    runs[label(kind, w, g, weight)] = filtered(unfiltered, frames, weight)
+                    unfiltered = runs[label(kind, w, g, a, None)]
+                    runs[label(kind, w, g, a, weight)] = filtered(unfiltered, frames, weight)
                     for r in radii:
-                        runs[f"{label(kind, w, g, weight)}+spec:{r}"] = filtered(
-                            unfiltered, frames, weight, [specular_share(b, r) for b in inputs[kind, w, g]])
+                        runs[f"{label(kind, w, g, a, weight)}+spec:{r}"] = filtered(
+                            unfiltered, frames, weight, [specular_share(b, r) for b in inputs[kind, w, g, a]])
                     continue
-                inputs[kind, w, g] = [averaged(frames, t, w, kind, args.kernel, g) for t in range(len(frames))]
-                runs[label(kind, w, g, None)] = [
+                inputs[kind, w, g, a] = [averaged(frames, t, w, kind, args.kernel, g, a) for t in range(len(frames))]
+                runs[label(kind, w, g, a, None)] = [
                     oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
-                    for b in inputs[kind, w, g]]
+                    for b in inputs[kind, w, g, a]]
             if args.ours:
                 ours = [model.denoise(f.buffers, spp) for f in frames]
                 runs["ours"], runs["ours_filter"] = ours, filtered(ours, frames, args.weight)
-                avg = [model.denoise(averaged(frames, t, ours_window, ours_kind, args.kernel, ours_gate), spp)
+                avg = [model.denoise(averaged(frames, t, ours_window, ours_kind, args.kernel, ours_gate,
+                                                int(ahead_text or 0)), spp)
                        for t in range(len(frames))]
                 runs[f"ours {args.ours}"] = filtered(avg, frames, args.weight) if ours_filter else avg
             psnr = {n: [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                     for n, out in runs.items()}
             for n, out in runs.items():
                 gain[n][spp][name] = float(np.mean(np.subtract(psnr[n][1:], psnr["oidn_prefilter"][1:])))
+                first[n][spp][name] = psnr[n][0] - psnr["oidn_prefilter"][0]
                 unsteady[n][spp][name] = float(np.nanmean(instabilities(out, frames)))
             print(f"{spp} spp {name}: " + ", ".join(f"{n} {gain[n][spp][name]:+.3f}" for n in names[1:]), flush=True)
     print(f"\n{args.store} {args.split}: {len(gain['filter'][spps[0]])} sequences, {args.kernel} read, filter "
           f"weight {args.weight:g}, t >= 1, PSNR gain over oidn_prefilter and instability (means over sequences)")
     print("| method | " + " | ".join(f"gain {s} spp" for s in spps) + " | mean gain | "
           + " | ".join(f"instability {s} spp" for s in spps) + " | mean | sequences below, "
-          + " / ".join(map(str, spps)) + " spp |")
-    print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- |")
+          + " / ".join(map(str, spps)) + " spp | t = 0: gain " + " / ".join(map(str, spps)) + " spp |")
+    print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- | ---: |")
     for n in names:
         per = [float(np.mean(list(gain[n][s].values()))) for s in spps]
         inst = [float(np.mean(list(unsteady[n][s].values()))) for s in spps]
         below = [sum(v < 0 for v in gain[n][s].values()) for s in spps]
         print(f"| {n} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
-              + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " |")
+              + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " | "
+              + " / ".join(f"{np.mean(list(first[n][s].values())):+.3f}" for s in spps) + " |")
     return 0
 
 
