@@ -57,6 +57,8 @@ def test_the_page_its_curves_and_the_strip(report):
     _, result, out = report
     page = (out / "sequence.md").read_text()
     assert "| `oidn_prefilter_temporal` |" in page and "instability" in page
+    # the page says how the temporal methods averaged their input: the tiny config's eval.temporal_* keys
+    assert "(temporal methods: diffuse light over 8 frames and 7 after, gate 2, filter weight 0.7)" in page
     assert "[sequence.md](sequence.md)" in (out / "eval.md").read_text()
     for name in ("sequence_test_psnr_spp4.png", "sequence_test_instability_spp4.png"):
         assert (out / name).stat().st_size > 0
