@@ -1,4 +1,4 @@
-"""Time along a sequence: the input averaged over the previous frames, the classic temporal filter, and the
+"""Time along a sequence: the input averaged over the neighbouring frames, the classic temporal filter, and the
 instability metric.
 
 ``step`` is one frame of a temporal method, the reprojection included: what ``denoise --sequence`` and the
@@ -7,11 +7,12 @@ sequence evaluation both run. First the frame's noisy input is averaged over a w
 output (the filter).
 
 **The input averaged** (``average_input``): the diffuse light (``diffuse_direct``, ``diffuse_indirect``) of
-frame t averaged with that of up to ``window - 1`` frames before it, each reprojected straight into frame t
-(``motion.trace``) and read at the pixel its spot falls in, over the frames valid at each pixel and, with a
-``gate``, agreeing with frame t within that many standard deviations of the difference; emission and
+frame t averaged with that of up to ``window - 1`` frames before it and, for a sequence on disk whole, up to
+``ahead`` frames after it (with cameras and depth: motion vectors point back), each reprojected straight into
+frame t (``motion.trace``, ``motion.reproject_view``) and read at the pixel its spot falls in, over the frames
+valid at each pixel and, with a ``gate``, agreeing with frame t within that many standard deviations of the difference; emission and
 the reflections (the specular components) stay frame t's, since they do not follow the surface's motion. At
-4 spp, 8 frames give most surfaces 32 samples of diffuse light. The past pixels are read whole: an
+4 spp, 8 frames give most surfaces 32 samples of diffuse light. The filter below stays causal. The past pixels are read whole: an
 interpolated read correlates the noise of neighbouring pixels, and a denoiser trained on white noise keeps
 correlated noise as detail (docs/sequences.md, "Read without resampling", has both measurements).
 
