@@ -194,8 +194,8 @@ def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: in
                 raise MethodUnavailable(f"the model of {base} ({methods[base].checkpoint}) does not read history: "
                                         "train one with diffusion.history=true (ours_filter is the temporal filter "
                                         "on it)")
-            averaged = ((f" on the diffuse light of {window} frames" + (f" and {ahead} after" if ahead else ""))
-                        if (window > 1 or ahead) and name != base else "")
+            how = temporal.describe_averaging(window, ahead) if name != base else None
+            averaged = f" on the {how}" if how else ""
             suffix = averaged + (" reading its previous output" if name in LEARNED
                                  else " + temporal filter" if name != base else "")
             rows[name] = {"label": label(base) + suffix, "available": True,

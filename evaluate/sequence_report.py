@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mcdenoise.pipeline.figures import animated_strip, plot_curves
+from mcdenoise.pipeline.temporal import describe_averaging
 
 from .report import fmt, fmt_diff, fmt_seconds, markdown_table, write_text
 from .scoring import METRICS
@@ -96,8 +97,9 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
             lines += [f"## {group}: no sequences ({g['skipped']})", ""]
             continue
         n = {len(v) for v in g["scenes"].values()}
+        how = describe_averaging(g.get("window", 1), g.get("ahead", 0), g.get("gate")) or "input not averaged"
         lines += [f"## {group}: {len(g['scenes'])} sequences of {'/'.join(map(str, sorted(n)))} frames "
-                  f"(temporal methods: {averaging(g)}, filter weight {g['weight']:g})", ""]
+                  f"(temporal methods: {how}, filter weight {g['weight']:g})", ""]
         for spp, entry in g["spp"].items():
             lines += [f"### {spp} spp", "", *sequence_table(entry, resamples, seed), ""]
             for metric, label in (("psnr", "PSNR dB"), ("instability", "instability")):
@@ -114,15 +116,6 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
     text = "\n".join(lines) + "\n"
     write_text(out_dir / "sequence.md", text)
     return text
-
-
-def averaging(g: dict) -> str:
-    """How a group's temporal methods averaged their input, from its record (eval.temporal_*)."""
-    window, ahead, gate = g.get("window", 1), g.get("ahead", 0), g.get("gate", 0)
-    if window <= 1 and not ahead:
-        return "input not averaged"
-    return (f"diffuse light over {window} frames" + (f" and {ahead} after" if ahead else "")
-            + (f", gate {gate:g}" if gate else ""))
 
 
 def write_strip(strip: dict, path: Path) -> None:

@@ -195,6 +195,15 @@ def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], li
     return {k: v / (a * a if k.endswith(".variance") else a) for k, v in values.items() if k != "albedo"}
 
 
+def describe_averaging(window: int, ahead: int = 0, gate: float | None = None) -> str | None:
+    """How the temporal methods average their input, in words (the sequence page, row labels, a history pack's
+    record): 'diffuse light over 8 frames and 7 after, gate 2'; None when nothing is averaged."""
+    if window <= 1 and not ahead:
+        return None
+    return (f"diffuse light over {window} frames" + (f" and {ahead} after" if ahead else "")
+            + (f", gate {gate:g}" if gate else ""))
+
+
 class InputWindow:
     """The noisy radiance and the views of the last ``frames - 1`` frames, which ``take`` averages each new
     frame's input over (``average_input``), with up to ``ahead`` frames after it that the caller gives (a sequence

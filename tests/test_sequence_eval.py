@@ -229,4 +229,4 @@ def test_the_temporal_methods_denoise_the_input_averaged_over_the_window(ahead):
     assert window.counts[-1] > 2.5                          # the plane slides a little: most pixels see 3 frames
     assert result["window"] == 3 and result["ahead"] == ahead
     assert ("and 2 after" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]) == (ahead == 2)
-    assert "on the diffuse light of 3 frames" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]
+    assert "on the diffuse light over 3 frames" in result["spp"]["4"]["methods"]["oidn_prefilter_temporal"]["label"]

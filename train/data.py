@@ -102,11 +102,9 @@ def input_record(window: tuple) -> str | None:
     """How a history pack's input is averaged, for its metadata and the run's fingerprint (a pack averaged
     otherwise is built again); None for a window of 1 frame and none ahead, the input as packs had it before
     averaging."""
+    from mcdenoise.pipeline.temporal import describe_averaging
     frames, gate, ahead = window
-    if frames <= 1 and not ahead:
-        return None
-    return (f"diffuse over {frames} frames" + (f" and {ahead} after" if ahead else "")
-            + (f", gate {gate:g}" if gate else ""))
+    return describe_averaging(frames, ahead, gate)
 
 
 def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = False, clean_aux: bool = False,
