@@ -15,6 +15,8 @@ with ``DiffCol`` (the albedo where above 1e-3, else 1, the light divided by it),
     per_frame    ours on the light files, each frame alone (--temporal-window 1 --ahead 0 --temporal-weight 1)
     before       ours on the light files, --ahead 0 (the frames before, followed back along the vectors)
     both         ours on the light files, the defaults (the frames after too, followed forward)
+    irr_before   as before, the light divided by the albedo averaged (``average_input(kind="irradiance")``)
+    irr_both     as both, the light divided by the albedo averaged
     store        ours on the store's own buffers with their camera, depth and variances, the defaults
 
 against ``oidn_prefilter`` per frame on the plain files. Prints per method and spp the mean over sequences of
@@ -40,7 +42,9 @@ from mcdenoise.pipeline.exr import read_layers, write_image
 from mcdenoise.train.sequence import cmd_denoise_sequence
 
 RUNS = {"plain": ("plain", {}), "per_frame": ("light", {"window": 1, "ahead": 0, "weight": 1.0}),
-        "before": ("light", {"ahead": 0}), "both": ("light", {}), "store": ("store", {})}
+        "before": ("light", {"ahead": 0, "kind": "diffuse"}), "both": ("light", {"kind": "diffuse"}),
+        "irr_before": ("light", {"ahead": 0, "kind": "irradiance"}), "irr_both": ("light", {"kind": "irradiance"}),
+        "store": ("store", {})}
 OFF_SCREEN = 1e4        # a background pixel's vector: lands off screen, so it has no history
 
 
@@ -82,7 +86,7 @@ def main() -> int:
     ap.add_argument("--split", required=True)
     ap.add_argument("--spp", default="4,16")
     ap.add_argument("--model", default="train/shipped")
-    ap.add_argument("--runs", default=",".join(RUNS))
+    ap.add_argument("--runs", default="plain,per_frame,before,both,store")
     ap.add_argument("--sequences", type=int, default=None, help="the first N sequences only (a quick look)")
     args = ap.parse_args()
     from mcdenoise.pipeline.store import Store
