@@ -397,6 +397,26 @@ def read_header(path: Path) -> dict:
     return _open(path, header_only=True)[0]
 
 
+# Cycles stamps every EXR it writes with its sample count per view layer (``cycles.ViewLayer.samples``, a string).
+CYCLES_SAMPLES = re.compile(r"cycles\.[^.]+\.samples")
+MAX_SAMPLES = 1 << 24
+
+
+def renderer_samples(path: Path) -> int | None:
+    """The sample count another renderer wrote in an EXR's header (Cycles: ``cycles.<view layer>.samples``), when
+    its view layers agree on one whole number from 1 to ``MAX_SAMPLES``; None otherwise or for an unreadable file."""
+    said: list[str] = []
+    try:
+        with library_output(said), OpenEXR.File(str(path), header_only=True) as f:
+            # read inside: the header empties when the file closes
+            found = {str(v).strip() for k, v in f.header().items() if CYCLES_SAMPLES.fullmatch(k)}
+    except Exception:       # not ours to judge here: the reader of its pixels says what is wrong with the file
+        return None
+    if len(found) != 1 or not (value := found.pop()).isdigit() or not 0 < int(value) <= MAX_SAMPLES:
+        return None
+    return int(value)
+
+
 def scan_exr(path: Path) -> dict:
     """Check an EXR's structure without OpenEXR: ``{width, height, channels: {name: dtype}}``.
 
@@ -824,8 +844,9 @@ def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = N
     given, receives the passes of other tools that are not buffers: ``"Vector"``, Blender's motion vectors
     (``[view layer.]Vector.X/Y/Z/W``, (H, W, 4) float32 as written; ``pipeline.motion.from_blender_vectors``),
     when the file has them.
-    An image of this store whose beauty is derived (compact: ``R, G, B`` missing or a half view) is read
-    with ``read_image``, so its colour is the exact beauty, never the view.
+    An image of this store whose beauty is derived (compact: ``R, G, B`` missing or a half view) or that records
+    constant buffers is read with ``read_image``, so its colour is the exact beauty, never the view, and a
+    constant buffer is there.
     """
     path = Path(path)
     if path.is_dir():
@@ -845,7 +866,7 @@ def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = N
         said = [line for line in said if "EXR_ERR" in line] or said
         why = said[-1].removeprefix(f"{path}: ") if said else (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise StoreError(f"{path}: corrupt or truncated EXR ({why})") from None
-    if _derived_record(ours):
+    if _read_whole(ours):
         return read_image(path)[0]
     other = resolve(channels, {b: schema.BY_NAME[b].exr_channels for b in ALIASES}, str(path))
     if not all(c in channels for c in ("R", "G", "B")) and "color" not in other:
@@ -863,6 +884,11 @@ def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = N
                     if a.shape != shape:
                         raise StoreError(f"{path}: channel {n!r} has shape {a.shape}, expected {shape}")
                 out[key] = np.stack(arrs, axis=2).astype(np.float32)
+    if not all(n in out for n in schema.RADIANCE_COMPONENTS):
+        split = cycles_components(channels, out["color"], str(path))
+        if split is not None:
+            out.update(split[0])
+            other.update(split[1])
     if aliased is not None:
         aliased.update(other)
     if passes is not None and (vector := find_layer(set(channels), "Vector", "XYZW", str(path))) is not None:
@@ -872,13 +898,16 @@ def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = N
     return out
 
 
-def _derived_record(raw) -> bool:
-    """Whether a header's ``mcdenoise`` attribute (``raw``) is a record of this store with a derived beauty."""
+def _read_whole(raw) -> bool:
+    """Whether a header's ``mcdenoise`` attribute (``raw``) is a record of this store that only ``read_image`` reads
+    whole: a derived beauty, or buffers recorded as constants (a feature the scene lacks, such as an emission of
+    0 everywhere), which have no channels."""
     try:
         record = json.loads(raw) if isinstance(raw, str) else None
     except (json.JSONDecodeError, ValueError, RecursionError):
         return False
-    return isinstance(record, dict) and record.get("format") == FORMAT and _beauty_derived(record)
+    return (isinstance(record, dict) and record.get("format") == FORMAT
+            and (_beauty_derived(record) or bool(record.get("constants"))))
 
 
 # ---- Other tools' layer names (Mitsuba's aov integrator, Blender), for denoise --exr -------------
@@ -890,7 +919,8 @@ def _derived_record(raw) -> bool:
 #   ``aovs="albedo:albedo,nn:sh_normal"`` → ``albedo.R/G/B``, ``nn.X/Y/Z``;
 # - Blender (Cycles) multilayer EXRs: ``<view layer>.Combined.R/G/B/A``, with the Denoising Data
 #   pass ``<view layer>.Noisy Image.R/G/B`` (the colour before Blender's own denoiser),
-#   ``<view layer>.Denoising Albedo.R/G/B`` and ``<view layer>.Denoising Normal.X/Y/Z``.
+#   ``<view layer>.Denoising Albedo.R/G/B`` and ``<view layer>.Denoising Normal.X/Y/Z``, and the Z pass
+#   ``<view layer>.Depth.Z`` (motion vectors' depth test, ``pipeline.motion.flow``).
 #
 # ``resolve`` maps the channel names of a file onto the schema's buffers: the schema's own names
 # first, then the layer names below in order, under no prefix or exactly one (a view layer).
@@ -901,6 +931,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "color": ("Noisy Image", "Combined"),
     "albedo": ("albedo", "Denoising Albedo", "Albedo"),
     "normal": ("N", "nn", "sh_normal", "normal", "normals", "Denoising Normal", "Normal"),
+    "depth": ("depth", "Depth", "Denoising Depth"),       # Blender's Z pass: Depth.Z
 }
 
 
@@ -920,6 +951,64 @@ def resolve(channels, schema_channels: dict[str, tuple[str, ...]], where: str) -
                 found[buffer] = hit
                 break
     return found
+
+
+# Cycles' light passes (View Layer Properties → Passes → Light), under both spellings Blender has written them.
+# Each light pass is the light divided by its lobe's colour pass, so the lobe's share of the beauty is their
+# product (Blender's manual: Combined = (DiffDir + DiffInd) × DiffCol + (GlossDir + GlossInd) × GlossCol +
+# (TransDir + TransInd) × TransCol + Emit + Env + the volume passes).
+CYCLES_LOBES: dict[str, tuple[tuple[str, str], tuple[str, str], tuple[str, str]]] = {
+    # lobe: (direct, indirect, colour)
+    "diffuse": (("DiffDir", "Diffuse Direct"), ("DiffInd", "Diffuse Indirect"), ("DiffCol", "Diffuse Color")),
+    "glossy": (("GlossDir", "Glossy Direct"), ("GlossInd", "Glossy Indirect"), ("GlossCol", "Glossy Color")),
+    "transmission": (("TransDir", "Transmission Direct"), ("TransInd", "Transmission Indirect"),
+                     ("TransCol", "Transmission Color")),
+}
+# Below this share of the beauty (summed over the image) the light passes may exceed it, from rounding (half-float
+# passes: 2^-11 relative each); above it they are not the beauty's parts (a denoised Combined, another render).
+CYCLES_EXCESS = 1e-2
+
+
+def cycles_components(channels: dict[str, np.ndarray], color: np.ndarray, where: str
+                      ) -> tuple[dict[str, np.ndarray], dict[str, tuple[str, ...]]] | None:
+    """The radiance components (``schema.RADIANCE_COMPONENTS``) of a Cycles render from its light passes, and the
+    channels each was made of; None without the diffuse and glossy passes (direct, indirect, colour), or where
+    the passes add up to more than the beauty ``color`` by over ``CYCLES_EXCESS`` of it.
+
+    The diffuse lobe's direct and indirect light times its colour are ``diffuse_direct`` and ``diffuse_indirect``;
+    the glossy lobe's, with the transmission lobe's where its passes are there, ``specular_direct`` and
+    ``specular_indirect``; ``emission`` is the beauty less those four, so it holds the emitters, the world and
+    whatever the file has no pass for (volumes, an older Cycles' subsurface), and the five add up to the beauty
+    exactly, as this store's do. What ``emission`` holds stays each frame's own in a sequence, as the
+    reflections do; the diffuse light is what the temporal methods average."""
+    names = set(channels)
+    found = {}
+    for lobe, roles in CYCLES_LOBES.items():
+        layers = [next((hit for layer in spellings if (hit := find_layer(names, layer, "RGB", where))), None)
+                  for spellings in roles]
+        if all(layers):
+            found[lobe] = layers
+        elif lobe != "transmission":
+            return None
+    parts, used = {}, {}
+    for part, role, lobes in (("diffuse_direct", 0, ("diffuse",)), ("diffuse_indirect", 1, ("diffuse",)),
+                              ("specular_direct", 0, ("glossy", "transmission")),
+                              ("specular_indirect", 1, ("glossy", "transmission"))):
+        total = np.zeros(color.shape, np.float64)
+        for lobe in (lb for lb in lobes if lb in found):
+            light, colour = found[lobe][role], found[lobe][2]
+            if any(channels[c].shape != color.shape[:2] for c in (*light, *colour)):
+                raise StoreError(f"{where}: the {lobe} light passes are not {color.shape[1]}x{color.shape[0]}, "
+                                 "the colour's size")
+            total += (np.stack([channels[c] for c in light], -1).astype(np.float64)
+                      * np.stack([channels[c] for c in colour], -1))
+            used[part] = (*used.get(part, ()), *light, *colour)
+        parts[part] = total
+    emission = color.astype(np.float64) - sum(parts.values())
+    if np.maximum(-emission, 0).sum() > CYCLES_EXCESS * np.abs(color).sum():
+        return None
+    parts["emission"] = emission
+    return {k: v.astype(np.float32) for k, v in parts.items()}, used
 
 
 def find_layer(names: set[str], layer: str, suffixes, where: str) -> tuple[str, ...] | None:

@@ -71,6 +71,8 @@ Averaging a window of frames needs where frame t's pixels were in frames t-2, t-
 depth each past frame is reached directly (``reproject`` between t and t-k: one landing spot, no error carried
 from frame to frame). Motion vectors only link neighbours, so the way back is chained: the spot in t-1, then
 frame t-1's own ``flow`` into t-2 read bilinearly there (its validity at the pixel the spot falls in), and so on.
+The way forward (``trace(..., ahead=True)``, the frames after t of a sequence on disk whole) is the same with
+the two halves of every frame's motion exchanged: ``to_next`` leads into t+1 and t+1's ``to_prev`` tests it.
 
 Motion vectors (``flow``, ``from_blender_vectors``)
 --------------------------------------------------
@@ -81,7 +83,10 @@ pixel coordinates above. Pixel p of frame t lands at q = p + to_prev(p) in frame
 is off frame t-1, or when frame t-1's own ``to_next`` read bilinearly at q (the warp's footprint) does not
 bring q back to within ``tolerance`` pixels of p: q shows another surface in frame t-1 (a disocclusion, or a
 footprint straddling a silhouette, whose vectors mix two motions), the forward-backward test of optical
-flow. There is no normal test: Blender's ``Denoising Normal`` is in camera space, so it turns with the camera.
+flow. Where both frames have depth (Blender's ``Depth`` pass) it is also invalid when frame t-1's depth at q
+differs from frame t's by more than ``FLOW_DEPTH_TOLERANCE`` of it: the forward-backward test cannot tell an
+occluder from what it hides where their motions differ by less than ``tolerance`` (small camera moves), the depth
+can. There is no normal test: Blender's ``Denoising Normal`` is in camera space, so it turns with the camera.
 
 OpenEXR headers (``exr_matrices``, ``camera_from_exr``)
 ------------------------------------------------------
@@ -112,6 +117,10 @@ NORMAL_THRESHOLD = 0.9          # cos 25.8 degrees: half-float normals, curved s
 # Default forward-backward tolerance of flow, in pixels: far above half-float vectors' rounding (2^-11 relative)
 # and bilinear interpolation's error on a smooth flow, below the mismatch of two surfaces' motions.
 FLOW_TOLERANCE = 0.5
+# Default depth test of flow where both frames have depth: a point's depth changes between two frames of a camera
+# move by a few per cent (a dolly of a fifth of the distance over 8 frames: 2.5 %), the step from an occluder to
+# what it hides by far more. Without cameras the change cannot be predicted, so the test is this loose.
+FLOW_DEPTH_TOLERANCE = 0.1
 # Clip distances of the store's cameras (render.buffers.make_sensor) and of a frame record that lacks them.
 NEAR_CLIP = 1e-3
 FAR_CLIP = 1e4
@@ -278,11 +287,14 @@ def _normals_agree(normal_t: np.ndarray, normal_prev: np.ndarray, idx, taps, thr
     return cos >= threshold
 
 
-def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_TOLERANCE
-         ) -> tuple[np.ndarray, np.ndarray]:
+def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_TOLERANCE,
+         depth_t: np.ndarray | None = None, depth_prev: np.ndarray | None = None,
+         depth_tolerance: float = FLOW_DEPTH_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """``reproject``'s answer from motion vectors: (xy_prev [H, W, 2] float32, valid [H, W] bool) for frame t
     of motion ``motion_t`` (H, W, 4) after frame t-1 of motion ``motion_prev``; xy_prev is NaN where the vector
-    is not finite. The tests that make a pixel invalid: module docstring."""
+    is not finite. The tests that make a pixel invalid: module docstring; with both frames' depth (H, W) also
+    where frame t-1's depth read at the landing spot (as ``reproject`` reads it: the inverse, bilinearly) differs
+    from frame t's by more than ``depth_tolerance`` of it, or either is background (not above 0)."""
     m_t, m_prev = np.asarray(motion_t, np.float64), np.asarray(motion_prev, np.float64)
     if m_t.ndim != 3 or m_t.shape[2] != 4 or m_prev.ndim != 3 or m_prev.shape[2] != 4:
         raise ValueError(f"motion must be (H, W, 4), got {m_t.shape} and {m_prev.shape}")
@@ -298,8 +310,23 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
         taps = _footprint(xy[idx], w, h)
         with np.errstate(invalid="ignore", over="ignore"):      # a non-finite vector fails the test
             back = xy[idx] + _read(m_prev[..., 2:], taps)
-            valid[idx] = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
+            keep = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
+        if depth_t is not None and depth_prev is not None:
+            keep &= _depth_agrees(_channels(depth_t)[..., 0][idx], _channels(depth_prev), taps, depth_tolerance)
+        valid[idx] = keep
     return xy.astype(np.float32), valid
+
+
+def _depth_agrees(z_t: np.ndarray, depth_prev: np.ndarray, taps, tolerance: float) -> np.ndarray:
+    """Per landing spot (``taps``), whether frame t-1's depth there, read as ``reproject`` reads it (1/depth
+    bilinearly, no background tap), is within ``tolerance`` of ``z_t`` (frame t's, above 0)."""
+    d_prev = np.asarray(depth_prev, np.float64)
+    background = np.zeros(len(z_t), dtype=bool)
+    for j, i, w in taps:
+        background |= (w > 0) & ~(d_prev[j, i, 0] > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        seen = _read(np.where(d_prev > 0, 1.0 / d_prev, 0.0), taps)[:, 0]
+        return ~background & (z_t > 0) & (np.abs(np.asarray(z_t, np.float64) * seen - 1) <= tolerance)
 
 
 def from_blender_vectors(vector: np.ndarray) -> np.ndarray:
@@ -394,18 +421,29 @@ def reproject_view(view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]
     ``linked`` says; ValueError when the two frames share neither motion vectors nor cameras with depth."""
     how = linked(view, view_prev)
     if how == "motion":
-        return flow(view.motion, view_prev.motion)
+        return flow(view.motion, view_prev.motion, depth_t=view.depth, depth_prev=view_prev.depth)
     if how == "camera":
         return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth,
                          normal_t=view.normal, normal_prev=view_prev.normal)
     raise ValueError("the two frames share neither motion vectors nor cameras with depth")
 
 
-def trace(view: View, past: list[View]) -> list[tuple[np.ndarray, np.ndarray]]:
+def turned(view: View) -> View:
+    """``view`` with its motion's two halves exchanged (``to_next`` first): followed with it, ``flow`` leads into
+    the frame after, and the frame after's turned motion tests the way back."""
+    if view.motion is None:
+        return view
+    return View(view.camera, view.depth, view.normal, np.concatenate([view.motion[..., 2:], view.motion[..., :2]], -1))
+
+
+def trace(view: View, past: list[View], ahead: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
     """Where ``view``'s pixels were in each frame of ``past`` (the frames before it, the latest first): a list of
     (xy [H, W, 2], valid [H, W]) as ``reproject_view`` gives for the previous frame, as long as the frames stay
     linked (``linked``), which may be shorter than ``past``. Cameras with depth: each frame directly; motion
-    vectors: chained (module docstring, "Further back")."""
+    vectors: chained (module docstring, "Further back"). ``ahead``: ``past`` are the frames after it, the next
+    first, and the answer is where its pixels will be in them."""
+    if ahead:
+        view, past = turned(view), [turned(v) for v in past]
     found: list[tuple[np.ndarray, np.ndarray]] = []
     newer = view
     for older in past:
@@ -415,10 +453,10 @@ def trace(view: View, past: list[View]) -> list[tuple[np.ndarray, np.ndarray]]:
         if how == "camera":
             found.append(reproject_view(view, older))
         elif not found:
-            found.append(flow(newer.motion, older.motion))
+            found.append(reproject_view(newer, older))
         else:
             xy, valid = found[-1]
-            step_xy, step_valid = flow(newer.motion, older.motion)
+            step_xy, step_valid = reproject_view(newer, older)
             h, w = step_valid.shape
             xy, valid = xy.astype(np.float64), valid.copy()
             idx = np.nonzero(valid)

@@ -17,6 +17,8 @@ with ``DiffCol`` (the albedo where above 1e-3, else 1, the light divided by it),
     both         ours on the light files, the defaults (the frames after too, followed forward)
     irr_before   as before, the light divided by the albedo averaged (``average_input(kind="irradiance")``)
     irr_both     as both, the light divided by the albedo averaged
+    plain_z, both_z, irr_both_z   as plain, both, irr_both on files with Cycles' Depth pass (the store's depth): the
+                 vectors' depth test (``motion.flow``)
     store        ours on the store's own buffers with their camera, depth and variances, the defaults
 
 against ``oidn_prefilter`` per frame on the plain files. Prints per method and spp the mean over sequences of
@@ -44,7 +46,10 @@ from mcdenoise.train.sequence import cmd_denoise_sequence
 RUNS = {"plain": ("plain", {}), "per_frame": ("light", {"window": 1, "ahead": 0, "weight": 1.0}),
         "before": ("light", {"ahead": 0, "kind": "diffuse"}), "both": ("light", {"kind": "diffuse"}),
         "irr_before": ("light", {"ahead": 0, "kind": "irradiance"}), "irr_both": ("light", {"kind": "irradiance"}),
-        "store": ("store", {})}
+        "store": ("store", {}),
+        # the same files with Cycles' Depth pass: the vectors' depth test (motion.flow)
+        "plain_z": ("plain_z", {}), "both_z": ("light_z", {"kind": "diffuse"}),
+        "irr_both_z": ("light_z", {"kind": "irradiance"})}
 OFF_SCREEN = 1e4        # a background pixel's vector: lands off screen, so it has no history
 
 
@@ -64,8 +69,10 @@ def cycles_vector(frames, t: int) -> np.ndarray:
     return np.stack([px, -py, -nx, ny], -1).astype(np.float32)
 
 
-def write_cycles(path: Path, buffers: dict, vector: np.ndarray, light: bool) -> None:
+def write_cycles(path: Path, buffers: dict, vector: np.ndarray, light: bool, depth: bool = False) -> None:
     layers = {"Noisy Image": buffers["color"], "Denoising Albedo": buffers["albedo"], "Vector": vector}
+    if depth:
+        layers["Depth"] = buffers["depth"]
     if light:
         colour = np.where(buffers["albedo"] > 1e-3, buffers["albedo"], 1.0).astype(np.float64)
         layers.update({"DiffDir": buffers["diffuse_direct"] / colour, "DiffInd": buffers["diffuse_indirect"] / colour,
@@ -73,7 +80,8 @@ def write_cycles(path: Path, buffers: dict, vector: np.ndarray, light: bool) -> 
                        "GlossInd": buffers["specular_indirect"], "GlossCol": np.ones_like(colour),
                        "Emit": buffers["emission"]})
     channels = {f"ViewLayer.{name}.{s}": np.ascontiguousarray(image[..., i], np.float32)
-                for name, image in layers.items() for i, s in enumerate("XYZW" if name == "Vector" else "RGB")}
+                for name, image in layers.items()
+                for i, s in enumerate({"Vector": "XYZW", "Depth": "Z"}.get(name, "RGB"))}
     channels.update({f"ViewLayer.Denoising Normal.{s}": np.ascontiguousarray(buffers["normal"][..., i], np.float32)
                      for i, s in enumerate("XYZ")})
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as f:
@@ -101,12 +109,13 @@ def main() -> int:
             base_psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(base, frames)]
             with tempfile.TemporaryDirectory() as tmp:
                 tmp = Path(tmp)
-                for kind in ("plain", "light", "store"):
+                for kind in ("plain", "light", "store", "plain_z", "light_z"):
                     (tmp / kind).mkdir()
                 for t, f in enumerate(frames):
                     vector = cycles_vector(frames, t)
-                    write_cycles(tmp / "plain" / f"{t:03d}.exr", f.buffers, vector, light=False)
-                    write_cycles(tmp / "light" / f"{t:03d}.exr", f.buffers, vector, light=True)
+                    for kind in ("plain", "light", "plain_z", "light_z"):
+                        write_cycles(tmp / kind / f"{t:03d}.exr", f.buffers, vector, light=kind.startswith("light"),
+                                     depth=kind.endswith("_z"))
                     write_image(tmp / "store" / f"{t:03d}.exr", f.buffers, camera=f.views["input"].camera)
                 for run in runs:
                     kind, options = RUNS[run]
