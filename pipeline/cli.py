@@ -242,7 +242,7 @@ def _sequence_options(p) -> None:
                    help="--sequence: frames over which the noisy diffuse light is averaged before denoising (1: none; "
                         "default eval.temporal_window)")
     p.add_argument("--ahead", type=int, default=None,
-                   help="--sequence: frames after each one averaged too, with cameras and depth (0: the frames before "
+                   help="--sequence: frames after each one averaged too (0: the frames before "
                         "alone, as frames that arrive one at a time; default eval.temporal_ahead)")
 
 

@@ -618,8 +618,8 @@ class EvalConfig(Section):
                                "averaged light\").", 2.0)
     temporal_ahead: int = doc("Frames after this one that the temporal methods average too, for a sequence on disk "
                               "whole (a shot rendered offline; make eval and denoise --sequence): each reprojected "
-                              "with the cameras and depth (motion vectors point back only, so a sequence with "
-                              "vectors alone averages the frames before); the filter stays causal. 0: the frames "
+                              "with the cameras and depth, or followed forward along the motion vectors (a "
+                              "Vector pass's to-next half); the filter stays causal. 0: the frames "
                               "before alone, as frames that arrive one at a time. 7: the rule of "
                               "docs/sequences.md (\"Frames after this one too\").", 7)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)

@@ -8,8 +8,8 @@ output (the filter).
 
 **The input averaged** (``average_input``): the diffuse light (``diffuse_direct``, ``diffuse_indirect``) of
 frame t averaged with that of up to ``window - 1`` frames before it and, for a sequence on disk whole, up to
-``ahead`` frames after it (with cameras and depth: motion vectors point back), each reprojected straight into
-frame t (``motion.trace``, ``motion.reproject_view``) and read at the pixel its spot falls in, over the frames
+``ahead`` frames after it, each reprojected into frame t (``motion.trace``: with cameras and depth straight,
+with motion vectors along the chain of neighbours, backwards or forwards) and read at the pixel its spot falls in, over the frames
 valid at each pixel and, with a ``gate``, agreeing with frame t within that many standard deviations of the difference; emission and
 the reflections (the specular components) stay frame t's, since they do not follow the surface's motion. At
 4 spp, 8 frames give most surfaces 32 samples of diffuse light. The filter below stays causal. The past pixels are read whole: an
@@ -195,6 +195,15 @@ def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], li
     return {k: v / (a * a if k.endswith(".variance") else a) for k, v in values.items() if k != "albedo"}
 
 
+def averaging_kind(buffers: dict[str, np.ndarray]) -> str:
+    """What ``average_input`` averages of a sequence whose frames are like ``buffers``: the diffuse light where the
+    frame has the variances its gate reads; the diffuse light divided by the albedo where it has not (a Cycles
+    render): nothing then refuses a past pixel read up to half a pixel off, and on a fine texture that blurs the
+    texture, while the light under it is smooth (docs/sequences.md, "Without variances")."""
+    gated = all(f"{n}.variance" in buffers for n in GATE_GROUPS["diffuse"][0])
+    return "diffuse" if gated or "albedo" not in buffers else "irradiance"
+
+
 def describe_averaging(window: int, ahead: int = 0, gate: float | None = None) -> str | None:
     """How the temporal methods average their input, in words (the sequence page, row labels, a history pack's
     record): 'diffuse light over 8 frames and 7 after, gate 2'; None when nothing is averaged."""
@@ -231,8 +240,7 @@ class InputWindow:
     def take(self, buffers: dict[str, np.ndarray], view: motion.View | None,
              upcoming: list[tuple[dict[str, np.ndarray], motion.View | None]] = ()) -> dict[str, np.ndarray]:
         """This frame's buffers averaged over the window and the first ``ahead`` frames of ``upcoming`` (the
-        frames after it, in order; ``keep`` of their buffers is enough), then the frame joins the window. A later
-        frame counts only with cameras and depth: motion vectors point back, to the frame before."""
+        frames after it, in order; ``keep`` of their buffers is enough), then the frame joins the window."""
         if self.frames == 1 and self.ahead == 0:
             return buffers
         traced, others = [], []
@@ -244,11 +252,14 @@ class InputWindow:
                 linked_views.append(v)
             traced = motion.trace(view, linked_views)
             others = [b for b, _ in self.past[:len(traced)]]
+            later = []
             for b, v in list(upcoming)[:self.ahead]:
-                if v is None or motion.linked(view, v) != "camera":
+                if v is None:
                     break
-                traced.append(motion.reproject_view(view, v))
-                others.append(b)
+                later.append((b, v))
+            found = motion.trace(view, [v for _, v in later], ahead=True)
+            traced += found
+            others += [b for b, _ in later[:len(found)]]
         out, count = average_input(buffers, others, traced, self.kind, gate=self.gate)
         if others:
             self.counts.append(float(count.mean()))

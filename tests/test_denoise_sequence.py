@@ -123,11 +123,15 @@ def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tm
     assert read_layers(tmp_path / "o" / "c_1.exr")["color"].shape == (12, 16, 3)
 
 
-def blender_frame(path, colour, albedo, vector) -> None:
-    """A Cycles multilayer EXR: the Denoising Data passes and the Vector pass under the view layer 'ViewLayer'."""
+def blender_frame(path, colour, albedo, vector, light: bool = False) -> None:
+    """A Cycles multilayer EXR: the Denoising Data passes and the Vector pass under the view layer 'ViewLayer'; with
+    ``light``, Cycles' light passes too, every bit of light diffuse and direct (DiffDir = the colour, DiffCol = 1)."""
     channels = {}
+    zero, one = np.zeros(colour.shape, np.float32), np.ones(colour.shape, np.float32)
+    passes = (("DiffDir", colour), ("DiffInd", zero), ("DiffCol", one), ("GlossDir", zero), ("GlossInd", zero),
+              ("GlossCol", one)) if light else ()
     for layer, image, suffixes in (("Noisy Image", colour, "RGB"), ("Denoising Albedo", albedo, "RGB"),
-                                   ("Vector", vector, "XYZW")):
+                                   ("Vector", vector, "XYZW"), *((n, im, "RGB") for n, im in passes)):
         for k, s in enumerate(suffixes):
             channels[f"ViewLayer.{layer}.{s}"] = np.ascontiguousarray(image[..., k], np.float32)
     normal = np.zeros(colour.shape, np.float32)
@@ -153,6 +157,7 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
         clean = base[n - t:n - t + h, 2 * (n - t):2 * (n - t) + w]        # frame t sees base shifted by (2t, t)
         noisy = clean * rng.gamma(4.0, 0.25, clean.shape).astype(np.float32)
         blender_frame(tmp_path / f"b_{t:02d}.exr", noisy, clean, vector)
+        blender_frame(tmp_path / f"l_{t:02d}.exr", noisy, clean, vector, light=True)
     passes: dict = {}
     buffers = read_layers(tmp_path / "b_00.exr", passes=passes)
     assert passes["Vector"].shape == (h, w, 4) and frame_view(tmp_path / "b_00.exr", buffers)[0] is None
@@ -176,3 +181,10 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
     proc = cli("denoise", "--sequence", tmp_path / "b_##.exr", "--spp", "4", "--quiet", "--device", "cpu",
                "--out", tmp_path / "ours" / "o_##.exr")
     assert "history on 2 of 2 frames" in proc.stdout and "the model's base, OIDN, alone" in proc.stdout, proc.stdout
+    # with the light passes the model reads the light components, and the diffuse light is averaged over the frame
+    # before and, followed forward along the vectors, the frames after: per frame 1 + the share of its pixels
+    # still on screen one frame away (30/32 * 23/24) or two (28/32 * 22/24), (2.70 + 2.80 + 2.70) / 3
+    proc = cli("denoise", "--sequence", tmp_path / "l_##.exr", "--spp", "4", "--quiet", "--device", "cpu",
+               "--out", tmp_path / "light" / "o_##.exr")
+    assert "diffuse light ÷ albedo averaged over up to 8 frames and 7 after (2.7 per pixel)" in proc.stdout, proc.stdout
+    assert "base, OIDN, alone" not in proc.stdout, proc.stdout

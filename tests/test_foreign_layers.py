@@ -4,7 +4,8 @@ import OpenEXR
 import pytest
 
 from mcdenoise.pipeline.errors import StoreError
-from mcdenoise.pipeline.exr import read_layers
+from mcdenoise.pipeline.exr import CYCLES_EXCESS, CYCLES_LOBES, read_layers
+from mcdenoise.pipeline.schema import RADIANCE_COMPONENTS, beauty_from_components
 from mcdenoise.train import oidn
 from tests.helpers import cli
 
@@ -82,3 +83,82 @@ def test_our_names_win_and_ambiguous_or_missing_colour_is_named(tmp_path):
     _write(none, _layer("beauty", a, "RGB"))
     with pytest.raises(StoreError, match=r"none.exr: channels R, G, B .* 'Noisy Image' or 'Combined'.*found beauty.B"):
         read_layers(none)
+
+
+def _cycles_light(rng, shape, spelling: int, transmission: bool = True):
+    """Cycles' light passes of a made-up frame (``CYCLES_LOBES``, old or new spelling): each lobe's light and colour,
+    the emitters and the world, and the noisy beauty they add up to (Blender's manual's formula)."""
+    lobes = [lobe for lobe in CYCLES_LOBES if transmission or lobe != "transmission"]
+    light = {lobe: (rng.random(shape), rng.random(shape), rng.random(shape)) for lobe in lobes}
+    emit, world = rng.random(shape) * (rng.random(shape[:2]) < 0.2)[..., None], rng.random(shape) * 0.1
+    layers = {}
+    for lobe in lobes:
+        for names, image in zip(CYCLES_LOBES[lobe], light[lobe]):
+            layers.update(_layer(f"ViewLayer.{names[spelling]}", image, "RGB"))
+    beauty = sum((d + i) * c for d, i, c in light.values()) + emit + world
+    layers.update({**_layer("ViewLayer.Emit", emit, "RGB"), **_layer("ViewLayer.Env", world, "RGB"),
+                   **_layer("ViewLayer.Noisy Image", beauty, "RGB")})
+    return layers, light, emit + world, beauty
+
+
+@pytest.mark.parametrize("spelling", [0, 1])
+def test_cycles_light_passes_give_the_components_that_add_up_to_the_beauty(tmp_path, spelling):
+    """The diffuse lobe's light times its colour is the diffuse light; glossy and transmission make the reflections;
+    emission is the rest (the emitters and the world); the five add up to the noisy beauty (float32 rounding of each
+    product, a few ulp of values below 4)."""
+    rng = np.random.default_rng(5 + spelling)
+    layers, light, rest, beauty = _cycles_light(rng, (6, 5, 3), spelling)
+    path = tmp_path / "cycles.exr"
+    _write(path, layers)
+    found: dict = {}
+    buffers = read_layers(path, found)
+    f32 = lambda x: x.astype(np.float32).astype(np.float64)     # noqa: E731  (what the file holds)
+    lit = {lobe: tuple(map(f32, images)) for lobe, images in light.items()}
+    expected = {"diffuse_direct": lit["diffuse"][0] * lit["diffuse"][2],
+                "diffuse_indirect": lit["diffuse"][1] * lit["diffuse"][2],
+                "specular_direct": lit["glossy"][0] * lit["glossy"][2] + lit["transmission"][0] * lit["transmission"][2],
+                "specular_indirect": lit["glossy"][1] * lit["glossy"][2] + lit["transmission"][1] * lit["transmission"][2]}
+    for name, value in expected.items():
+        np.testing.assert_allclose(buffers[name], value, rtol=1e-6)
+    np.testing.assert_allclose(buffers["emission"], rest, atol=1e-6)
+    np.testing.assert_allclose(beauty_from_components(buffers), buffers["color"], atol=1e-6)
+    direct, _, colour = CYCLES_LOBES["diffuse"]
+    assert found["diffuse_direct"] == tuple(f"ViewLayer.{n[spelling]}.{c}" for n in (direct, colour) for c in "RGB")
+
+
+def test_cycles_light_passes_need_diffuse_and_glossy_and_must_not_exceed_the_beauty(tmp_path):
+    rng = np.random.default_rng(9)
+    layers, light, rest, beauty = _cycles_light(rng, (4, 6, 3), 0, transmission=False)
+    path = tmp_path / "cycles.exr"
+    _write(path, layers)
+    buffers = read_layers(path)                 # no transmission passes: the glossy lobe alone makes the reflections
+    d, i, c = (x.astype(np.float32) for x in light["glossy"])
+    np.testing.assert_allclose(buffers["specular_indirect"], i.astype(np.float64) * c, rtol=1e-6)
+    np.testing.assert_allclose(beauty_from_components(buffers), buffers["color"], atol=1e-6)
+    no_glossy = tmp_path / "no_glossy.exr"
+    _write(no_glossy, {k: v for k, v in layers.items() if "Gloss" not in k})
+    assert not set(RADIANCE_COMPONENTS) & set(read_layers(no_glossy))
+    # a beauty that is not the passes' sum (Blender's denoised Combined, no Noisy Image): passes left out
+    smooth = tmp_path / "denoised.exr"
+    noisy = {k: v for k, v in layers.items() if "Noisy Image" not in k}
+    _write(smooth, {**noisy, **_layer("ViewLayer.Combined", 0.9 * beauty, "RGB")})
+    assert not set(RADIANCE_COMPONENTS) & set(read_layers(smooth))
+    _write(smooth, {**noisy, **_layer("ViewLayer.Combined", beauty * (1 - 0.5 * CYCLES_EXCESS), "RGB")})
+    assert set(RADIANCE_COMPONENTS) <= set(read_layers(smooth))      # within the rounding allowance: read
+
+
+def test_the_sample_count_of_a_cycles_render_is_read_from_its_header(tmp_path):
+    """Cycles stamps ``cycles.<view layer>.samples``; ``denoise`` reads it where the file has no record of ours."""
+    from mcdenoise.train.infer import DEFAULT_EXR_SPP, exr_spp
+    image = {c: np.full((4, 4), 0.5, np.float32) for c in "RGB"}
+
+    def stamped(name, **stamps):
+        path = tmp_path / name
+        with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, **stamps}, image) as f:
+            f.write(str(path))
+        return path
+    assert exr_spp(stamped("cycles.exr", **{"cycles.ViewLayer.samples": "4"})) == (4, "from Cycles' header")
+    two = {"cycles.A.samples": "4", "cycles.B.samples": "64"}            # view layers that disagree: not guessed
+    for path in (stamped("two.exr", **two), stamped("bad.exr", **{"cycles.ViewLayer.samples": "4x"}),
+                 stamped("zero.exr", **{"cycles.ViewLayer.samples": "0"}), stamped("none.exr")):
+        assert exr_spp(path) == (DEFAULT_EXR_SPP, "not recorded in the file: assumed"), path

@@ -333,6 +333,33 @@ def test_trace_reaches_each_past_frame_directly_with_cameras_and_by_a_chain_with
     assert np.isnan(xy[~valid]).all()
 
 
+def test_trace_ahead_follows_the_vectors_forward_as_the_cameras_lead():
+    """The three frames above, traced from the first into the two after it (``ahead``): with cameras each is
+    reproject()'s answer; with vectors the chain t -> t+1 -> t+2 (``to_next``, tested by the next frame's
+    ``to_prev``) lands where the direct reprojection does, within 0.01 pixel, with the same mask away from the
+    border; traced backwards from the first frame's turned motion it is no longer the same (the test can fail)."""
+    cams = [camera(origin=(-0.15 * k, 0.05 * k, 0), target=(-0.15 * k, 0.05 * k, -1)) for k in range(3)]
+    normal = np.array([0.3, 0.0, 1.0]) / np.linalg.norm([0.3, 0.0, 1.0])
+    depths = [plane_depth(c, normal, -4.0) for c in cams]
+    views = [motion.View(c, d) for c, d in zip(cams, depths)]
+    for (xy, valid), k in zip(motion.trace(views[0], views[1:], ahead=True), (1, 2)):
+        direct = reproject(depths[0], cams[0], cams[k], depth_prev=depths[k])
+        np.testing.assert_array_equal(xy, direct[0])
+        np.testing.assert_array_equal(valid, direct[1])
+    moving = [motion.View(None, None, motion=m) for m in cycles_passes(cams, depths)]
+    chained = motion.trace(moving[0], moving[1:], ahead=True)
+    assert len(chained) == 2
+    for (xy, valid), k in zip(chained, (1, 2)):
+        xy_direct, valid_direct = reproject(depths[0], cams[0], cams[k], depth_prev=depths[k])
+        both = valid & valid_direct
+        assert both.sum() > 0.7 * W * H and np.abs(xy - xy_direct)[both].max() < 0.01
+        near_border = ((xy_direct[..., 0] < 1) | (xy_direct[..., 0] > W - 1) | (xy_direct[..., 1] < 1)
+                       | (xy_direct[..., 1] > H - 1))
+        assert not ((valid != valid_direct) & ~near_border).any()
+    # the first frame has no to_prev (zeros): followed backwards, every pixel stays put and fails the test
+    assert not motion.trace(moving[0], moving[1:])[0][1].any()
+
+
 def test_trace_stops_where_the_frames_stop_being_linked():
     cam = camera()
     depth = plane_depth(cam, (0, 0, 1), -5.0)

@@ -10,6 +10,7 @@ from mcdenoise.pipeline.temporal import (
     AVERAGED,
     InputWindow,
     average_input,
+    averaging_kind,
     blend_history,
     instability,
     neighbourhood_range,
@@ -191,7 +192,7 @@ def test_the_window_keeps_its_last_frames_and_stops_at_a_frame_without_motion():
         InputWindow(0)
 
 
-def test_the_window_averages_the_frames_ahead_it_is_given_with_cameras_only():
+def test_the_window_averages_the_frames_ahead_it_is_given_that_are_linked_to_it():
     rng = np.random.default_rng(10)
     cam = Camera(np.eye(4), 50.0, 8, 6)
     view = motion.View(cam, np.full((6, 8), 3.0))
@@ -203,11 +204,16 @@ def test_the_window_averages_the_frames_ahead_it_is_given_with_cameras_only():
     # frame 1: frame 0 behind it, frames 2 and 3 ahead
     out = window.take(frames[1], view, [(window.keep(f), view) for f in frames[2:4]])
     np.testing.assert_allclose(out["color"], mean(frames[:4]), rtol=1e-6)
-    # a frame ahead with motion vectors only does not count (they point back), nor those after it
+    # a frame ahead that shares no motion with this one (vectors there, a camera here) does not count, nor those
+    # after it
     vectors = motion.View(None, None, motion=np.zeros((6, 8, 4), np.float32))
     out = window.take(frames[2], view, [(window.keep(frames[3]), vectors), (window.keep(frames[4]), view)])
     np.testing.assert_allclose(out["color"], mean(frames[1:3]), rtol=1e-6)
     assert window.counts == [3.0, 4.0, 2.0]
+    # with motion vectors here and there the frames ahead count, followed forward along the vectors
+    forward = InputWindow(1, "colour", ahead=2)
+    out = forward.take(frames[0], vectors, [(forward.keep(f), vectors) for f in frames[1:4]])
+    np.testing.assert_allclose(out["color"], mean(frames[:3]), rtol=1e-6)
     # nothing behind and nothing ahead: the frame's own buffers
     assert InputWindow(1, ahead=2).take(frames[0], view) is frames[0]
     with pytest.raises(ValueError, match="ahead: must be >= 0"):
@@ -325,3 +331,11 @@ def test_components_gate_each_reflection_apart_from_the_diffuse_light():
     # diffuse: the reflections are frame t's whatever the gate
     out, _ = average_input(now, [past], [still()], "diffuse", gate=2.0)
     np.testing.assert_array_equal(out["specular_indirect"], now["specular_indirect"])
+
+
+def test_frames_without_the_gates_variances_average_the_light_divided_by_the_albedo():
+    buffers = frame_buffers(np.random.default_rng(11))
+    assert averaging_kind(buffers) == "diffuse"
+    bare = {k: v for k, v in buffers.items() if not k.endswith(".variance")}     # a Cycles render's layers
+    assert averaging_kind(bare) == "irradiance"
+    assert averaging_kind({k: v for k, v in bare.items() if k != "albedo"}) == "diffuse"   # nothing to divide by

@@ -204,14 +204,17 @@ DEFAULT_EXR_SPP = 16
 
 
 def exr_spp(path: Path) -> tuple[int, str]:
-    """The sample count an EXR's mcdenoise header records, else ``DEFAULT_EXR_SPP`` (the middle of 4..64)."""
-    from mcdenoise.pipeline.exr import read_header
+    """The sample count an EXR's mcdenoise header records, or the renderer's (Cycles'), else ``DEFAULT_EXR_SPP``
+    (the middle of 4..64)."""
+    from mcdenoise.pipeline.exr import read_header, renderer_samples
     try:
         spp = read_header(path).get("spp")
     except StoreError:
         spp = None
     if isinstance(spp, int) and spp > 0:
         return spp, "from its header"
+    if (spp := renderer_samples(path)) is not None:
+        return spp, "from Cycles' header"
     return DEFAULT_EXR_SPP, "not recorded in the file: assumed"
 
 

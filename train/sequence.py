@@ -5,7 +5,7 @@
 
 Each frame's noisy diffuse light is first averaged over it, the frames before it (``--temporal-window``,
 default ``eval.temporal_window``: 8 frames) and those after it (``--ahead``, default ``eval.temporal_ahead``: 7;
-with cameras and depth only, motion vectors point back; 0 for frames that arrive one at a time), each
+0 for frames that arrive one at a time), each
 reprojected, a past pixel counting where it agrees within
 ``eval.temporal_gate`` standard deviations; ``pipeline.temporal.average_input``; frames
 without the light components, a plain beauty, are not averaged). Then the frame is denoised as ``denoise
@@ -170,8 +170,9 @@ def _frames_ahead(files: list, i: int, ahead: int, cache: dict, window: temporal
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
                          weight: float | None = None, quiet: bool = False, model: Path | None = None,
                          device: str | None = None, precision: str = "auto", seed: int | None = None,
-                         window: int | None = None, ahead: int | None = None) -> int:
-    """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring)."""
+                         window: int | None = None, ahead: int | None = None, kind: str | None = None) -> int:
+    """Denoise every file of ``pattern`` in frame order into ``out_pattern`` (module docstring). ``kind``: what the
+    input averaging averages (``temporal.GATE_GROUPS``); None: ``temporal.averaging_kind`` of the first frame."""
     weight, window, ahead = _temporal_settings(cfg, weight, window, ahead)
     files = sequence_files(pattern)
     outs = [output_path(out_pattern, n) for n, _ in files]
@@ -191,7 +192,9 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
     # (the previous frame's output, its view), what the next frame's history is made of
     previous, took, alone, t0 = None, [], "", time.perf_counter()
-    inputs_window, bare, cache = temporal.InputWindow(window, gate=cfg.eval.temporal_gate or None, ahead=ahead), 0, {}
+    kind = temporal.averaging_kind(first) if kind is None else kind
+    inputs_window = temporal.InputWindow(window, kind, gate=cfg.eval.temporal_gate or None, ahead=ahead)
+    bare, cache = 0, {}
     for i, ((number, path), out) in enumerate(progress(list(zip(files, outs)), desc="denoise sequence", unit="frame",
                                                        disable=quiet)):
         passes: dict = {}
@@ -218,7 +221,8 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     if (window > 1 or ahead) and bare == len(files):
         how += ", input not averaged (no frame has diffuse light layers)"
     elif window > 1 or ahead:
-        how += (f", diffuse light averaged over up to {window} frames and {ahead} after"
+        how += (f", diffuse light{' ÷ albedo' if kind in temporal.DEMODULATED else ''} averaged over up to {window} "
+                f"frames and {ahead} after"
                 + (f" ({np.mean(inputs_window.counts):.1f} per pixel)" if inputs_window.counts else "")
                 + (f" ({bare} of {len(files)} frames have no diffuse light layers: those not)" if bare else ""))
     print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "
