@@ -884,18 +884,24 @@ def read_layers(path: Path, aliased: dict | None = None, passes: dict | None = N
                     if a.shape != shape:
                         raise StoreError(f"{path}: channel {n!r} has shape {a.shape}, expected {shape}")
                 out[key] = np.stack(arrs, axis=2).astype(np.float32)
-    if not all(n in out for n in schema.RADIANCE_COMPONENTS):
-        split = cycles_components(channels, out["color"], str(path))
-        if split is not None:
-            out.update(split[0])
-            other.update(split[1])
+    if not all(n in out for n in schema.RADIANCE_COMPONENTS) and (
+            split := cycles_components(channels, out["color"], str(path))) is not None:
+        out.update(split[0])            # Cycles' light passes
+        other.update(split[1])
     if aliased is not None:
         aliased.update(other)
-    if passes is not None and (vector := find_layer(set(channels), "Vector", "XYZW", str(path))) is not None:
-        if any(channels[n].shape != shape for n in vector):
-            raise StoreError(f"{path}: the Vector pass's channels are not {shape[1]}x{shape[0]}, the colour's size")
-        passes["Vector"] = np.stack([channels[n] for n in vector], axis=2).astype(np.float32)
+    if passes is not None and (vector := _vector_pass(channels, shape, path)) is not None:
+        passes["Vector"] = vector
     return out
+
+
+def _vector_pass(channels: dict[str, np.ndarray], shape, path: Path) -> np.ndarray | None:
+    """Blender's ``Vector`` pass (H, W, 4) float32 of a file's ``channels``, None when it has none."""
+    if (vector := find_layer(set(channels), "Vector", "XYZW", str(path))) is None:
+        return None
+    if any(channels[n].shape != shape for n in vector):
+        raise StoreError(f"{path}: the Vector pass's channels are not {shape[1]}x{shape[0]}, the colour's size")
+    return np.stack([channels[n] for n in vector], axis=2).astype(np.float32)
 
 
 def _read_whole(raw) -> bool:

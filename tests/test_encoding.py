@@ -379,3 +379,19 @@ def test_denoise_exr_of_a_store_image_reads_the_exact_beauty_not_the_view(tmp_pa
         layers = read_layers(tmp_path / name)
         assert layers.keys() == exact.keys()
         assert all(np.array_equal(layers[k], exact[k]) for k in exact), name
+
+
+def test_read_layers_keeps_the_buffers_an_exact_image_records_as_constants(tmp_path):
+    """An exact-encoded image whose emission is 0 everywhere records it as a constant (no channels): ``read_layers``
+    (``denoise --exr``/``--sequence``) gives it back, so the frame still has every light component."""
+    from mcdenoise.pipeline.exr import read_layers
+    arrays = rendered_like()
+    arrays["emission"] = np.zeros_like(arrays["emission"])
+    arrays["emission.variance"] = np.zeros_like(arrays["emission.variance"])
+    arrays["color"] = accumulated_beauty(arrays)
+    write_image(tmp_path / "x.exr", arrays)
+    assert "emission.R" in read_header(tmp_path / "x.exr")["constants"]      # no channel holds it
+    layers = read_layers(tmp_path / "x.exr")
+    exact = read_image(tmp_path / "x.exr")[0]
+    assert "emission" in layers and not layers["emission"].any()
+    assert layers.keys() == exact.keys() and all(np.array_equal(layers[k], exact[k]) for k in exact)

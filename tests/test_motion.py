@@ -360,6 +360,28 @@ def test_trace_ahead_follows_the_vectors_forward_as_the_cameras_lead():
     assert not motion.trace(moving[0], moving[1:])[0][1].any()
 
 
+def test_the_depth_test_refuses_a_disocclusion_the_forward_backward_test_lets_through():
+    """A background at depth 10 moving 1.6 pixels right per frame behind an occluder at depth 2 (columns 0-7 of
+    frame t-1) moving 1 pixel: pixel 9 of frame t (centre 9.5) was hidden at 7.9 in frame t-1, where the bilinear
+    read of t-1's vectors (0.6 x 1.0 + 0.4 x 1.6) brings it back 0.36 pixel from where it started, inside the
+    forward-backward tolerance. Its depth there (1 / (0.6 / 2 + 0.4 / 10) = 2.9 against 10) is refused; pixel 12
+    (background in both frames) passes both tests; background (depth 0) has no depth to agree with."""
+    h, w = 4, 16
+    depth_prev = np.where(np.arange(w) < 8, 2.0, 10.0)[None, :].repeat(h, 0)
+    depth_t = np.where(np.arange(w) < 9, 2.0, 10.0)[None, :].repeat(h, 0)
+    motion_prev, motion_t = np.zeros((h, w, 4), np.float32), np.zeros((h, w, 4), np.float32)
+    motion_prev[..., 2] = np.where(depth_prev < 5, 1.0, 1.6)         # t-1's to_next
+    motion_t[..., 0] = np.where(depth_t < 5, -1.0, -1.6)             # t's to_prev
+    _, loose = motion.flow(motion_t, motion_prev)
+    _, tested = motion.flow(motion_t, motion_prev, depth_t=depth_t, depth_prev=depth_prev)
+    assert loose[:, 9].all() and not tested[:, 9].any()
+    assert loose[:, 12].all() and tested[:, 12].all()
+    np.testing.assert_array_equal(tested, loose & ~(np.arange(w) == 9)[None, :])
+    background = depth_t.copy()
+    background[:, 12] = 0.0
+    assert not motion.flow(motion_t, motion_prev, depth_t=background, depth_prev=depth_prev)[1][:, 12].any()
+
+
 def test_trace_stops_where_the_frames_stop_being_linked():
     cam = camera()
     depth = plane_depth(cam, (0, 0, 1), -5.0)

@@ -8,7 +8,9 @@ default ``eval.temporal_window``: 8 frames) and those after it (``--ahead``, def
 0 for frames that arrive one at a time), each
 reprojected, a past pixel counting where it agrees within
 ``eval.temporal_gate`` standard deviations; ``pipeline.temporal.average_input``; frames
-without the light components, a plain beauty, are not averaged). Then the frame is denoised as ``denoise
+without the light components, a plain beauty, are not averaged; frames without variance layers, a Cycles render
+whose light passes give the components, average the diffuse light divided by the albedo instead,
+``temporal.averaging_kind``). Then the frame is denoised as ``denoise
 --exr`` does (``--method ours`` or ``oidn_prefilter``), and the temporal filter of ``pipeline.temporal``
 blends it with the previous output brought into this frame (``pipeline.motion``: the renderer's motion
 vectors, or the frame's depth and the two cameras), where the history is valid:
@@ -25,7 +27,8 @@ The motion comes from one of two things in every EXR:
 
 * **motion vectors**: Blender's ``Vector`` pass (``ViewLayer.Vector.X/Y/Z/W``, enable it under View Layer
   Properties → Passes → Data; Cycles writes it with motion blur off). They follow moving objects too. A pixel's
-  history is valid where the previous frame's vectors lead back to it (``motion.flow``).
+  history is valid where the previous frame's vectors lead back to it and, with the Z pass (``Depth.Z``), the
+  depth there agrees (``motion.flow``); the frames after are followed along the vectors' other half.
 * **the camera and depth**: the standard header attributes ``worldToCamera`` and ``worldToNDC``
   (``render-scene`` writes them; so do renderers that follow OpenEXR's camera attributes), a depth channel
   ``Z`` (camera-space z) and a display window (the camera's image) the size of the pixels. Static scenes only.
@@ -167,6 +170,16 @@ def _frames_ahead(files: list, i: int, ahead: int, cache: dict, window: temporal
     return [cache[j] for j in range(i + 1, min(i + 1 + ahead, len(files)))]
 
 
+def _outputs(files: list, out_pattern: str) -> list[Path]:
+    """The output path of each of ``files``; TrainError when one of them is an input."""
+    outs = [output_path(out_pattern, n) for n, _ in files]
+    inputs = {p.resolve() for _, p in files}
+    clash = next((o for o in outs if o.resolve() in inputs), None)
+    if clash is not None:
+        raise TrainError(f"--out {out_pattern}: {clash} is one of the inputs; name other files (the inputs stay)")
+    return outs
+
+
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
                          weight: float | None = None, quiet: bool = False, model: Path | None = None,
                          device: str | None = None, precision: str = "auto", seed: int | None = None,
@@ -175,11 +188,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
     input averaging averages (``temporal.GATE_GROUPS``); None: ``temporal.averaging_kind`` of the first frame."""
     weight, window, ahead = _temporal_settings(cfg, weight, window, ahead)
     files = sequence_files(pattern)
-    outs = [output_path(out_pattern, n) for n, _ in files]
-    inputs = {p.resolve() for _, p in files}
-    clash = next((o for o in outs if o.resolve() in inputs), None)
-    if clash is not None:
-        raise TrainError(f"--out {out_pattern}: {clash} is one of the inputs; name other files (the inputs stay)")
+    outs = _outputs(files, out_pattern)
     if spp is None:
         from .infer import exr_spp
         spp, how = exr_spp(files[0][1])

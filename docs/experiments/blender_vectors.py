@@ -5,6 +5,24 @@
     /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- 4096 /tmp/blend/ref_####
     python docs/experiments/blender_vectors.py /tmp/blend
 
+With the light passes (docs/sequences.md, "A Blender shot's light passes"), 8 frames at 4 and 16 spp:
+
+    for spp in 4 16; do /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- --frames 8 $spp \
+      /tmp/blend$spp/frame_####; done
+    /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- --frames 8 --seed 1 4096 /tmp/blend4/ref_####
+    python docs/experiments/blender_vectors.py --plain /tmp/blend4      # copies without the light passes: plain/
+    d=/tmp/blend4; s="denoise --sequence"
+    python -m pipeline $s "$d/plain/frame_####.exr" --out "$d/o_oidn_perframe/####.exr" --method oidn_prefilter \
+      --temporal-weight 1 --temporal-window 1 --ahead 0
+    python -m pipeline $s "$d/plain/frame_####.exr" --out "$d/o_plain_defaults/####.exr"
+    python -m pipeline $s "$d/frame_####.exr" --out "$d/o_light_perframe/####.exr" --temporal-weight 1 \
+      --temporal-window 1 --ahead 0
+    python -m pipeline $s "$d/frame_####.exr" --out "$d/o_light_before/####.exr" --ahead 0
+    python -m pipeline $s "$d/frame_####.exr" --out "$d/o_light_defaults/####.exr"
+    python docs/experiments/blender_vectors.py /tmp/blend4
+
+(the same for 16 spp, with ref_* copied into /tmp/blend16).
+
 Warps frame t-1's Denoising Albedo (noise-free up to anti-aliasing) into frame t with the flow read three ways
 (``from_blender_vectors``, y not flipped, all negated) and prints the PSNR against frame t's albedo on the valid
 pixels, beside the unwarped PSNR. With the 4096 spp references it also prints the denoisers' PSNR per frame, per
@@ -32,6 +50,22 @@ def vector(path: Path) -> np.ndarray:
     return passes["Vector"]
 
 
+def plain(folder: Path) -> None:
+    """Copies of ``folder``'s frame_*.exr without Cycles' light passes, in ``folder``/plain."""
+    import OpenEXR
+
+    from mcdenoise.pipeline.exr import CYCLES_LOBES
+    light = {name for roles in CYCLES_LOBES.values() for spellings in roles for name in spellings}
+    (folder / "plain").mkdir(exist_ok=True)
+    for path in sorted(folder.glob("frame_*.exr")):
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            kept = {n: c.pixels for n, c in f.channels().items() if n.split(".")[-2] not in light}
+            stamps = {k: v for k, v in f.header().items() if isinstance(v, str)}     # Cycles' sample count among them
+        with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **stamps},
+                          kept) as f:
+            f.write(str(folder / "plain" / path.name))
+
+
 def main(folder: Path) -> int:
     frames = sorted(folder.glob("frame_*.exr"))
     readings = {"from_blender_vectors": motion.from_blender_vectors,
@@ -54,4 +88,6 @@ def main(folder: Path) -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1] == "--plain":
+        raise SystemExit(plain(Path(sys.argv[2])))
     raise SystemExit(main(Path(sys.argv[1])))

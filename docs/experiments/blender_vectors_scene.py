@@ -1,8 +1,10 @@
 """A Cycles sequence with the Vector and Denoising Data passes: a checkered floor, a box and a sphere, the
-camera trucking and panning over 4 frames, 96x64, multilayer EXRs with the light passes
+camera trucking and panning over 4 frames (or --frames N), 96x64, multilayer EXRs with the light passes
 (docs/experiments/blender_vectors.py). Cycles' default pixel filter (Blackman-Harris, 1.5 px), or --box.
 
-    /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- [--box] SPP OUT_PATTERN
+    /tmp/bpy/bin/python docs/experiments/blender_vectors_scene.py -- [--box] [--frames N] [--seed S] SPP OUT_PATTERN
+
+--seed: Cycles' seed (0 by default); a reference rendered with another seed shares no sample with the inputs.
 """
 import math
 import sys
@@ -16,6 +18,7 @@ scene.render.engine = "CYCLES"
 scene.cycles.device = "CPU"
 scene.cycles.samples = samples
 scene.cycles.use_animated_seed = True          # independent noise in every frame, as a render farm's
+scene.cycles.seed = int(sys.argv[sys.argv.index("--seed") + 1]) if "--seed" in sys.argv else 0
 scene.cycles.use_denoising = False
 scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 96, 64, 100
 scene.render.use_motion_blur = False           # Cycles writes the Vector pass only without motion blur
@@ -26,7 +29,7 @@ layer.use_pass_vector = True
 layer.use_pass_z = True
 layer.use_pass_normal = True
 layer.cycles.denoising_store_passes = True     # Denoising Albedo and Normal
-# the light passes (denoise does not read them: docs/sequences.md, the Vector pass)
+# the light passes, from which denoise reads the light components (exr.cycles_components)
 for name in ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct", "glossy_indirect", "glossy_color",
              "transmission_direct", "transmission_indirect", "transmission_color", "emit", "environment"):
     setattr(layer, f"use_pass_{name}", True)
@@ -68,11 +71,12 @@ bpy.ops.object.camera_add()
 camera = bpy.context.object
 scene.camera = camera
 camera.data.lens = 30
-for f in range(4):           # a truck to the left and a pan, 1.5 degrees per frame
+frames = int(sys.argv[sys.argv.index("--frames") + 1]) if "--frames" in sys.argv else 4
+for f in range(frames):      # a truck to the left and a pan, 1.5 degrees per frame
     camera.location = (6.0 - 0.35 * f, -6.0 + 0.1 * f, 4.0 + 0.05 * f)
     camera.rotation_euler = (math.radians(63), 0, math.radians(45 + 1.5 * f))
     camera.keyframe_insert("location", frame=f + 1)
     camera.keyframe_insert("rotation_euler", frame=f + 1)
-scene.frame_start, scene.frame_end = 1, 4
+scene.frame_start, scene.frame_end = 1, frames
 scene.render.filepath = out
 bpy.ops.render.render(animation=True)
