@@ -289,12 +289,13 @@ def _normals_agree(normal_t: np.ndarray, normal_prev: np.ndarray, idx, taps, thr
 
 def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_TOLERANCE,
          depth_t: np.ndarray | None = None, depth_prev: np.ndarray | None = None,
-         depth_tolerance: float = FLOW_DEPTH_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+         depth_tolerance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``reproject``'s answer from motion vectors: (xy_prev [H, W, 2] float32, valid [H, W] bool) for frame t
     of motion ``motion_t`` (H, W, 4) after frame t-1 of motion ``motion_prev``; xy_prev is NaN where the vector
     is not finite. The tests that make a pixel invalid: module docstring; with both frames' depth (H, W) also
     where frame t-1's depth read at the landing spot (as ``reproject`` reads it: the inverse, bilinearly) differs
-    from frame t's by more than ``depth_tolerance`` of it, or either is background (not above 0)."""
+    from frame t's by more than ``depth_tolerance`` (None: ``FLOW_DEPTH_TOLERANCE``) of it, or either is background
+    (not above 0)."""
     m_t, m_prev = np.asarray(motion_t, np.float64), np.asarray(motion_prev, np.float64)
     if m_t.ndim != 3 or m_t.shape[2] != 4 or m_prev.ndim != 3 or m_prev.shape[2] != 4:
         raise ValueError(f"motion must be (H, W, 4), got {m_t.shape} and {m_prev.shape}")
@@ -312,7 +313,8 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
             back = xy[idx] + _read(m_prev[..., 2:], taps)
             keep = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
         if depth_t is not None and depth_prev is not None:
-            keep &= _depth_agrees(_channels(depth_t)[..., 0][idx], _channels(depth_prev), taps, depth_tolerance)
+            keep &= _depth_agrees(_channels(depth_t)[..., 0][idx], _channels(depth_prev), taps,
+                                  FLOW_DEPTH_TOLERANCE if depth_tolerance is None else depth_tolerance)
         valid[idx] = keep
     return xy.astype(np.float32), valid
 

@@ -96,7 +96,11 @@ def main() -> int:
     ap.add_argument("--model", default="train/shipped")
     ap.add_argument("--runs", default="plain,per_frame,before,both,store")
     ap.add_argument("--sequences", type=int, default=None, help="the first N sequences only (a quick look)")
+    ap.add_argument("--depth-tolerance", type=float, default=None,
+                    help="the vectors' depth test's tolerance (motion.FLOW_DEPTH_TOLERANCE) for every run")
     args = ap.parse_args()
+    if args.depth_tolerance is not None:
+        motion.FLOW_DEPTH_TOLERANCE = args.depth_tolerance
     from mcdenoise.pipeline.store import Store
     store, cfg, runs = Store(args.store), load_config(), args.runs.split(",")
     spps = [int(s) for s in args.spp.split(",")]
