@@ -261,13 +261,7 @@ def reproject(depth_t: np.ndarray, cam_t: Camera, cam_prev: Camera, depth_prev: 
             d_prev = _channels(depth_prev).astype(np.float64)
             if d_prev.shape[:2] != (cam_prev.height, cam_prev.width):
                 raise ValueError(f"depth_prev is {d_prev.shape[:2]}, the camera's image {cam_prev.height}x{cam_prev.width}")
-            background = np.zeros_like(keep)
-            for j, i, w in taps:
-                background |= (w > 0) & ~(d_prev[j, i, 0] > 0)
-            with np.errstate(divide="ignore"):
-                inverse = np.where(d_prev > 0, 1.0 / d_prev, 0.0)
-            seen = _read(inverse, taps)[:, 0]
-            keep &= ~background & (np.abs(z[idx] * seen - 1) <= depth_tolerance)
+            keep &= _depth_agrees(z[idx], d_prev, taps, depth_tolerance)
         if normal_t is not None and normal_prev is not None:
             keep &= _normals_agree(normal_t, normal_prev, idx, taps, normal_threshold)
         valid[idx] = keep
@@ -320,8 +314,9 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
 
 
 def _depth_agrees(z_t: np.ndarray, depth_prev: np.ndarray, taps, tolerance: float) -> np.ndarray:
-    """Per landing spot (``taps``), whether frame t-1's depth there, read as ``reproject`` reads it (1/depth
-    bilinearly, no background tap), is within ``tolerance`` of ``z_t`` (frame t's, above 0)."""
+    """Per landing spot (``taps``), whether frame t-1's depth there, its inverse read bilinearly over a footprint
+    with no background tap (module docstring), is within ``tolerance`` of ``z_t`` (above 0): the depth the point
+    should have there (``reproject``: predicted by the two cameras; ``flow``: frame t's own)."""
     d_prev = np.asarray(depth_prev, np.float64)
     background = np.zeros(len(z_t), dtype=bool)
     for j, i, w in taps:
