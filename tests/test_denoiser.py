@@ -191,6 +191,48 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
 
 
 @pytest.mark.slow
+def test_pack_holds_each_frames_inputs_and_target(cleaned, tmp_path):
+    """Every item of a pack is ``inputs`` of its frame's stacks at its spp, in frame order, and every target the
+    frame's gt_clean, padded as the inputs are."""
+    from mcdenoise.pipeline.store import combine_stacks, stack_name
+    store, _ = cleaned
+    s = Store(store)
+    keys = s.frames("train")[:2]
+    pack = data.load_pack(data.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
+    row = 0
+    for i, key in enumerate(keys):
+        n, total, variants = data._frame_variants(s, key)
+        for spp in sorted(variants):
+            for v in range(variants[spp]):
+                stacks = data.variant_stacks(spp, n, v, total)
+                buffers = combine_stacks([s.read_image(key.scene, key.frame, stack_name(j))[0] for j in stacks], n)
+                x, cond, scale = tmodel.inputs(buffers, spp)
+                assert int(pack["frame"][row]) == i and int(pack["spp"][row]) == spp
+                assert float(pack["scale"][row]) == pytest.approx(scale, rel=1e-6)
+                assert torch.equal(pack["x"][row], torch.from_numpy(x.astype(np.float16)))
+                assert torch.equal(pack["cond"][row], torch.from_numpy(cond.astype(np.float16)))
+                row += 1
+        gt = s.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
+        h, w = gt.shape[:2]
+        assert torch.equal(pack["target"][i, :, :h, :w], torch.from_numpy(np.moveaxis(gt, 2, 0).copy()))
+        assert float(pack["target"][i, :, h:, :].abs().sum() + pack["target"][i, :, :, w:].abs().sum()) == 0.0
+    assert row == len(pack["x"]) == len(pack["cond"]) and len(pack["target"]) == len(keys)
+
+
+def test_pack_refuses_a_frame_of_another_size(tmp_path):
+    """A pack is one size: a frame of another names itself and both sizes."""
+    from mcdenoise.pipeline.exr import StoreError
+    from mcdenoise.pipeline.store import FrameKey
+    arrays: dict = {}
+    a = FrameKey("s00000", 0)
+    data._put(arrays, 0, 2, Store(tmp_path), a, x=np.ones((9, 16, 32), np.float32))
+    assert arrays["x"].shape == (2, 9, 16, 32) and arrays["x"].dtype == np.float16 and arrays["x"][0].min() == 1
+    b = FrameKey("s00001", 3)
+    with pytest.raises(StoreError, match=f"frame {b} is 16×16, the pack's frames 32×16"):
+        data._put(arrays, 1, 2, Store(tmp_path), b, x=np.ones((9, 16, 16), np.float32))
+
+
+@pytest.mark.slow
 def test_pack_items_are_augmented_consistently(cleaned, tmp_path):
     store, _ = cleaned
     s = Store(store)

@@ -120,43 +120,61 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     if not keys:
         raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
                          "needs scenes of two or more frames with gt_clean)")
-    xs, conds, scales, spps, frames, targets = [], [], [], [], [], []
-    for i, key in enumerate(progress(keys, desc=f"pack {path.name}", unit="frame", disable=quiet)):
-        sm = store.scene_manifest(key.scene)
-        n, total = int(sm["stack_spp"]), int(sm["stacks"])
-        variants = fit_variants(PACK_VARIANTS, n, total)
+    # the items go straight into arrays of their final size: a store of a thousand 128² frames makes a pack of
+    # several GB, and lists stacked at the end would hold it twice
+    plan = [_frame_variants(store, key) for key in keys]
+    count = sum(v for _, _, variants in plan for v in variants.values())
+    arrays: dict[str, np.ndarray] = {}
+    scales, spps, frames = [], [], []
+    for i, (key, (n, total, variants)) in enumerate(zip(progress(keys, desc=f"pack {path.name}", unit="frame",
+                                                                 disable=quiet), plan)):
         need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
         images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
-        for spp, count in sorted(variants.items()):
-            for v in range(count):
-                stacks = variant_stacks(spp, n, v, total)
-                buffers = combine_stacks([images[s] for s in stacks], n)
-                if walks is not None:
-                    buffers = walks.of(key, tuple(stacks), lambda f, b=buffers, k=key, st=stacks: (
-                        b if f == k.frame else store.read(k.scene, f, spp, stacks=st)))
-                x, cond, scale = inputs(buffers, spp, clean_aux=clean_aux, history=history)
-                xs.append(x.astype(np.float16))
-                conds.append(cond.astype(np.float16))
-                scales.append(scale)
-                spps.append(spp)
-                frames.append(i)
+        for spp, v in ((spp, v) for spp, c in sorted(variants.items()) for v in range(c)):
+            stacks = variant_stacks(spp, n, v, total)
+            buffers = combine_stacks([images[s] for s in stacks], n)
+            if walks is not None:
+                buffers = walks.of(key, tuple(stacks), lambda f, b=buffers, k=key, st=stacks: (
+                    b if f == k.frame else store.read(k.scene, f, spp, stacks=st)))
+            x, cond, scale = inputs(buffers, spp, clean_aux=clean_aux, history=history)
+            _put(arrays, len(scales), count, store, key, x=x, cond=cond)
+            scales.append(scale)
+            spps.append(spp)
+            frames.append(i)
         gt = store.read_image(key.scene, key.frame, "gt_clean", ["color"])[0]["color"]
-        targets.append(np.pad(np.moveaxis(gt, 2, 0), ((0, 0), (0, xs[-1].shape[1] - gt.shape[0]),
-                                                       (0, xs[-1].shape[2] - gt.shape[1]))).astype(np.float32))
-    sizes = {x.shape for x in xs}
-    if len(sizes) != 1:
-        raise StoreError(f"{store.root}: frames of several sizes ({sorted(sizes)}); the pack needs one size")
-    tensors = {"x": torch.from_numpy(np.stack(xs)), "cond": torch.from_numpy(np.stack(conds)),
+        _put(arrays, i, len(keys), store, key, target=np.pad(np.moveaxis(gt, 2, 0), (
+            (0, 0), (0, arrays["x"].shape[2] - gt.shape[0]), (0, arrays["x"].shape[3] - gt.shape[1]))))
+    tensors = {"x": torch.from_numpy(arrays["x"]), "cond": torch.from_numpy(arrays["cond"]),
                "scale": torch.tensor(scales, dtype=torch.float32), "spp": torch.tensor(spps, dtype=torch.int32),
-               "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(np.stack(targets))}
+               "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(arrays["target"])}
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
-            "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(s) for s in sizes]),
+            "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(arrays["x"].shape[1:])]),
             "aux": _aux_kind(clean_aux),
             **({"history": HISTORY_SOURCE} if history else {}),
             **({"input": input_record(window)} if history and input_record(window) else {})}
     save_safetensors(path, tensors, meta)
     return path
+
+
+def _frame_variants(store: Store, key: FrameKey) -> tuple[int, int, dict[int, int]]:
+    """(stack spp, stacks, {spp: noise realizations}) of ``key``'s scene in a pack."""
+    sm = store.scene_manifest(key.scene)
+    n, total = int(sm["stack_spp"]), int(sm["stacks"])
+    return n, total, fit_variants(PACK_VARIANTS, n, total)
+
+
+def _put(arrays: dict[str, np.ndarray], row: int, rows: int, store: Store, key: FrameKey, **values) -> None:
+    """``arrays[name][row] = value`` for each value, the array allocated at ``rows`` rows by its first value
+    (float16 for the inputs, float32 for the target); StoreError naming the frame if its size differs."""
+    for name, value in values.items():
+        if name not in arrays:
+            arrays[name] = np.empty((rows, *value.shape), np.float32 if name == "target" else np.float16)
+        if arrays[name].shape[1:] != value.shape:
+            raise StoreError(f"{store.root}: frame {key} is {value.shape[-1]}×{value.shape[-2]}, "
+                             f"the pack's frames {arrays[name].shape[-1]}×{arrays[name].shape[-2]}; a pack needs "
+                             "one size")
+        arrays[name][row] = value
 
 
 def _aux_kind(clean_aux: bool) -> str:
