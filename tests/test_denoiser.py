@@ -190,15 +190,28 @@ def test_a_warm_start_begins_at_the_trained_model(trained, tmp_path):
     assert proc.returncode != 0 and "diffusion.init" in proc.stderr and not (tmp_path / "bad").exists()
 
 
+def _first_frames(s: Store, split: str | None, scenes: int) -> list:
+    """The first frame of each of the first ``scenes`` scenes of ``split``."""
+    keys, seen = [], set()
+    for key in s.frames(split):
+        if key.scene not in seen and len(seen) < scenes:
+            seen.add(key.scene)
+            keys.append(key)
+    return keys
+
+
 @pytest.mark.slow
 def test_pack_holds_each_frames_inputs_and_target(cleaned, tmp_path):
-    """Every item of a pack is ``inputs`` of its frame's stacks at its spp, in frame order, and every target the
-    frame's gt_clean, padded as the inputs are."""
+    """Every item of a pack (three scenes: three parts) is ``inputs`` of its frame's stacks at its spp, in frame
+    order, and every target the frame's gt_clean, padded as the inputs are; the parts are gone."""
     from mcdenoise.pipeline.store import combine_stacks, stack_name
     store, _ = cleaned
     s = Store(store)
-    keys = s.frames("train")[:2]
-    pack = data.load_pack(data.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True))
+    keys = _first_frames(s, None, 3)
+    assert len({k.scene for k in keys}) == 3
+    path = data.build_pack(s, keys, tmp_path / "p.safetensors", quiet=True)
+    pack = data.load_pack(path)
+    assert not (tmp_path / "p.safetensors.parts").exists()
     row = 0
     for i, key in enumerate(keys):
         n, total, variants = data._frame_variants(s, key)
@@ -217,6 +230,31 @@ def test_pack_holds_each_frames_inputs_and_target(cleaned, tmp_path):
         assert torch.equal(pack["target"][i, :, :h, :w], torch.from_numpy(np.moveaxis(gt, 2, 0).copy()))
         assert float(pack["target"][i, :, h:, :].abs().sum() + pack["target"][i, :, :, w:].abs().sum()) == 0.0
     assert row == len(pack["x"]) == len(pack["cond"]) and len(pack["target"]) == len(keys)
+
+
+@pytest.mark.slow
+def test_a_killed_pack_reuses_its_finished_scenes(cleaned, tmp_path):
+    """The parts a killed build left are taken as they are where they hold what is asked (marked here), built
+    again where they do not (a part of other frames), and the pack equals one built whole."""
+    store, _ = cleaned
+    s = Store(store)
+    a, b = _first_frames(s, None, 2)
+    whole = data.load_pack(data.build_pack(s, [a, b], tmp_path / "whole.safetensors", quiet=True))
+    path = tmp_path / "p.safetensors"
+    parts = tmp_path / "p.safetensors.parts"
+    data._build_part(s, [a], parts / f"{a.scene}.safetensors", False, False, (1, None, 0))
+    marked = data.load_pack(parts / f"{a.scene}.safetensors")
+    marked["scale"] = marked["scale"] * 2
+    save_safetensors(parts / f"{a.scene}.safetensors", marked, data._pack_meta(s, [a], False, False, (1, None, 0)))
+    other = [k for k in s.frames() if k.scene == b.scene and k != b][:1] or [a]
+    data._build_part(s, other, parts / f"{b.scene}.safetensors", False, False, (1, None, 0))
+    pack = data.load_pack(data.build_pack(s, [a, b], path, quiet=True))
+    rows_a = int((pack["frame"] == 0).sum())
+    assert torch.equal(pack["scale"][:rows_a], whole["scale"][:rows_a] * 2)       # a's part, reused
+    for name in ("x", "cond", "spp", "frame", "target"):
+        assert torch.equal(pack[name], whole[name]), name                             # b's part, built again
+    assert torch.equal(pack["scale"][rows_a:], whole["scale"][rows_a:])
+    assert not parts.exists()
 
 
 def test_pack_refuses_a_frame_of_another_size(tmp_path):

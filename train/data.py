@@ -6,7 +6,8 @@ network's input encoding itself is ``train.model.inputs``.
 ``cond`` in float16 with the exposure, and GT_clean per frame in float32 HDR. ``Crops`` draws
 training items from it: a random crop, OIDN's augmentation (flips, transposes, one permutation
 of the colour channels for every colour-like channel and the target, one of the normal axes) and
-the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output.
+the group dropout; the target is PU(GT_clean × the item's exposure), the space of OIDN's output. It is
+built a scene at a time (``<pack>.parts/``), so a killed build resumes with the scenes it finished.
 
 A **history pack** (``diffusion.history``, ``<split>_oidn_base[_calb]_history``) holds only the frames whose
 previous frame (``FrameKey.previous``: t − 1, t 0-based) has gt_clean too, each as ``train.history`` serves it:
@@ -112,22 +113,74 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     """Decode ``keys`` once into the pack at ``path`` (written atomically); ``clean_aux`` as ``inputs``;
     ``history``: the frames of ``keys`` whose previous frame is among them (``pack_keys``), each as
     ``train.history.SequenceInputs`` serves it (input averaged over ``window`` = (frames, gate, frames ahead),
-    history on the same stacks)."""
-    from mcdenoise.pipeline.store import combine_stacks, stack_name
+    history on the same stacks).
 
-    keys = pack_keys(keys, history)
-    walks = _sequence_inputs(store, window) if history else None
+    Each scene's frames are decoded into a part of their own beside the pack (``<pack>.parts/<scene>``; a
+    scene's frames are one walk along its move, scenes are independent): a killed build keeps its finished
+    parts and the next one reuses those that still hold what is asked; the parts go once the pack is written.
+    (A large store's pack takes most of an hour on 2 cores.)"""
+    import shutil
+
+    scenes = _by_scene(pack_keys(keys, history))
+    keys = [k for ks in scenes.values() for k in ks]
     if not keys:
         raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
                          "needs scenes of two or more frames with gt_clean)")
-    # the items go straight into arrays of their final size: a store of a thousand 128² frames makes a pack of
-    # several GB, and lists stacked at the end would hold it twice
+    parts = path.with_name(path.name + ".parts")
+    jobs = [(ks, parts / f"{scene}.safetensors") for scene, ks in scenes.items()]
+    todo = [(ks, part) for ks, part in jobs if not _matches(part, store, ks, clean_aux, history, window)]
+    bar = progress(total=len(keys), initial=len(keys) - sum(len(ks) for ks, _ in todo), desc=f"pack {path.name}",
+                   unit="frame", disable=quiet)
+    for ks, part in todo:
+        _build_part(store, ks, part, clean_aux, history, window)
+        bar.update(len(ks))
+    bar.close()
+    tensors = _assemble(store, jobs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_safetensors(path, tensors, {**_pack_meta(store, keys, clean_aux, history, window),
+                                     "sizes": json.dumps([list(tensors["x"].shape[1:])])})
+    shutil.rmtree(parts, ignore_errors=True)
+    return path
+
+
+def _by_scene(keys: list[FrameKey]) -> dict[str, list[FrameKey]]:
+    """{scene: its frames of ``keys``}, in the order of ``keys``: a pack's order."""
+    scenes: dict[str, list[FrameKey]] = {}
+    for key in keys:
+        scenes.setdefault(key.scene, []).append(key)
+    return scenes
+
+
+def _pack_meta(store: Store, frames: list[FrameKey], clean_aux: bool, history: bool, window: tuple) -> dict:
+    """What a pack (or a part of one) was made of: a pack whose metadata differs is built again."""
+    return {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in frames]),
+            "cond": json.dumps(cond_names(history)), "aux": _aux_kind(clean_aux),
+            **({"history": HISTORY_SOURCE} if history else {}),
+            **({"input": input_record(window)} if history and input_record(window) else {})}
+
+
+def _matches(path: Path, store: Store, frames: list[FrameKey], clean_aux: bool, history: bool, window: tuple) -> bool:
+    """Whether the pack or part at ``path`` holds ``frames`` (already ``pack_keys``) as they are asked for."""
+    if not path.exists():
+        return False
+    from safetensors import safe_open
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+    want = _pack_meta(store, frames, clean_aux, history, window)
+    return all(meta.get(k) == want.get(k) for k in ("format", "store", "frames", "cond", "aux", "history", "input"))
+
+
+def _build_part(store: Store, keys: list[FrameKey], path: Path, clean_aux: bool, history: bool, window: tuple) -> None:
+    """The part of one scene's ``keys`` (in order along its move) at ``path``, written atomically."""
+    from mcdenoise.pipeline.store import combine_stacks, stack_name
+
+    walks = _sequence_inputs(store, window) if history else None
     plan = [_frame_variants(store, key) for key in keys]
     count = sum(v for _, _, variants in plan for v in variants.values())
+    # the items go straight into arrays of their final size, not into lists stacked at the end (twice the memory)
     arrays: dict[str, np.ndarray] = {}
     scales, spps, frames = [], [], []
-    for i, (key, (n, total, variants)) in enumerate(zip(progress(keys, desc=f"pack {path.name}", unit="frame",
-                                                                 disable=quiet), plan)):
+    for i, (key, (n, total, variants)) in enumerate(zip(keys, plan)):
         need = sorted({s for spp, v in variants.items() for j in range(v) for s in variant_stacks(spp, n, j, total)})
         images = {s: store.read_image(key.scene, key.frame, stack_name(s))[0] for s in need}
         for spp, v in ((spp, v) for spp, c in sorted(variants.items()) for v in range(c)):
@@ -148,13 +201,33 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
                "scale": torch.tensor(scales, dtype=torch.float32), "spp": torch.tensor(spps, dtype=torch.int32),
                "frame": torch.tensor(frames, dtype=torch.int32), "target": torch.from_numpy(arrays["target"])}
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"format": FORMAT, "store": str(store.root), "frames": json.dumps([f"{k.scene}/{k.frame}" for k in keys]),
-            "cond": json.dumps(cond_names(history)), "sizes": json.dumps([list(arrays["x"].shape[1:])]),
-            "aux": _aux_kind(clean_aux),
-            **({"history": HISTORY_SOURCE} if history else {}),
-            **({"input": input_record(window)} if history and input_record(window) else {})}
-    save_safetensors(path, tensors, meta)
-    return path
+    save_safetensors(path, tensors, _pack_meta(store, keys, clean_aux, history, window))
+
+
+def _assemble(store: Store, jobs: list[tuple[list[FrameKey], Path]]) -> dict[str, torch.Tensor]:
+    """The parts of ``jobs`` (each (its frames, its path)) as one pack's tensors, in order; each part is read
+    into arrays of the pack's final size, so the pack is held once. ``frame`` counts across the parts."""
+    from safetensors import safe_open
+
+    shapes = []
+    for _, part in jobs:
+        with safe_open(str(part), framework="pt") as f:
+            shapes.append({name: f.get_slice(name).get_shape() for name in f.keys()})
+    out: dict[str, torch.Tensor] = {}
+    rows = {name: 0 for name in shapes[0]}
+    offset = 0
+    for (ks, part), shape in zip(jobs, shapes):
+        if shape["x"][1:] != shapes[0]["x"][1:]:
+            raise StoreError(f"{store.root}: frame {ks[0]} is {shape['x'][3]}×{shape['x'][2]}, the pack's frames "
+                             f"{shapes[0]['x'][3]}×{shapes[0]['x'][2]}; a pack needs one size")
+        for name, tensor in load_pack(part).items():
+            if name not in out:
+                total = sum(s[name][0] for s in shapes)
+                out[name] = torch.empty((total, *tensor.shape[1:]), dtype=tensor.dtype)
+            out[name][rows[name]:rows[name] + len(tensor)] = tensor + offset if name == "frame" else tensor
+            rows[name] += len(tensor)
+        offset += len(ks)
+    return out
 
 
 def _frame_variants(store: Store, key: FrameKey) -> tuple[int, int, dict[int, int]]:
@@ -185,17 +258,9 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
                 history: bool = False, window: tuple = (1, None, 0)) -> Path:
     """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout, other aux
     or (with history) another averaging."""
-    if path.exists():
-        from safetensors import safe_open
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-        if (meta.get("format") == FORMAT and meta.get("store") == str(store.root)
-                and json.loads(meta.get("cond", "[]")) == cond_names(history)
-                and json.loads(meta.get("frames", "[]")) == [f"{k.scene}/{k.frame}" for k in pack_keys(keys, history)]
-                and meta.get("aux", "rendered") == _aux_kind(clean_aux)
-                and meta.get("history") == (HISTORY_SOURCE if history else None)
-                and meta.get("input") == (input_record(window) if history else None)):     # None: not averaged
-            return path
+    if _matches(path, store, [k for ks in _by_scene(pack_keys(keys, history)).values() for k in ks], clean_aux,
+                history, window):
+        return path
     return build_pack(store, keys, path, quiet, clean_aux, history, window)
 
 
