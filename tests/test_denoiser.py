@@ -362,6 +362,29 @@ def test_extra_stores_add_their_train_frames_with_their_own_targets(cleaned, tmp
 
 
 @pytest.mark.slow
+def test_a_rank_that_does_not_build_waits_for_the_pack(cleaned, tmp_path, monkeypatch):
+    """build=False (torchrun's ranks but 0) never writes: it waits until the pack another process builds is
+    whole, then reads that one. (Two builds of one pack remove each other's parts.)"""
+    store, _ = cleaned
+    source = data.StoreSource(load_config(TINY, [f"store={store}", f"runs={tmp_path / 'runs'}", *REFINE_TINY]))
+    path = source.pack_path("train")
+    waits = []
+
+    def rank0_builds(seconds):    # the other rank's build ends during the second wait
+        assert not path.exists() and not path.with_name(path.name + ".parts").exists()
+        waits.append(seconds)
+        if len(waits) == 2:
+            data.ensure_pack(source.store, source.train_keys, path, True, source.clean_aux, source.history,
+                             source.window)
+
+    monkeypatch.setattr(data.time, "sleep", rank0_builds)
+    pack = source.train_pack(True, build=False)
+    assert len(waits) == 2
+    for name, tensor in data.load_pack(path).items():
+        assert torch.equal(pack[name], tensor), name
+
+
+@pytest.mark.slow
 def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_mode(cleaned, tmp_path):
     """diffusion.base_network=rt_hdr_calb_cnrm: the pack and every caller give the base albedo and normal
     prefiltered by OIDN's aux networks, so the untrained model (and the base alone) is OIDN's final-frame mode."""

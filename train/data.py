@@ -19,6 +19,7 @@ lose the history with ``diffusion.history_dropout``.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -122,7 +123,7 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
     import shutil
 
     scenes = _by_scene(pack_keys(keys, history))
-    keys = [k for ks in scenes.values() for k in ks]
+    keys = _pack_order(scenes)
     if not keys:
         raise StoreError(f"{store.root}: no frame with a previous frame for a history pack (diffusion.history "
                          "needs scenes of two or more frames with gt_clean)")
@@ -141,6 +142,11 @@ def build_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fal
                                      "sizes": json.dumps([list(tensors["x"].shape[1:])])})
     shutil.rmtree(parts, ignore_errors=True)
     return path
+
+
+def _pack_order(scenes: dict[str, list[FrameKey]]) -> list[FrameKey]:
+    """A pack's frames: its scenes' frames, a scene after the other (``_by_scene``)."""
+    return [k for ks in scenes.values() for k in ks]
 
 
 def _by_scene(keys: list[FrameKey]) -> dict[str, list[FrameKey]]:
@@ -258,10 +264,15 @@ def ensure_pack(store: Store, keys: list[FrameKey], path: Path, quiet: bool = Fa
                 history: bool = False, window: tuple = (1, None, 0)) -> Path:
     """The pack of ``keys`` at ``path``, built if missing or made from other frames, another layout, other aux
     or (with history) another averaging."""
-    if _matches(path, store, [k for ks in _by_scene(pack_keys(keys, history)).values() for k in ks], clean_aux,
-                history, window):
+    if pack_ready(store, keys, path, clean_aux, history, window):
         return path
     return build_pack(store, keys, path, quiet, clean_aux, history, window)
+
+
+def pack_ready(store: Store, keys: list[FrameKey], path: Path, clean_aux: bool = False, history: bool = False,
+               window: tuple = (1, None, 0)) -> bool:
+    """Whether the pack at ``path`` is ``keys``'s as ``ensure_pack`` would build it."""
+    return _matches(path, store, _pack_order(_by_scene(pack_keys(keys, history))), clean_aux, history, window)
 
 
 def load_pack(path: Path) -> dict[str, torch.Tensor]:
@@ -407,12 +418,18 @@ class StoreSource:
     def spps(self, spp) -> list[int]:
         return self.store.spp_choices(spp)
 
-    def train_pack(self, quiet: bool) -> dict[str, torch.Tensor]:
-        packs = [load_pack(ensure_pack(self.store, self.train_keys, self.pack_path("train"), quiet, self.clean_aux,
-                                       self.history, self.window))]
-        for i, (store, keys) in enumerate(self.extra):
-            packs.append(load_pack(ensure_pack(store, keys, self.pack_path(f"train_extra{i}"), quiet, self.clean_aux,
-                                               self.history, self.window)))
+    def train_pack(self, quiet: bool, build: bool = True) -> dict[str, torch.Tensor]:
+        """The train packs of the store and of ``diffusion.extra_stores`` as one, built where missing; ``build``
+        False waits for another process to write them instead. (Under torchrun rank 0 builds and the other
+        ranks wait: two builds of one pack would remove each other's parts.)"""
+        packs = []
+        for i, (store, keys) in enumerate([(self.store, self.train_keys), *self.extra]):
+            path = self.pack_path("train" if i == 0 else f"train_extra{i - 1}")
+            if build:
+                ensure_pack(store, keys, path, quiet, self.clean_aux, self.history, self.window)
+            while not pack_ready(store, keys, path, self.clean_aux, self.history, self.window):
+                time.sleep(5)
+            packs.append(load_pack(path))
         return concat_packs(packs)
 
     def pack_path(self, split: str) -> Path:

@@ -332,7 +332,7 @@ def load_data(run: Run) -> Data:
     frames = (len(pack_keys(run.source.train_keys, run.source.history))
               + sum(len(pack_keys(keys, run.source.history)) for _, keys in run.source.extra))
     check_steps(frames * d.crops_per_frame // run.world, d.batch_size, frames, d.crops_per_frame)
-    pack = run.source.train_pack(not run.says)
+    pack = run.source.train_pack(not run.says, build=run.rank == 0)
     crops = Crops(pack, d.crop, d.crops_per_frame, run.cfg.seed, run.spps, dropout=d.dropout,
                   history_dropout=d.history_dropout)
     per_rank = len(crops) // run.world
