@@ -167,10 +167,8 @@ def apply_update(loss: torch.Tensor, opt: torch.optim.Optimizer, params: list, g
     return True
 
 
-def fit(task: Task, quiet: bool = False, started: float | None = None) -> dict:
-    """Train (or resume) ``task`` to ``task.epochs``; return a summary. ``started``: the
-    ``time.perf_counter()`` the run's clock (time budget, ``seconds``) starts from; default now."""
-    t_start = time.perf_counter() if started is None else started
+def fit(task: Task, quiet: bool = False) -> dict:
+    """Train (or resume) ``task`` to ``task.epochs``; return a summary."""
     quiet = quiet or task.rank != 0
     folder = task.folder
     last = folder / "last.safetensors"
@@ -188,12 +186,14 @@ def fit(task: Task, quiet: bool = False, started: float | None = None) -> dict:
         task.resume(record, extra)
     if start >= task.epochs:
         task.when_done(history, best)
-        summary = _summary(task, history, best, 0, time.perf_counter() - t_start)
+        summary = _summary(task, history, best, 0, 0.0)
         if not quiet:
             print(f"{task.name}: already trained ({start} epochs); {summary['line']}")
         return summary
 
     task.prepare()
+    # The run's clock (time budget, ``seconds``) starts with the data loaded, as the diffusion trainer's
+    t_start = time.perf_counter()
     if start == 0 and task.validate_initial and task.rank == 0:
         best = _initial(task, history)
     trained = 0

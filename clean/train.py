@@ -34,7 +34,6 @@ No pickle anywhere: everything is safetensors or JSON.
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -313,14 +312,13 @@ class RecipeTask(Task):
 def train(cfg: Config, mode: str = "cleaner", spp: int | str | None = None, quiet: bool = False) -> dict:
     """Train (or resume) the cleaner or the Isik baseline and return a summary dict; the best weights
     end up in ``run_dir``."""
-    started = time.perf_counter()
-    return train_recipe(cfg, make_recipe(cfg, mode, spp), quiet=quiet, started=started)
+    return train_recipe(cfg, make_recipe(cfg, mode, spp), quiet=quiet)
 
 
-def train_recipe(cfg: Config, recipe: Recipe, quiet: bool = False, started: float | None = None) -> dict:
+def train_recipe(cfg: Config, recipe: Recipe, quiet: bool = False) -> dict:
     """Train (or resume) ``recipe`` through the shared loop and return a summary dict; the best weights
-    end up in ``recipe.folder``. ``started``: when the run began (default: now), for its wall time."""
-    return fit(RecipeTask(cfg, recipe), quiet=quiet, started=started)
+    end up in ``recipe.folder``."""
+    return fit(RecipeTask(cfg, recipe), quiet=quiet)
 
 
 def _write_history(folder: Path, recipe: Recipe, history: list, best, only_if_changed: bool = False) -> None:

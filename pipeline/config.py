@@ -77,7 +77,8 @@ class TrainingConfig(Section):
     grad_clip: float = doc("Clip the gradient's global L2 norm to this value (0: no clipping).", 1.0)
     nan_limit: int = doc("A step whose loss or gradient is not finite is skipped and counted; training stops with "
                          "an error after this many such steps in a row.", 10)
-    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds have passed (0: no "
+    time_budget_s: float = doc("Stop at the end of the epoch during which this many seconds of training have passed, "
+                               "counted from the data loaded (a training pack built first does not count; 0: no "
                                "limit); the best and the last checkpoint are kept, a rerun resumes.", 0.0)
     device: str = doc("Torch device: 'auto' (CUDA if available), 'cpu', 'cuda', ...", "auto")
 

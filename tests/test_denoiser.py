@@ -385,6 +385,28 @@ def test_a_rank_that_does_not_build_waits_for_the_pack(cleaned, tmp_path, monkey
 
 
 @pytest.mark.slow
+def test_the_time_budget_does_not_count_building_the_pack(cleaned, tmp_path, monkeypatch):
+    """diffusion.time_budget_s counts the training, not the pack built before it (once for every run on the store):
+    a pack that takes a million seconds here leaves a budget of a hundred thousand both epochs."""
+    import time
+
+    from mcdenoise.train import train as trainer
+    store, _ = cleaned
+    real_clock, real_load, late = time.perf_counter, trainer.load_data, [0.0]
+
+    def slow_load(run):
+        loaded = real_load(run)
+        late[0] += 1e6
+        return loaded
+
+    monkeypatch.setattr(time, "perf_counter", lambda: real_clock() + late[0])
+    monkeypatch.setattr(trainer, "load_data", slow_load)
+    cfg = load_config(TINY, [f"store={store}", f"runs={tmp_path}", *REFINE_TINY, "diffusion.time_budget_s=1e5"])
+    summary = trainer.train(cfg, "any", quiet=True)
+    assert summary["trained_epochs"] == 2 and summary["seconds"] < 1e5
+
+
+@pytest.mark.slow
 def test_a_base_for_prefiltered_aux_reads_them_and_starts_at_oidns_final_frame_mode(cleaned, tmp_path):
     """diffusion.base_network=rt_hdr_calb_cnrm: the pack and every caller give the base albedo and normal
     prefiltered by OIDN's aux networks, so the untrained model (and the base alone) is OIDN's final-frame mode."""

@@ -96,6 +96,19 @@ def test_time_budget_stops_after_an_epoch(tmp_path, capsys):
     assert s["epochs"] == 1 and "time budget of 1e-09 s reached after epoch 1; rerun to resume" in capsys.readouterr().out
 
 
+def test_time_budget_counts_from_the_data_loaded(tmp_path, monkeypatch):
+    """Loading the data (``Task.prepare``; a million seconds here) is not training: a budget of a thousand seconds
+    still trains every epoch, and the epochs' ``seconds`` start after it."""
+    import time
+    real_clock, late = time.perf_counter, [0.0]
+    monkeypatch.setattr(time, "perf_counter", lambda: real_clock() + late[0])
+    task = Toy(tmp_path, 3, {1: 1, 2: 1, 3: 1}, budget=1e3)
+    task.prepare = lambda: late.__setitem__(0, late[0] + 1e6)
+    s = fit(task, quiet=True)
+    history = json.loads((tmp_path / "train.json").read_text())["history"]
+    assert s["epochs"] == 3 and s["seconds"] < 1e3 and all(e["seconds"] < 1e3 for e in history)
+
+
 def test_nan_limit_in_a_row_stops_the_run(tmp_path):
     with pytest.raises(TrainError, match=r"toy: 2 steps in a row had a non-finite loss or gradient \(epoch 2"):
         fit(Toy(tmp_path, 3, {1: 1, 2: 1, 3: 1}, nan_from=2), quiet=True)

@@ -115,17 +115,19 @@ def train(cfg: Config, spp="any", quiet: bool = False) -> dict:
     """Train (or resume) the Control Module on OIDN; the summary (folder, epochs, best, seconds, line)."""
     try:
         run = setup(cfg, spp, quiet)
-        t_start = time.perf_counter()       # the run's clock (time budget, ``seconds``) starts with the model built
         start, history, best = resume(run)
         if start >= cfg.diffusion.epochs:
             # Already trained: only the report, and the history files again.
             if history:
                 write_history(run, history, best)
-            summary = summarize(run, history, best, 0, time.perf_counter() - t_start)
+            summary = summarize(run, history, best, 0, 0.0)
             if run.says:
                 print(f"{run.name}: already trained ({start} epochs); {summary['line']}")
             return summary
         data = load_data(run)
+        # The run's clock (time budget, ``seconds``) starts with the data loaded: a pack built first, once for every
+        # run on the store (most of an hour for a large one), would leave a budgeted run fewer epochs the first time.
+        t_start = time.perf_counter()
         if start == 0 and run.rank == 0:
             # Epoch 0, the model before any step (OIDN exactly for a new, zero-initialised Control Module; the start's
             # model for a warm start): the run must beat it to keep anything.

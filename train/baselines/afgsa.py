@@ -54,7 +54,6 @@ w_adv = 0 is the L1-only ablation: the critic is not used.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import torch
@@ -353,10 +352,9 @@ def afgsa_recipe(cfg: Config, spp) -> Recipe:
 def train(cfg: Config, spp, quiet: bool = False) -> dict:
     """Train (or resume) AFGSA from the ``spp`` (or 'any': 4/16/64) low-spp buffers to ``afgsa.target``;
     a summary dict. The best weights end up in ``pipeline.config.run_dir(cfg, "afgsa", spp)``."""
-    started = time.perf_counter()
     if not spp:
         raise TrainError("the afgsa model needs an spp (make train MODEL=afgsa SPP=4)")
-    return train_recipe(cfg, afgsa_recipe(cfg, spp), quiet=quiet, started=started)
+    return train_recipe(cfg, afgsa_recipe(cfg, spp), quiet=quiet)
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[AFGSANet, dict]:
