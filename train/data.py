@@ -427,8 +427,9 @@ class StoreSource:
             path = self.pack_path("train" if i == 0 else f"train_extra{i - 1}")
             if build:
                 ensure_pack(store, keys, path, quiet, self.clean_aux, self.history, self.window)
-            while not pack_ready(store, keys, path, self.clean_aux, self.history, self.window):
-                time.sleep(5)
+            else:
+                while not pack_ready(store, keys, path, self.clean_aux, self.history, self.window):
+                    time.sleep(5)
             packs.append(load_pack(path))
         return concat_packs(packs)
 
