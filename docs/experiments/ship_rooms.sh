@@ -21,12 +21,14 @@ make dataset CONFIG=$C                                      # the rest of the re
 [ -d data/ship_rooms_8pf ] || $PY docs/experiments/subset_store.py data/ship_rooms data/ship_rooms_8pf \
   --frames-per-scene 8 --like data/ship_rooms_1pf
 for s in 1pf 8pf; do
-  make train CONFIG=$C SPP=any store=data/ship_rooms_$s runs=runs/ship_rooms_$s diffusion.init=train/shipped
+  make train CONFIG=$C SPP=any store=data/ship_rooms_$s runs=runs/ship_rooms_$s diffusion.init=train/shipped \
+    diffusion.time_budget_s=0
 done
 
-# the candidates of the rule: warm-started from train/shipped, and from scratch, on the whole store
-make train CONFIG=$C SPP=any runs=runs/ship_rooms_warm diffusion.init=train/shipped
-make train CONFIG=$C SPP=any runs=runs/ship_rooms_scratch
+# the candidates of the rule: warm-started from train/shipped, and from scratch, on the whole store; named
+# variants of one runs folder, so that the two read one training pack (built once, most of an hour)
+make train CONFIG=$C SPP=any diffusion.name=warm diffusion.init=train/shipped
+make train CONFIG=$C SPP=any diffusion.name=scratch
 
 # scored as the rule says: every noise realization, val_* at 4 spp, default val at 4 spp (train/shipped too);
 # diffusion.model names the candidate (a run trained on another store than the scored one is otherwise passed over)
@@ -41,7 +43,8 @@ score() {   # score NAME MODEL
   done
 }
 score shipped train/shipped
-for r in 1pf 8pf warm scratch; do score $r runs/ship_rooms_$r/diffusion_sppany; done
+for r in 1pf 8pf; do score $r runs/ship_rooms_$r/diffusion_sppany; done
+for r in warm scratch; do score $r runs/ship_rooms/diffusion_sppany_$r; done
 
 # the model that reads the past (docs/sequences.md, "The same on configs/ship_rooms.yaml"): warm-started from
 # train/shipped here; if the rule above ships a candidate, start from it instead (diffusion.init=<its folder>)
