@@ -18,15 +18,17 @@ Two warps, for two purposes:
 
 Methods: every per-frame name of ``eval.methods`` (``evaluate.methods``), and
 ``oidn_prefilter_temporal``: ``oidn_prefilter``'s output blended with its own warped history
-(``pipeline.temporal.blend_history``, weight ``eval.temporal_weight`` on the new frame, history
-clamped to the new output's 3×3 range), the temporal filter a user could build in an afternoon;
+(``pipeline.temporal.filtered``, weight ``eval.temporal_weight`` on the new frame, history
+clamped to the new output's 3×3 range; with ``eval.temporal_ahead`` the history of both sides), the temporal
+filter a user could build in an afternoon;
 ``ours_filter``: the same filter on ``ours``' outputs (what ``denoise --sequence`` runs for a model that does
 not read the past); ``ours_temporal``: the model loaded for ``ours`` given its own previous output warped into
 this frame (``Denoiser.denoise(history=...)``, what ``denoise --sequence`` runs for it), available when that
-model reads the past (``diffusion.history``). Each frame of a temporal method is one ``pipeline.temporal.step``,
-as in ``denoise --sequence``; without a history (t = 0, or after a frame where the method failed) it is its
-per-frame method's output on the frame's input as the temporal methods average it (at t = 0 with the frames after
-it, ``eval.temporal_ahead``; without them, the per-frame output itself). t = 0 is reported apart. Only the
+model reads the past (``diffusion.history``). A temporal method runs as in ``denoise --sequence``: the filter
+(``pipeline.temporal.filtered``) on its base's outputs, or one ``pipeline.temporal.step`` a frame; without a
+history (t = 0 without frames after it, or after a frame where the method failed) it is its per-frame method's
+output on the frame's input as the temporal methods average it (without frames on either side, the per-frame
+output itself). t = 0 is reported apart. Only the
 methods listed run, with the per-frame methods their temporal ones build on.
 """
 from __future__ import annotations
@@ -127,7 +129,8 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
                  ahead: int = 0) -> tuple[dict, dict, list[Frame]]:
     """Along one sequence, every per-frame method of ``methods`` and the temporal methods ``temporal_names`` (their
     bases among ``methods``, their input averaged over ``window`` frames and the ``ahead`` frames after, with
-    ``gate``): ({method: [output per frame]}, {method: [seconds per frame]}, frames)."""
+    ``gate``; the filter on both sides with ``ahead``): ({method: [output per frame]}, {method: [seconds per
+    frame]}, frames)."""
     frames = [read_frame(store, key, spp, stacks_of(key), ref_name) for key in seq]
     outputs: dict[str, list] = {n: [] for n in [*methods, *temporal_names]}
     seconds: dict[str, list] = {n: [] for n in outputs}
@@ -146,21 +149,27 @@ def run_sequence(store: Store, seq: list[FrameKey], spp: int, stacks_of, methods
         averaging = time.perf_counter() - t0       # every temporal method's, which each would pay alone
         for name in temporal_names:
             base = TEMPORAL[name]
-            previous = (outputs[name][t - 1], frames[t - 1].views["input"]) if t > 0 else None
-            y, secs = temporal_frame(methods[base], outputs[base][t], seconds[base][t], fr, previous, weight,
-                                     name in LEARNED, averaged)
+            previous = (outputs[name][t - 1], frames[t - 1].views["input"]) if t > 0 and name in LEARNED else None
+            y, secs = temporal_frame(methods[base], outputs[base][t], seconds[base][t], fr, averaged, previous)
             outputs[name].append(y)
             seconds[name].append(secs + averaging)
+    for name in temporal_names:
+        if name in TEMPORAL_FILTERS:    # the per-frame outputs on the averaged input, filtered along the sequence
+            t0 = time.perf_counter()
+            outputs[name] = [y for y, _ in temporal.filtered(zip(outputs[name], [f.views["input"] for f in frames]),
+                                                             weight, ahead)]
+            share = (time.perf_counter() - t0) / len(frames)
+            seconds[name] = [s + share for s in seconds[name]]
     return outputs, seconds, frames
 
 
-def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, fr: Frame, previous, weight: float,
-                   learned: bool, buffers: dict | None = None) -> tuple[np.ndarray | None, float]:
-    """One frame of a temporal method on ``method`` (``temporal.step``, the history warped with the input's own
-    depth and normal) given the frame's input ``buffers`` (averaged over the previous frames; default the frame's
-    own), and its seconds: the step's own (reprojection, warp, blend) plus the method's, whose output on the
-    frame's own input without history (``base_output``, ``base_seconds``) is reused rather than run again."""
-    buffers = fr.buffers if buffers is None else buffers
+def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, fr: Frame, buffers: dict,
+                   previous=None) -> tuple[np.ndarray | None, float]:
+    """One frame of a temporal method's base ``method`` on the frame's input ``buffers`` (averaged over the
+    neighbouring frames), and its seconds. ``previous`` (a model that reads the past: its output of the frame
+    before and that frame's view): one ``temporal.step``, the history warped with the input's own depth and normal;
+    None: the method's per-frame output, which the filter then blends (``temporal.filtered``), its output on the
+    frame's own input (``base_output``, ``base_seconds``) reused rather than run again."""
     inside = {"wall": 0.0, "method": 0.0}      # the time spent in ``denoise``, and the method's share of it
 
     def denoise(given, history):
@@ -174,7 +183,7 @@ def temporal_frame(method, base_output: np.ndarray | None, base_seconds: float, 
         return finite_output(oc) if oc.output is not None else None
 
     t0 = time.perf_counter()
-    y, _ = temporal.step(denoise, buffers, fr.views["input"], previous, weight, learned)
+    y, _ = temporal.step(denoise, buffers, fr.views["input"], previous)     # no previous: no history
     return y, time.perf_counter() - t0 - inside["wall"] + inside["method"]
 
 
@@ -197,7 +206,8 @@ def load_sequence_methods(loader: Loader, names: list[str], spp: int, window: in
             how = temporal.describe_averaging(window, ahead) if name != base else None
             averaged = f" on the {how}" if how else ""
             suffix = averaged + (" reading its previous output" if name in LEARNED
-                                 else " + temporal filter" if name != base else "")
+                                 else " + temporal filter" + (" on both sides" if ahead else "") if name != base
+                                 else "")
             rows[name] = {"label": label(base) + suffix, "available": True,
                           "checkpoint": methods[base].checkpoint or None}
         except MethodUnavailable as exc:

@@ -1,10 +1,11 @@
 """The sequence page of a report (``sequence.md``): tables, per-frame curves and an animated strip.
 
-Per group and spp one table: each method's frame 1 and frames 2.. apart (a temporal method has no
-history on frame 1), PSNR with the paired difference to ``oidn_prefilter`` on frames 2.., L1,
-HDR-FLIP, the temporal instability and its ratio to ``oidn_prefilter``'s, FovVideoVDP of the
-sequences as videos, seconds per frame. The paired interval resamples *scenes* (each scene's mean
-over its frames 2..): the frames of one camera move share the scene and are not independent.
+Per group and spp one table: each method's frame 1 and frames 2.. apart (frame 1 has no frame before
+it; with the frames after read, its input and its filter's history come from those alone), PSNR with the
+paired difference to ``oidn_prefilter`` on frames 2.., L1, HDR-FLIP, the temporal instability and its ratio
+to ``oidn_prefilter``'s, FovVideoVDP of the sequences as videos, seconds per frame. The paired interval
+resamples *scenes* (each scene's mean over its frames 2..): the frames of one camera move share the scene and
+are not independent.
 """
 from __future__ import annotations
 
@@ -86,7 +87,8 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
         (out_dir / "sequence.md").unlink(missing_ok=True)
         return ""
     lines = ["# Sequences: every scene along its camera move", "",
-             "Frame 1 apart from frames 2.. (a temporal method has no history on frame 1). Δ: paired over scenes "
+             "Frame 1 apart from frames 2.. (frame 1 has no frame before it; a temporal method reads only the "
+             "frames after there). Δ: paired over scenes "
              "(each scene's mean over its frames 2..), bootstrap 95 % interval, * when it excludes 0; needs "
              f"{MIN_FRAMES} scenes for an interval. "
              "Instability: mean |output's frame-to-frame change − the reference's| on x/(1+x), "
@@ -99,7 +101,8 @@ def write_sequence_page(groups: dict, strips: dict, out_dir: Path, resamples: in
         n = {len(v) for v in g["scenes"].values()}
         how = describe_averaging(g.get("window", 1), g.get("ahead", 0), g.get("gate")) or "input not averaged"
         lines += [f"## {group}: {len(g['scenes'])} sequences of {'/'.join(map(str, sorted(n)))} frames "
-                  f"(temporal methods: {how}, filter weight {g['weight']:g})", ""]
+                  f"(temporal methods: {how}, filter weight {g['weight']:g}"
+                  f"{', on both sides' if g.get('ahead') else ''})", ""]
         for spp, entry in g["spp"].items():
             lines += [f"### {spp} spp", "", *sequence_table(entry, resamples, seed), ""]
             for metric, label in (("psnr", "PSNR dB"), ("instability", "instability")):

@@ -242,8 +242,9 @@ def _sequence_options(p) -> None:
                    help="--sequence: frames over which the noisy diffuse light is averaged before denoising (1: none; "
                         "default eval.temporal_window)")
     p.add_argument("--ahead", type=int, default=None,
-                   help="--sequence: frames after each one averaged too (0: the frames before "
-                        "alone, as frames that arrive one at a time; default eval.temporal_ahead)")
+                   help="--sequence: frames after each one averaged too, and the filter's history taken from both "
+                        "sides (0: the frames before alone and the causal filter, as frames that arrive one at a "
+                        "time; default eval.temporal_ahead)")
 
 
 def _inference_commands(sub) -> None:

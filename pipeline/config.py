@@ -620,9 +620,11 @@ class EvalConfig(Section):
     temporal_ahead: int = doc("Frames after this one that the temporal methods average too, for a sequence on disk "
                               "whole (a shot rendered offline; make eval and denoise --sequence): each reprojected "
                               "with the cameras and depth, or followed forward along the motion vectors (a "
-                              "Vector pass's to-next half); the filter stays causal. 0: the frames "
-                              "before alone, as frames that arrive one at a time. 7: the rule of "
-                              "docs/sequences.md (\"Frames after this one too\").", 7)
+                              "Vector pass's to-next half); the temporal filter then reads both sides (its history the mean "
+                              "of the frame before's and of the same filter run backwards from these frames). 0: the "
+                              "frames before alone and the causal filter, as frames that arrive one at a time. 7: the "
+                              "rules of docs/sequences.md (\"Frames after this one too\", \"The filter on both "
+                              "sides\").", 7)
     sequence_fps: float = doc("Frame rate at which FovVideoVDP watches a sequence.", 24.0)
     stability_large: bool = doc("make stability also runs the 1920x1080 case.", True)
     out: str = doc("Report folder; empty: reports/<name of the runs folder>.", "")

@@ -1,10 +1,10 @@
 """Time along a sequence: the input averaged over the neighbouring frames, the classic temporal filter, and the
 instability metric.
 
-``step`` is one frame of a temporal method, the reprojection included: what ``denoise --sequence`` and the
-sequence evaluation both run. First the frame's noisy input is averaged over a window of frames
-(``InputWindow``), then the per-frame denoiser runs on it, then its output is blended with its own previous
-output (the filter).
+What ``denoise --sequence`` and the sequence evaluation both run: first the frame's noisy input is averaged over a
+window of frames (``InputWindow``), then the per-frame denoiser runs on it, then its outputs are filtered along
+the sequence (``filtered``, the reprojection included); a model that reads the past is given its own previous
+output instead (``step``).
 
 **The input averaged** (``average_input``): the diffuse light (``diffuse_direct``, ``diffuse_indirect``) of
 frame t averaged with that of up to ``window - 1`` frames before it and, for a sequence on disk whole, up to
@@ -12,9 +12,10 @@ frame t averaged with that of up to ``window - 1`` frames before it and, for a s
 with motion vectors along the chain of neighbours, backwards or forwards) and read at the pixel its spot falls in, over the frames
 valid at each pixel and, with a ``gate``, agreeing with frame t within that many standard deviations of the difference; emission and
 the reflections (the specular components) stay frame t's, since they do not follow the surface's motion. At
-4 spp, 8 frames give most surfaces 32 samples of diffuse light. The filter below stays causal. The past pixels are read whole: an
-interpolated read correlates the noise of neighbouring pixels, and a denoiser trained on white noise keeps
-correlated noise as detail (docs/sequences.md, "Read without resampling", has both measurements).
+4 spp, 8 frames give most surfaces 32 samples of diffuse light. The filter below reads the frames after too where
+the input does. The past pixels are read whole: an interpolated read correlates the noise of neighbouring pixels,
+and a denoiser trained on white noise keeps correlated noise as detail (docs/sequences.md, "Read without
+resampling", has both measurements).
 
 The filter and the metric work on images already brought into the current frame
 (``pipeline.motion.warp_previous``: the previous frame's image, read with the Catmull-Rom kernel, with its
@@ -28,7 +29,11 @@ denoise node does with a per-frame denoiser's outputs: an exponential moving ave
 
 with the history clamped, per channel, to the range of the current output's 3×3 neighbourhood
 (Karis 2014, "High-quality temporal supersampling"). The clamp is what keeps a long history from
-smearing: without it, a wrong history (a reprojection error, a moving highlight) never leaves.
+smearing: without it, a wrong history (a reprojection error, a moving highlight) never leaves. For a shot on
+disk whole the filter reads both sides (``filtered`` with ``ahead``): the history is the mean of the causal
+h_{t−1} and the same filter run backwards from the frames after, each warped and clamped:
+
+    s_t = w · y_t + (1 − w) · ½ (clamp(warp(h_{t−1})) + clamp(warp(b_{t+1}))),   b_t = w · y_t + (1 − w) · clamp(warp(b_{t+1})).
 
 **Temporal instability** (``instability``) measures flicker against the reference: over the pixels
 valid in both frames, the mean absolute difference between the output's frame-to-frame change and
@@ -46,7 +51,8 @@ of GT2's score (docs/sequences.md, "What the instability can measure").
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -75,22 +81,96 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
     """One step of the temporal filter: ``current`` (H, W, C) blended with ``history`` (the filter's
     previous output warped into this frame) where ``valid``; ``weight`` is the new frame's share (1: no
     history). ``history`` None (the first frame) returns ``current`` unchanged."""
+    return blend_sides(current, [] if history is None else [(history, valid)], weight, clamp)
+
+
+def blend_sides(current: np.ndarray, sides: list[tuple[np.ndarray, np.ndarray | None]], weight: float,
+                clamp: bool = True) -> np.ndarray:
+    """``blend_history`` with a history from each of ``sides`` ((history, valid): the frame before's, and for a
+    shot on disk whole the frame after's): each clamped, then their mean where both are valid and the one valid
+    history where only one is, blended with ``current`` at ``weight``; ``current`` where none is valid."""
     if (why := weight_problem(weight)) is not None:
         raise ValueError(f"blend weight: {why}")
     current = np.asarray(current, dtype=np.float32)
-    if history is None:
+    if not sides:
         return current.copy()
-    if history.shape != current.shape or valid is None or valid.shape != current.shape[:2]:
-        raise ValueError(f"history {getattr(history, 'shape', None)} / valid {getattr(valid, 'shape', None)} "
-                         f"do not match the frame {current.shape}")
-    past = np.asarray(history, dtype=np.float32)
-    if clamp:
-        lo, hi = neighbourhood_range(current)
-        past = np.clip(past, lo, hi)
+    for history, valid in sides:
+        if history.shape != current.shape or valid is None or valid.shape != current.shape[:2]:
+            raise ValueError(f"history {getattr(history, 'shape', None)} / valid {getattr(valid, 'shape', None)} "
+                             f"do not match the frame {current.shape}")
+    lo, hi = neighbourhood_range(current) if clamp else (None, None)
+    total, count = np.zeros_like(current), np.zeros(current.shape[:2], np.float32)
+    for history, valid in sides:
+        past = np.asarray(history, dtype=np.float32)
+        past = np.clip(past, lo, hi) if clamp else past
+        keep = valid.astype(bool)
+        total[keep] += past[keep]
+        count += keep
     out = current.copy()
-    keep = valid.astype(bool)
-    out[keep] = weight * current[keep] + (1.0 - weight) * past[keep]
+    keep = count > 0
+    out[keep] = weight * current[keep] + (1.0 - weight) * (total[keep] / count[keep][:, None])
     return out
+
+
+def ahead_history(view: motion.View, later: list[tuple[np.ndarray, motion.View]],
+                  weight: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The filter run backwards over ``later`` (the per-frame outputs of the frames after ``view``'s, the next
+    first, with their views), from the last one linked to the frame before it, its output of the next frame
+    brought into ``view``'s: (history, valid) as ``motion.warp_previous`` gives, None without a linked frame after."""
+    chain = [view]
+    for _, v in later:
+        if v is None or not motion.linked(motion.turned(chain[-1]), motion.turned(v)):
+            break
+        chain.append(v)
+    if len(chain) == 1:
+        return None
+    back = later[len(chain) - 2][0]
+    for j in range(len(chain) - 3, -1, -1):         # frames after the next one, the furthest first
+        back = blend_history(later[j][0], *motion.warp_previous(back, motion.turned(chain[j + 1]),
+                                                                 motion.turned(chain[j + 2])), weight)
+    return motion.warp_previous(back, motion.turned(chain[0]), motion.turned(chain[1]))
+
+
+def filtered(frames: Iterable[tuple[np.ndarray | None, motion.View | None]], weight: float,
+             ahead: int = 0) -> Iterator[tuple[np.ndarray | None, np.ndarray | None]]:
+    """The temporal filter along a sequence: from (a per-frame output, None where it failed; its view) of each
+    frame in order, yields (the frame's filtered output, its history's (H, W) validity or None without one), each
+    once the ``ahead`` frames after it have come. ``ahead`` 0: the causal filter (module docstring); above 0, a shot
+    on disk whole: frame t's history is the mean of the causal filter's output of frame t − 1 and the filter run
+    backwards from frame t + ``ahead`` (``ahead_history``), each warped and clamped (``blend_sides``): the
+    history's share is split between two sides whose lags point opposite ways (docs/sequences.md, "The filter on
+    both sides"). The causal filter's own state stays its own: frame t's causal output is what frame t + 1 reads."""
+    pending: deque = deque()
+    previous = None                     # (the causal filter's output of the frame before, its view)
+
+    def finish():
+        nonlocal previous
+        y, view = pending.popleft()
+        if y is None:
+            previous = None
+            return None, None
+        sides = []
+        if previous is not None and view is not None and previous[1] is not None \
+                and motion.linked(view, previous[1]):
+            sides.append(motion.warp_previous(previous[0], view, previous[1]))
+        causal = blend_sides(y, sides, weight)
+        later = []
+        for z, v in pending:
+            if z is None:
+                break
+            later.append((z, v))
+        back = ahead_history(view, later, weight) if later and view is not None else None
+        out = causal if back is None else blend_sides(y, [*sides, back], weight)
+        previous = causal, view
+        valid = [v for _, v in sides] + ([] if back is None else [back[1]])
+        return out, (np.logical_or.reduce(valid) if valid else None)
+
+    for frame in frames:
+        pending.append(frame)
+        if len(pending) > ahead:
+            yield finish()
+    while pending:
+        yield finish()
 
 
 # What ``average_input`` averages, per kind, in groups that its gate tests together: every radiance buffer as
@@ -270,29 +350,23 @@ class InputWindow:
 
 
 def step(denoise: Callable[[dict, tuple | None], np.ndarray | None], buffers: dict[str, np.ndarray],
-         view: motion.View | None, previous: tuple[np.ndarray | None, motion.View | None] | None, weight: float,
-         learned: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """One frame of a temporal method: (its output, None where ``denoise`` failed; the history's (H, W) validity,
-    None without a history).
+         view: motion.View | None, previous: tuple[np.ndarray | None, motion.View | None] | None
+         ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """One frame of a model that reads the past (``diffusion.history``): (its output, None where ``denoise``
+    failed; the history's (H, W) validity, None without a history). The per-frame methods are filtered instead
+    (``filtered``).
 
-    ``previous``: (this method's output of the previous frame, that frame's view); the history is that output
+    ``previous``: (the model's output of the previous frame, that frame's view); the history is that output
     warped into ``view`` (``motion.warp_previous``), none on a first frame, after a frame that failed or
     where the two frames share no motion (``motion.linked``: motion vectors, or cameras with depth).
-    ``denoise(buffers, history)`` is the per-frame method;
-    ``learned``: it reads the history itself (a model with ``diffusion.history``) and its output is the frame's;
-    otherwise its output without history is blended with the history (``blend_history``, ``weight``).
-    ``buffers``: the frame's input as the method denoises it, averaged over the previous frames where the caller
+    ``denoise(buffers, history)`` is the model given the history as condition channels.
+    ``buffers``: the frame's input as the model denoises it, averaged over the neighbouring frames where the caller
     keeps an ``InputWindow`` (one window serves every temporal method of a sequence)."""
     history = None
     if (previous is not None and previous[0] is not None and view is not None and previous[1] is not None
             and motion.linked(view, previous[1])):
         history = motion.warp_previous(previous[0], view, previous[1])
-    if learned:
-        y = denoise(buffers, history)
-    else:
-        y = denoise(buffers, None)
-        if y is not None and history is not None:
-            y = blend_history(y, *history, weight)
+    y = denoise(buffers, history)
     return y, None if y is None or history is None else history[1]
 
 

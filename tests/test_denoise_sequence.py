@@ -50,10 +50,14 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     assert f"denoise --sequence '{frames}' --spp 4" in proc.stdout          # what render-scene says to run
     proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "out" / "f_###.exr", "--method", "oidn_prefilter",
                "--spp", "4", "--quiet")
-    assert "history on 2 of 2 frames" in proc.stdout, proc.stdout
+    # the frames after are read (eval.temporal_ahead): the filter on both sides, so the first frame has a history too
+    assert "history on 3 of 3 frames" in proc.stdout and "filter on both sides" in proc.stdout, proc.stdout
     records = [read_header(tmp_path / "out" / f"f_{n:03d}.exr") for n in range(3)]
-    assert records[0]["temporal"]["history_fraction"] is None
-    assert all(r["temporal"]["history_fraction"] > 0.5 for r in records[1:])
+    assert all(r["temporal"]["history_fraction"] > 0.5 and r["temporal"]["both_sides"] for r in records)
+    proc = cli("denoise", "--sequence", frames, "--out", tmp_path / "causal" / "f_###.exr", "--method",
+               "oidn_prefilter", "--spp", "4", "--ahead", "0", "--quiet")
+    assert "history on 2 of 3 frames" in proc.stdout and "both sides" not in proc.stdout, proc.stdout
+    assert read_header(tmp_path / "causal" / "f_000.exr")["temporal"]["history_fraction"] is None
     # weight 1, a window of 1 and none ahead keep no history: each frame is OIDN's final-frame output alone, as
     # denoise --exr writes it
     cli("denoise", "--sequence", frames, "--out", tmp_path / "one" / "f_###.exr", "--method", "oidn_prefilter",
@@ -93,7 +97,7 @@ def test_a_rendered_orbit_takes_history_and_plain_exrs_are_denoised_alone(tmp_pa
     assert proc.returncode == 2 and "prefilters albedo and normal" in proc.stderr   # OIDN's mode needs aux
     proc = cli("denoise", "--sequence", plain / "p_#.exr", "--out", tmp_path / "po" / "p_#.exr", "--spp", "4",
                "--temporal-window", "3", "--quiet")
-    assert proc.stdout.count("no motion for that frame") == 1 and "history on 0 of 2 frames" in proc.stdout
+    assert proc.stdout.count("no motion for that frame") == 1 and "history on 0 of 3 frames" in proc.stdout
     assert "input not averaged (no frame has diffuse light layers)" in proc.stdout, proc.stdout
     shutil.rmtree(plain)
 
@@ -119,7 +123,7 @@ def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tm
     proc = cli("denoise", "--sequence", tmp_path / "c_#.exr", "--out", tmp_path / "o" / "c_#.exr", "--spp", "4",
                "--device", "cpu", "--quiet")
     assert proc.stdout.count("note: ") == 1 and "display window 32x24 differs from the pixels' 16x12" in proc.stdout
-    assert "history on 0 of 1 frames" in proc.stdout, proc.stdout
+    assert "history on 0 of 2 frames" in proc.stdout, proc.stdout
     assert read_layers(tmp_path / "o" / "c_1.exr")["color"].shape == (12, 16, 3)
 
 
@@ -163,8 +167,8 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
     assert passes["Vector"].shape == (h, w, 4) and frame_view(tmp_path / "b_00.exr", buffers)[0] is None
     assert frame_view(tmp_path / "b_00.exr", buffers, passes["Vector"])[0].motion is not None
     run = ("denoise", "--sequence", tmp_path / "b_##.exr", "--method", "oidn_prefilter", "--spp", "4", "--quiet")
-    proc = cli(*run, "--out", tmp_path / "seq" / "o_##.exr", "--temporal-weight", "0.5")
-    assert "history on 2 of 2 frames" in proc.stdout and "note:" not in proc.stdout, proc.stdout
+    proc = cli(*run, "--out", tmp_path / "seq" / "o_##.exr", "--temporal-weight", "0.5", "--ahead", "0")
+    assert "history on 2 of 3 frames" in proc.stdout and "note:" not in proc.stdout, proc.stdout
     cli(*run, "--out", tmp_path / "alone" / "o_##.exr", "--temporal-weight", "1")
     colour = lambda d, t: read_layers(tmp_path / d / f"o_{t:02d}.exr")["color"]     # noqa: E731
     valid = np.zeros((h, w), bool)
@@ -177,10 +181,20 @@ def test_a_blender_sequence_follows_its_vector_pass(tmp_path):
         # float32 outputs, and a shift by whole pixels reads each pixel alone (motion.TAP_EPS): the same arithmetic
         np.testing.assert_allclose(colour("seq", t), expected, rtol=1e-6, atol=0)
         assert not np.allclose(colour("seq", t), colour("alone", t), rtol=1e-2)
+    # on both sides (the frames after read): frame 1's history is the mean of frame 0's output moved by (2, 1) and
+    # frame 2's moved back by (-2, -1), each where on screen; the last frame has none after it, so it is the causal
+    # filter's own
+    proc = cli(*run, "--out", tmp_path / "both" / "o_##.exr", "--temporal-weight", "0.5")
+    assert "history on 3 of 3 frames" in proc.stdout, proc.stdout
+    before, after = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
+    before[1:, 2:], after[:-1, :-2] = colour("alone", 0)[:-1, :-2], colour("alone", 2)[1:, 2:]
+    expected = temporal.blend_sides(colour("alone", 1), [(before, valid), (after, valid[::-1, ::-1])], 0.5)
+    np.testing.assert_allclose(colour("both", 1), expected, rtol=1e-6, atol=0)
+    np.testing.assert_array_equal(colour("both", 2), colour("seq", 2))
     # ours on Blender's passes: no variance, light components or material layers, so the model's base alone, said
     proc = cli("denoise", "--sequence", tmp_path / "b_##.exr", "--spp", "4", "--quiet", "--device", "cpu",
                "--out", tmp_path / "ours" / "o_##.exr")
-    assert "history on 2 of 2 frames" in proc.stdout and "the model's base, OIDN, alone" in proc.stdout, proc.stdout
+    assert "history on 3 of 3 frames" in proc.stdout and "the model's base, OIDN, alone" in proc.stdout, proc.stdout
     # with the light passes the model reads the light components, and the diffuse light is averaged over the frame
     # before and, followed forward along the vectors, the frames after: per frame 1 + the share of its pixels
     # still on screen one frame away (30/32 * 23/24) or two (28/32 * 22/24), (2.70 + 2.80 + 2.70) / 3

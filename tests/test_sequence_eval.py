@@ -58,7 +58,7 @@ def test_the_page_its_curves_and_the_strip(report):
     page = (out / "sequence.md").read_text()
     assert "| `oidn_prefilter_temporal` |" in page and "instability" in page
     # the page says how the temporal methods averaged their input: the tiny config's eval.temporal_* keys
-    assert "(temporal methods: diffuse light over 8 frames and 7 after, gate 2, filter weight 0.7)" in page
+    assert "(temporal methods: diffuse light over 8 frames and 7 after, gate 2, filter weight 0.7, on both sides)" in page
     assert "[sequence.md](sequence.md)" in (out / "eval.md").read_text()
     for name in ("sequence_test_psnr_spp4.png", "sequence_test_instability_spp4.png"):
         assert (out / name).stat().st_size > 0
@@ -112,6 +112,8 @@ def test_ours_temporal_is_the_model_reading_its_history_and_ours_filter_the_filt
     methods, rows = load_sequence_methods(_Loader(False), names, 4)
     assert list(methods) == ["ours"] and rows["ours"]["available"] and rows["ours_filter"]["available"]
     assert rows["ours_filter"]["label"].endswith("+ temporal filter")
+    assert load_sequence_methods(_Loader(False), names, 4, ahead=2)[1]["ours_filter"]["label"].endswith(
+        "+ temporal filter on both sides")
     assert not rows["ours_temporal"]["available"] and "does not read history" in rows["ours_temporal"]["reason"]
     methods, rows = load_sequence_methods(_Loader(True), names, 4)
     assert all(r["available"] for r in rows.values())

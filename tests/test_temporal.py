@@ -12,6 +12,8 @@ from mcdenoise.pipeline.temporal import (
     average_input,
     averaging_kind,
     blend_history,
+    blend_sides,
+    filtered,
     instability,
     neighbourhood_range,
 )
@@ -69,6 +71,69 @@ def test_the_unclamped_filter_on_a_still_frame_keeps_w_over_2_minus_w_of_the_noi
     ratio = float(np.var(hist - truth)) / 0.01
     # 196,608 samples: the variance estimate's relative standard error is sqrt(2/N) = 0.3 %
     assert ratio == pytest.approx(w / (2 - w), rel=0.03)
+
+
+def test_two_sides_are_each_clamped_then_averaged_where_both_are_valid():
+    cur = np.zeros((4, 6, 3), np.float32)
+    cur[:, 3:] = 1.0                                     # an edge: the 3x3 range is [0, 1] beside it, a point elsewhere
+    before, after = np.full_like(cur, 0.8), np.full_like(cur, 0.2)
+    v_before, v_after = np.ones((4, 6), bool), np.ones((4, 6), bool)
+    v_before[:, 0], v_after[:, 5] = False, False
+    out = blend_sides(cur, [(before, v_before), (after, v_after)], 0.5)
+    # both valid at the edge (columns 2, 3): the mean of the two histories, 0.5, blended with the frame
+    np.testing.assert_allclose(out[:, 2], 0.5 * 0.0 + 0.5 * 0.5, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(out[:, 3], 0.5 * 1.0 + 0.5 * 0.5, rtol=0, atol=1e-7)
+    # away from the edge each history is clamped to the frame's value: the output is the frame's
+    assert np.array_equal(out[:, 1], cur[:, 1]) and np.array_equal(out[:, 4], cur[:, 4])
+    # one side valid: that side alone, as blend_history has it
+    one = blend_sides(cur, [(before, v_before), (after, ~v_after)], 0.5)
+    np.testing.assert_array_equal(one, blend_history(cur, before, v_before, 0.5))
+    assert np.array_equal(blend_sides(cur, [(before, ~v_before & False), (after, v_after & False)], 0.5), cur)
+
+
+def _ramp_sequence(offsets, h=6, w=12):
+    """Frames of a still camera: a ramp of slope 1 a pixel (its 3x3 range is +-1 around each inner pixel, so a
+    history within 1 is never clamped there) plus a constant offset per frame."""
+    view = motion.View(Camera(np.eye(4), 50.0, w, h), np.full((h, w), 3.0))
+    ramp = np.broadcast_to(np.arange(w, dtype=np.float32)[None, :, None], (h, w, 3))
+    return [(ramp + np.float32(e), view) for e in offsets], ramp
+
+
+def test_the_filter_along_a_still_sequence_is_the_exponential_average_causal_or_on_both_sides():
+    offsets, w = [0.3, -0.2, 0.1, 0.4, -0.3], 0.6
+    frames, ramp = _ramp_sequence(offsets)
+    inner = (slice(1, -1), slice(1, -1))
+    causal = [y for y, _ in filtered(frames, w)]
+    f = [offsets[0]]
+    for e in offsets[1:]:
+        f.append(w * e + (1 - w) * f[-1])
+    both = list(filtered(frames, w, ahead=2))
+    for t in range(len(offsets)):
+        np.testing.assert_allclose(causal[t][inner] - ramp[inner], f[t], rtol=0, atol=1e-5)
+        # the backward filter from frame t + 2, then frame t's history the mean of both sides' (where there are two)
+        later = offsets[t + 1:t + 3]
+        sides = [f[t - 1]] if t > 0 else []
+        if later:
+            b = later[-1]
+            for e in later[-2::-1]:
+                b = w * e + (1 - w) * b
+            sides.append(b)
+        expected = w * offsets[t] + (1 - w) * np.mean(sides)
+        np.testing.assert_allclose(both[t][0][inner] - ramp[inner], expected, rtol=0, atol=1e-5)
+        assert both[t][1].all()                                          # every pixel had a history
+    assert causal[0] is not None and np.array_equal(causal[0], frames[0][0])
+
+
+def test_the_filter_yields_a_failed_frame_as_none_and_restarts_after_it():
+    frames, _ = _ramp_sequence([0.1, 0.2, 0.3, 0.4])
+    frames[1] = (None, frames[1][1])
+    out = list(filtered(frames, 0.5, ahead=1))
+    assert out[1] == (None, None)
+    # frame 0 has no usable frame after it, frame 2 none before it: each is what the frame after alone gives
+    assert np.array_equal(out[0][0], frames[0][0]) and out[0][1] is None
+    alone = list(filtered(frames[2:], 0.5, ahead=1))
+    np.testing.assert_array_equal(out[2][0], alone[0][0])
+    np.testing.assert_array_equal(out[3][0], alone[1][0])
 
 
 def test_instability_is_zero_for_the_reference_and_for_an_error_that_stays():

@@ -18,6 +18,10 @@ vectors, or the frame's depth and the two cameras), where the history is valid:
     out_t = w · y_t + (1 − w) · clamp(warp(out_{t−1}))        (w: ``--temporal-weight``, default
                                                               ``eval.temporal_weight``)
 
+and, when the frames after are read (``--ahead`` above 0), with the history of both sides: the mean of that one
+and of the same filter run backwards from the frames after (``temporal.filtered``), each clamped; a frame is
+then written once the ``--ahead`` frames after it are denoised.
+
 A model folder that reads the past (``diffusion.history``: its model.json's condition has the history
 channels) needs no filter: it is given its own previous output warped into this frame, with the validity
 mask, as condition channels (``Denoiser.denoise(history=...)``), and its output is the frame's output. Either
@@ -41,6 +45,7 @@ from __future__ import annotations
 import glob
 import re
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -180,6 +185,43 @@ def _outputs(files: list, out_pattern: str) -> list[Path]:
     return outs
 
 
+def _averaged_frames(files: list, outs: list, window: temporal.InputWindow, ahead: int, seen: dict, quiet: bool):
+    """Per frame in order: (its path, its output path, its input averaged over ``window`` and the ``ahead`` frames
+    after, its view); ``seen`` counts the frames without motion ("alone": the first's why) and without diffuse
+    light layers ("bare")."""
+    cache: dict = {}
+    for i, ((_, path), out) in enumerate(progress(list(zip(files, outs)), desc="denoise sequence", unit="frame",
+                                                  disable=quiet)):
+        passes: dict = {}
+        buffers = read_layers(path, passes=passes)
+        view, why = frame_view(path, buffers, passes.get("Vector"))
+        seen["alone"] = seen["alone"] or (f"{path}: {why}" if view is None else "")
+        seen["bare"] += not all(n in buffers for n in temporal.AVERAGED["diffuse"])     # nothing to average there
+        yield path, out, window.take(buffers, view, _frames_ahead(files, i, ahead, cache, window)), view
+
+
+def _learned(run, frames):
+    """((path, out, view), output, the history's validity) per frame of a model reading its previous output."""
+    previous = None
+    for path, out, averaged, view in frames:
+        hdr, valid = temporal.step(run, averaged, view, previous)
+        previous = hdr, view
+        yield (path, out, view), hdr, valid
+
+
+def _filtered(run, frames, weight: float, ahead: int):
+    """((path, out, view), output, the history's validity) per frame of a per-frame method and the filter
+    (``temporal.filtered``), each once the ``ahead`` frames after it are denoised."""
+    kept: deque = deque()               # (path, out, view) of the frames denoised and not yet filtered
+
+    def outputs():
+        for path, out, averaged, view in frames:
+            kept.append((path, out, view))
+            yield run(averaged, None), view
+    for hdr, valid in temporal.filtered(outputs(), weight, ahead):
+        yield kept.popleft(), hdr, valid
+
+
 def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int | None, method: str = "ours",
                          weight: float | None = None, quiet: bool = False, model: Path | None = None,
                          device: str | None = None, precision: str = "auto", seed: int | None = None,
@@ -199,34 +241,26 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
         raise TrainError(f"--method oidn_prefilter prefilters albedo and normal, but {files[0][1]} has only "
                          f"{', '.join(sorted(first))}; use --method ours")
     run, weights, learned, lacked = per_frame_denoiser(cfg, method, spp, model, device, precision, seed)
-    # (the previous frame's output, its view), what the next frame's history is made of
-    previous, took, alone, t0 = None, [], "", time.perf_counter()
     kind = temporal.averaging_kind(first) if kind is None else kind
     inputs_window = temporal.InputWindow(window, kind, gate=cfg.eval.temporal_gate or None, ahead=ahead)
-    bare, cache = 0, {}
-    for i, ((number, path), out) in enumerate(progress(list(zip(files, outs)), desc="denoise sequence", unit="frame",
-                                                       disable=quiet)):
-        passes: dict = {}
-        buffers = read_layers(path, passes=passes)
-        view, why = frame_view(path, buffers, passes.get("Vector"))
-        alone = alone or (f"{path}: {why}" if view is None else "")
-        # a model that reads its own previous output has no filter after it (``temporal.step``)
-        bare += not all(n in buffers for n in temporal.AVERAGED["diffuse"])     # nothing to average there
-        averaged = inputs_window.take(buffers, view, _frames_ahead(files, i, ahead, cache, inputs_window))
-        hdr, valid = temporal.step(run, averaged, view, previous, weight, learned)
+    took, seen, t0 = [], {"alone": "", "bare": 0}, time.perf_counter()
+    frames = _averaged_frames(files, outs, inputs_window, ahead, seen, quiet)
+    # a model that reads its own previous output has no filter after it; the filter reads both sides with ``ahead``
+    done = _learned(run, frames) if learned else _filtered(run, frames, weight, ahead)
+    for (path, out, view), hdr, valid in done:
         if valid is not None:
             took.append(float(valid.mean()))
         out.parent.mkdir(parents=True, exist_ok=True)
-        temporal_record = {"learned": True} if learned else {"weight": weight}
+        temporal_record = {"learned": True} if learned else {"weight": weight, "both_sides": ahead > 0}
         write_output(out, hdr, {"image": "denoised", "source": str(path), "spp": int(spp), "method": method,
                                 "weights": weights, "temporal": {**temporal_record, "history_fraction":
                                                                  None if valid is None else float(valid.mean())}},
                      camera=None if view is None else view.camera)
-        previous = hdr, view
+    alone, bare = seen["alone"], seen["bare"]
     if alone:
         print(f"note: {alone}: no motion for that frame, so it was denoised alone", flush=True)
     how = (f"{method} reading its own warped previous output (learned history)" if learned
-           else f"{method} + temporal filter, weight {weight:g}")
+           else f"{method} + temporal filter{' on both sides' if ahead else ''}, weight {weight:g}")
     if (window > 1 or ahead) and bare == len(files):
         how += ", input not averaged (no frame has diffuse light layers)"
     elif window > 1 or ahead:
@@ -235,7 +269,7 @@ def cmd_denoise_sequence(cfg: Config, pattern: str, out_pattern: str, spp: int |
                 + (f" ({np.mean(inputs_window.counts):.1f} per pixel)" if inputs_window.counts else "")
                 + (f" ({bare} of {len(files)} frames have no diffuse light layers: those not)" if bare else ""))
     print(f"denoised {len(files)} frames of {pattern} ({spp} spp, {how}; "
-          f"history on {len(took)} of {len(files) - 1} frames"
+          f"history on {len(took)} of {len(files)} frames"
           + (f", {100 * float(np.mean(took)):.0f} % of their pixels" if took else "")
           + f") with {weights} in {time.perf_counter() - t0:.1f} s -> {out_pattern}"
           + "".join(f"; {note}" for note in sorted(lacked)), flush=True)

@@ -12,11 +12,12 @@ components (``diffuse/W``); OIDN's final-frame mode on it; each also with the te
 (``+filter``, or ``+filter:W`` for each of ``--weights``). The baseline ``filter`` is
 ``oidn_prefilter_temporal``. ``--specular R,...`` adds, for each radius R, the filter whose weight per pixel is ``w + (1 - w) * s`` with
 ``s`` the share of reflected light in the denoiser's input (``specular_share``), labelled +spec:R.
-``--ahead A,...`` averages the A frames after frame t too (labelled ``/W>A``).
-``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside
-``ours`` and ``ours_filter``. Prints per method and spp the mean over sequences of (mean over t >= 1 of PSNR -
-oidn_prefilter's), the mean instability (as the sequence page measures it, through GT1's motion) and the
-sequences below oidn_prefilter.
+``--ahead A,...`` averages the A frames after frame t too (labelled ``/W>A``); ``--two-sided`` adds, for each
+filtered candidate that reads frames after, the filter on both sides (``two_sided``, labelled +filter2).
+``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside ``ours`` and ``ours_filter``
+(a candidate ending +filter2 with the causal filter beside it too). Prints per method and spp the mean over
+sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean instability (as the sequence page measures
+it, through GT1's motion) and the sequences below oidn_prefilter.
 """
 from __future__ import annotations
 
@@ -72,6 +73,12 @@ def filtered(outputs, frames, weight, shares=None):
     return out
 
 
+def two_sided(outputs, frames, weight, reach):
+    """The filter on both sides (``temporal.filtered`` with ``reach`` frames ahead; docs/sequences.md, "The filter on
+    both sides")."""
+    return [y for y, _ in temporal.filtered(zip(outputs, [f.views["input"] for f in frames]), weight, reach)]
+
+
 def instabilities(outputs, frames) -> list[float]:
     """Per t >= 1, ``temporal.instability`` through GT1's motion (as ``evaluate.sequence.score_sequence``)."""
     res = []
@@ -97,6 +104,8 @@ def main() -> int:
                                      "--weight): each candidate with the filter once per weight, labelled +filter:W")
     ap.add_argument("--specular", default="", help="box radii of the reflected share's per-pixel filter weight "
                                                   "(comma-separated; each filtered candidate once more per radius)")
+    ap.add_argument("--two-sided", action="store_true",
+                    help="each filtered candidate that reads frames after also with the filter on both sides")
     ap.add_argument("--ours", metavar="CANDIDATE",
                     help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
                          "ours and ours_filter")
@@ -115,16 +124,19 @@ def main() -> int:
     radii = [int(r) for r in args.specular.split(",") if r]
     spec_names = [f"{base}+spec:{r}" for base in ["filter", *(label(*c) for c in candidates if c[3] is not None)]
                   for r in radii]
-    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates), *spec_names]
+    both = [label(*c) for c in candidates if c[4] is not None and c[3]] if args.two_sided else []
+    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates), *(f"{n}2" for n in both), *spec_names]
     if args.ours:
         from mcdenoise.train.infer import load_denoiser
         model = load_denoiser("train/shipped")
         ours_kind, rest = args.ours.split("/")
+        ours_both = rest.endswith("+filter2")
+        rest = rest.removesuffix("2") if ours_both else rest
         ours_filter, rest = rest.endswith("+filter"), rest.removesuffix("+filter")
         ours_window, _, gate_text = rest.partition("@")
         ours_window, _, ahead_text = ours_window.partition(">")
         ours_window, ours_gate = int(ours_window), float(gate_text) if gate_text else None
-        names += ["ours", "ours_filter", f"ours {args.ours}"]
+        names += ["ours", "ours_filter", *([f"ours {args.ours[:-1]}"] if ours_both else []), f"ours {args.ours}"]
     gain: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     unsteady: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}
     first: dict[str, dict[int, dict[str, float]]] = {n: {s: {} for s in spps} for n in names}   # t = 0
@@ -139,6 +151,8 @@ def main() -> int:
                 if weight is not None:
                     unfiltered = runs[label(kind, w, g, a, None)]
                     runs[label(kind, w, g, a, weight)] = filtered(unfiltered, frames, weight)
+                    if label(kind, w, g, a, weight) in both:
+                        runs[label(kind, w, g, a, weight) + "2"] = two_sided(unfiltered, frames, weight, a)
                     for r in radii:
                         runs[f"{label(kind, w, g, a, weight)}+spec:{r}"] = filtered(
                             unfiltered, frames, weight, [specular_share(b, r) for b in inputs[kind, w, g, a]])
@@ -153,7 +167,10 @@ def main() -> int:
                 avg = [model.denoise(averaged(frames, t, ours_window, ours_kind, args.kernel, ours_gate,
                                                 int(ahead_text or 0)), spp)
                        for t in range(len(frames))]
-                runs[f"ours {args.ours}"] = filtered(avg, frames, args.weight) if ours_filter else avg
+                if ours_both:           # the causal filter on the same outputs, beside
+                    runs[f"ours {args.ours[:-1]}"] = filtered(avg, frames, args.weight)
+                runs[f"ours {args.ours}"] = (two_sided(avg, frames, args.weight, int(ahead_text or 0)) if ours_both
+                                             else filtered(avg, frames, args.weight) if ours_filter else avg)
             psnr = {n: [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                     for n, out in runs.items()}
             for n, out in runs.items():
