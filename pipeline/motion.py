@@ -470,11 +470,13 @@ def trace(view: View, past: list[View], ahead: bool = False) -> list[tuple[np.nd
     return found
 
 
-def warp_previous(image_prev: np.ndarray, view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:
+def warp_previous(image_prev: np.ndarray, view: View, view_prev: View,
+                  traced: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(``image_prev``, an image of the previous frame, brought into this one (H, W, C) float32, the (H, W) bool
-    validity): followed with ``reproject_view``, read with the Catmull-Rom kernel (module docstring), 0 where
-    invalid (disocclusions, silhouettes, background, off screen)."""
-    xy, valid = reproject_view(view, view_prev)
+    validity): followed with ``reproject_view`` (or ``traced``, what it gave for these two views before), read
+    with the Catmull-Rom kernel (module docstring), 0 where invalid (disocclusions, silhouettes, background, off
+    screen)."""
+    xy, valid = reproject_view(view, view_prev) if traced is None else traced
     return warp(np.asarray(image_prev, np.float32), xy, valid, kernel="catmull_rom"), valid
 
 

@@ -112,61 +112,69 @@ def blend_sides(current: np.ndarray, sides: list[tuple[np.ndarray, np.ndarray | 
     return out
 
 
-def ahead_history(view: motion.View, later: list[tuple[np.ndarray, motion.View]],
-                  weight: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """The filter run backwards over ``later`` (the per-frame outputs of the frames after ``view``'s, the next
-    first, with their views), from the last one linked to the frame before it, its output of the next frame
-    brought into ``view``'s: (history, valid) as ``motion.warp_previous`` gives, None without a linked frame after."""
-    chain = [view]
-    for _, v in later:
-        if v is None or not motion.linked(motion.turned(chain[-1]), motion.turned(v)):
-            break
-        chain.append(v)
-    if len(chain) == 1:
-        return None
-    back = later[len(chain) - 2][0]
-    for j in range(len(chain) - 3, -1, -1):         # frames after the next one, the furthest first
-        back = blend_history(later[j][0], *motion.warp_previous(back, motion.turned(chain[j + 1]),
-                                                                 motion.turned(chain[j + 2])), weight)
-    return motion.warp_previous(back, motion.turned(chain[0]), motion.turned(chain[1]))
+# How many frames after frame t the backward filter starts from: frame t + 4 would weigh 0.2 % of frame t's output at
+# weight 0.7, and 3 scores as the whole window to 0.001 dB (docs/sequences.md, "How far back the backward filter
+# starts") at half its warps.
+BACK_REACH = 3
 
 
-def filtered(frames: Iterable[tuple[np.ndarray | None, motion.View | None]], weight: float,
-             ahead: int = 0) -> Iterator[tuple[np.ndarray | None, np.ndarray | None]]:
+def filtered(frames: Iterable[tuple[np.ndarray | None, motion.View | None]], weight: float, ahead: int = 0,
+             reach: int | None = BACK_REACH) -> Iterator[tuple[np.ndarray | None, np.ndarray | None]]:
     """The temporal filter along a sequence: from (a per-frame output, None where it failed; its view) of each
     frame in order, yields (the frame's filtered output, its history's (H, W) validity or None without one), each
     once the ``ahead`` frames after it have come. ``ahead`` 0: the causal filter (module docstring); above 0, a shot
     on disk whole: frame t's history is the mean of the causal filter's output of frame t − 1 and the filter run
-    backwards from frame t + ``ahead`` (``ahead_history``), each warped and clamped (``blend_sides``): the
-    history's share is split between two sides whose lags point opposite ways (docs/sequences.md, "The filter on
-    both sides"). The causal filter's own state stays its own: frame t's causal output is what frame t + 1 reads."""
-    pending: deque = deque()
-    previous = None                     # (the causal filter's output of the frame before, its view)
+    backwards from frame t + min(``reach``, ``ahead``) (None: ``ahead``) to frame t + 1, each warped and clamped
+    (``blend_sides``): the history's share is split between two sides whose lags point opposite ways
+    (docs/sequences.md, "The filter on both sides"). The causal filter's own state stays its own: frame t's
+    causal output is what frame t + 1 reads. Each pair of neighbours is reprojected once (``motion.reproject_view``),
+    however many frames' backward filters pass through it."""
+    reach = ahead if reach is None else min(reach, ahead)
+    pending: deque = deque()            # (index, output, view) of the frames not yet yielded
+    previous = None                     # (index, the causal filter's output, view) of the frame before
+    traced: dict = {}                   # (i, j): where frame i's pixels are in its neighbour j, (xy, valid)
+
+    def warp(image, i, view, j, other):
+        """``image`` of frame j brought into frame i (j = i − 1, or i + 1 along the motion's to-next half)."""
+        if (i, j) not in traced:
+            traced[i, j] = motion.reproject_view(*((view, other) if j < i else map(motion.turned, (view, other))))
+        return motion.warp_previous(image, view, other, traced[i, j])
+
+    def backward(i, view):
+        """The backward filter over the frames after frame i that it reaches, brought into frame i, or None."""
+        chain = [(i, None, view)]
+        for k, z, v in list(pending)[:reach]:
+            if z is None or v is None or not motion.linked(motion.turned(chain[-1][2]), motion.turned(v)):
+                break
+            chain.append((k, z, v))
+        if len(chain) == 1:
+            return None
+        back = chain[-1][1]
+        for (k, z, v), (n, _, after) in zip(chain[-2:0:-1], chain[:1:-1]):   # the furthest first
+            back = blend_history(z, *warp(back, k, v, n, after), weight)
+        return warp(back, i, view, chain[1][0], chain[1][2])
 
     def finish():
         nonlocal previous
-        y, view = pending.popleft()
+        i, y, view = pending.popleft()
+        for key in [key for key in traced if max(key) <= i]:
+            del traced[key]
         if y is None:
             previous = None
             return None, None
         sides = []
-        if previous is not None and view is not None and previous[1] is not None \
-                and motion.linked(view, previous[1]):
-            sides.append(motion.warp_previous(previous[0], view, previous[1]))
+        if previous is not None and view is not None and previous[2] is not None \
+                and motion.linked(view, previous[2]):
+            sides.append(warp(previous[1], i, view, previous[0], previous[2]))
         causal = blend_sides(y, sides, weight)
-        later = []
-        for z, v in pending:
-            if z is None:
-                break
-            later.append((z, v))
-        back = ahead_history(view, later, weight) if later and view is not None else None
+        back = backward(i, view) if reach and view is not None else None
         out = causal if back is None else blend_sides(y, [*sides, back], weight)
-        previous = causal, view
+        previous = i, causal, view
         valid = [v for _, v in sides] + ([] if back is None else [back[1]])
         return out, (np.logical_or.reduce(valid) if valid else None)
 
-    for frame in frames:
-        pending.append(frame)
+    for i, (y, view) in enumerate(frames):
+        pending.append((i, y, view))
         if len(pending) > ahead:
             yield finish()
     while pending:

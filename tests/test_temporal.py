@@ -122,6 +122,12 @@ def test_the_filter_along_a_still_sequence_is_the_exponential_average_causal_or_
         np.testing.assert_allclose(both[t][0][inner] - ramp[inner], expected, rtol=0, atol=1e-5)
         assert both[t][1].all()                                          # every pixel had a history
     assert causal[0] is not None and np.array_equal(causal[0], frames[0][0])
+    # the backward filter from one frame after: frame t + 1's output alone is the history of that side
+    near = list(filtered(frames, w, ahead=4, reach=1))
+    for t in range(len(offsets) - 1):
+        sides = ([f[t - 1]] if t > 0 else []) + [offsets[t + 1]]
+        np.testing.assert_allclose(near[t][0][inner] - ramp[inner], w * offsets[t] + (1 - w) * np.mean(sides),
+                                   rtol=0, atol=1e-5)
 
 
 def test_the_filter_yields_a_failed_frame_as_none_and_restarts_after_it():

@@ -14,6 +14,10 @@ the base alone), after one warm-up call, best of ``repeats``:
 - ``oidn_prefilter`` / ``oidn``: OIDN's own engine (pyoidn, on the device OIDN picks) in its final-frame mode
   (the same large network with prefiltered aux) and as usually called, when pyoidn is installed.
 
+- ``averaging_s`` / ``filter_s`` / ``filter_both_s`` (up to 1080p): what ``denoise --sequence`` adds a frame
+  (``_time_sequence``): the noisy input averaged over the frames around it, then the temporal filter, causal or
+  on both sides.
+
 ``ours / oidn_prefilter`` is the price of the Control Module against what a user has. The networks'
 arithmetic per megapixel (``network_gflops``) is the floor of ``ours / base`` on any device and engine:
 the base's encoder once, then per sampler step its decoder and the Control Module, plus the base's own
@@ -36,6 +40,7 @@ from .model import find_run
 from .sampler import sample
 
 CPU_SIZES = "256x256,1920x1080"
+SEQUENCE_MAX_PIXELS = 1920 * 1080      # the sequence path's numpy work is timed up to 1080p
 GPU_SIZES = "256x256,1920x1080,3840x2160"
 
 
@@ -97,6 +102,8 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
         row = {"size": f"{w}x{h}", "megapixels": round(h * w / 1e6, 3)}
         _time_denoiser(den, m, steps, buf, timed, row)
         _time_networks(den, m, steps, h, w, timed, row)
+        if h * w <= SEQUENCE_MAX_PIXELS:
+            _time_sequence(h, w, buf, row)
         if oidn.available() is None:
             row["oidn_prefilter_s"] = timed(lambda: oidn.denoise(buf, clean_aux=True))
             row["oidn_s"] = timed(lambda: oidn.denoise(buf))
@@ -124,6 +131,30 @@ def _timer(dev, repeats: int):
         call()                          # warm-up: kernels, allocations, autotuning
         return round(best_time(call, n), 4)
     return timed
+
+
+def _time_sequence(h: int, w: int, buf: dict, row: dict, frames: int = 12) -> None:
+    """Add what ``denoise --sequence`` spends a frame besides the denoiser to ``row`` (numpy on the CPU, once each):
+    the input averaged over the 7 frames before and the 7 after (``temporal.InputWindow``: 14 reprojections and
+    reads, the gate), and the filter along ``frames`` frames, causal and on both sides (``temporal.filtered``);
+    a camera sliding sideways over a plane."""
+    from mcdenoise.pipeline import motion, temporal
+
+    def view(k):
+        pose = np.eye(4)
+        pose[0, 3] = 0.002 * k
+        return motion.View(motion.Camera(pose, 40.0, w, h), np.full((h, w), 3.0, np.float32), buf["normal"])
+    views = [view(k) for k in range(-7, 8)]
+    window = temporal.InputWindow(8, gate=2.0, ahead=7)
+    kept = window.keep(buf)
+
+    def average():
+        window.past = [(kept, v) for v in views[6::-1]]
+        window.take(buf, views[7], [(kept, v) for v in views[8:]])
+    row["averaging_s"] = round(best_time(average, 1), 3)
+    outputs = [(buf["color"], views[k % len(views)]) for k in range(frames)]
+    for name, ahead in (("filter_s", 0), ("filter_both_s", 7)):
+        row[name] = round(best_time(lambda: list(temporal.filtered(outputs, 0.7, ahead)), 1) / frames, 3)
 
 
 def _time_denoiser(den, m, steps: int, buf: dict, timed, row: dict) -> None:

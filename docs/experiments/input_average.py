@@ -13,7 +13,8 @@ components (``diffuse/W``); OIDN's final-frame mode on it; each also with the te
 ``oidn_prefilter_temporal``. ``--specular R,...`` adds, for each radius R, the filter whose weight per pixel is ``w + (1 - w) * s`` with
 ``s`` the share of reflected light in the denoiser's input (``specular_share``), labelled +spec:R.
 ``--ahead A,...`` averages the A frames after frame t too (labelled ``/W>A``); ``--two-sided`` adds, for each
-filtered candidate that reads frames after, the filter on both sides (``two_sided``, labelled +filter2).
+filtered candidate that reads frames after, the filter on both sides (``two_sided``, labelled +filter2; with
+``--reach R`` also its backward filter started R frames after, +filter2:R).
 ``--ours CANDIDATE`` adds train/shipped's model on that candidate's input, beside ``ours`` and ``ours_filter``
 (a candidate ending +filter2 with the causal filter beside it too). Prints per method and spp the mean over
 sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean instability (as the sequence page measures
@@ -73,10 +74,10 @@ def filtered(outputs, frames, weight, shares=None):
     return out
 
 
-def two_sided(outputs, frames, weight, reach):
-    """The filter on both sides (``temporal.filtered`` with ``reach`` frames ahead; docs/sequences.md, "The filter on
-    both sides")."""
-    return [y for y, _ in temporal.filtered(zip(outputs, [f.views["input"] for f in frames]), weight, reach)]
+def two_sided(outputs, frames, weight, ahead, reach=None):
+    """The filter on both sides (``temporal.filtered`` with ``ahead`` frames after, the backward filter from ``reach``
+    of them; docs/sequences.md, "The filter on both sides")."""
+    return [y for y, _ in temporal.filtered(zip(outputs, [f.views["input"] for f in frames]), weight, ahead, reach)]
 
 
 def instabilities(outputs, frames) -> list[float]:
@@ -106,6 +107,8 @@ def main() -> int:
                                                   "(comma-separated; each filtered candidate once more per radius)")
     ap.add_argument("--two-sided", action="store_true",
                     help="each filtered candidate that reads frames after also with the filter on both sides")
+    ap.add_argument("--reach", type=int, help="--two-sided: also with the backward filter from this many frames after "
+                                              "(labelled +filter2:R)")
     ap.add_argument("--ours", metavar="CANDIDATE",
                     help="also train/shipped's model on that candidate's input (e.g. colour/4+filter), against "
                          "ours and ours_filter")
@@ -125,7 +128,8 @@ def main() -> int:
     spec_names = [f"{base}+spec:{r}" for base in ["filter", *(label(*c) for c in candidates if c[3] is not None)]
                   for r in radii]
     both = [label(*c) for c in candidates if c[4] is not None and c[3]] if args.two_sided else []
-    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates), *(f"{n}2" for n in both), *spec_names]
+    names = ["oidn_prefilter", "filter", *(label(*c) for c in candidates), *(f"{n}2" for n in both),
+             *(f"{n}2:{args.reach}" for n in both if args.reach is not None), *spec_names]
     if args.ours:
         from mcdenoise.train.infer import load_denoiser
         model = load_denoiser("train/shipped")
@@ -153,6 +157,9 @@ def main() -> int:
                     runs[label(kind, w, g, a, weight)] = filtered(unfiltered, frames, weight)
                     if label(kind, w, g, a, weight) in both:
                         runs[label(kind, w, g, a, weight) + "2"] = two_sided(unfiltered, frames, weight, a)
+                        if args.reach is not None:
+                            runs[label(kind, w, g, a, weight) + f"2:{args.reach}"] = two_sided(
+                                unfiltered, frames, weight, a, args.reach)
                     for r in radii:
                         runs[f"{label(kind, w, g, a, weight)}+spec:{r}"] = filtered(
                             unfiltered, frames, weight, [specular_share(b, r) for b in inputs[kind, w, g, a]])
