@@ -162,16 +162,15 @@ def filtered(frames: Iterable[tuple[np.ndarray | None, motion.View | None]], wei
         if y is None:
             previous = None
             return None, None
-        sides = []
-        if previous is not None and view is not None and previous[2] is not None \
-                and motion.linked(view, previous[2]):
-            sides.append(warp(previous[1], i, view, previous[0], previous[2]))
+        linked = previous is not None and view is not None and previous[2] is not None \
+            and motion.linked(view, previous[2])
+        sides = [warp(previous[1], i, view, previous[0], previous[2])] if linked else []
         causal = blend_sides(y, sides, weight)
         back = backward(i, view) if reach and view is not None else None
-        out = causal if back is None else blend_sides(y, [*sides, back], weight)
+        sides += [] if back is None else [back]
         previous = i, causal, view
-        valid = [v for _, v in sides] + ([] if back is None else [back[1]])
-        return out, (np.logical_or.reduce(valid) if valid else None)
+        return blend_sides(y, sides, weight) if back is not None else causal, \
+            np.logical_or.reduce([v for _, v in sides]) if sides else None
 
     for i, (y, view) in enumerate(frames):
         pending.append((i, y, view))
@@ -254,8 +253,7 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
     for frame, (xy, valid) in zip(past, traced):
         if not all(k in frame for k in keys):
             break                       # a frame without those layers ends the window
-        read = {k: motion.warp(frame[k], xy, valid, kernel=kernel).astype(np.float64) for k in (*keys, "albedo")
-                if k in keys or albedo}
+        read = _warp_together(frame, [k for k in (*keys, "albedo") if k in keys or albedo], xy, valid, kernel)
         if albedo:
             lit = read["albedo"] > ALBEDO_FLOOR
             valid = valid & (lit == mine_lit).all(axis=-1)      # a channel black in one frame only: another surface
@@ -272,6 +270,17 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
         a = np.where(mine_lit, buffers["albedo"].astype(np.float64), 1.0)
         mean = {k: v * (a * a if k.endswith(".variance") else a) for k, v in mean.items()}
     return {k: v.astype(np.float32) for k, v in mean.items()}, count
+
+
+def _warp_together(frame: dict[str, np.ndarray], names: list[str], xy: np.ndarray, valid: np.ndarray,
+                   kernel: str) -> dict[str, np.ndarray]:
+    """``motion.warp`` of each of ``frame``'s ``names`` (float64), read in one call on their channels side by side:
+    the same values (each channel is read on its own) for a quarter of the indexing."""
+    images = [frame[n] if frame[n].ndim == 3 else frame[n][..., None] for n in names]
+    block = motion.warp(np.concatenate(images, axis=-1), xy, valid, kernel=kernel).astype(np.float64)
+    ends = np.cumsum([im.shape[2] for im in images])
+    return {n: block[..., end - im.shape[2]:end].reshape(frame[n].shape)
+            for n, im, end in zip(names, images, ends)}
 
 
 def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], lit: np.ndarray | None) -> dict:
