@@ -140,7 +140,8 @@ def test_bench_denoise_times_ours_its_base_and_oidn(setup, tmp_path):
     assert [r["size"] for r in result["rows"]] == ["32x32", "48x32"] and result["precision"] == "fp32"
     for r in result["rows"]:
         assert all(r[k] > 0 for k in ("ours_1step_s", "ours_3step_s", "base_s", "ours_network_s", "base_network_s",
-                                      "ours_network_nhwc_s", "base_network_nhwc_s", "oidn_prefilter_s", "oidn_s"))
+                                      "ours_network_nhwc_s", "base_network_nhwc_s", "oidn_prefilter_s", "oidn_s",
+                                      "averaging_s", "filter_s", "filter_both_s"))
         assert r["ours_over_oidn_prefilter"] == round(r["ours_1step_s"] / r["oidn_prefilter_s"], 2)
     g = result["gflop_per_megapixel"]
     assert g["ours"] > g["base"] > 0

@@ -85,8 +85,9 @@ def network_gflops(model, formulation, steps: int, side: int = 64) -> dict:
 
 
 def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", precision: str = "auto",
-            repeats: int = 2) -> dict:
-    """The timings of the module docstring for the model folder ``model``; a dict with ``rows``."""
+            repeats: int = 2, sequence: bool = False) -> dict:
+    """The timings of the module docstring for the model folder ``model``; a dict with ``rows``. ``sequence``: the
+    sequence path's too (CPU numpy, minutes at 1080p: ``bench-denoise`` times it, a GPU lease's recipe does not)."""
     import torch
 
     from mcdenoise.train import oidn
@@ -102,7 +103,7 @@ def measure(model: Path, sizes: list[tuple[int, int]], device: str = "auto", pre
         row = {"size": f"{w}x{h}", "megapixels": round(h * w / 1e6, 3)}
         _time_denoiser(den, m, steps, buf, timed, row)
         _time_networks(den, m, steps, h, w, timed, row)
-        if h * w <= SEQUENCE_MAX_PIXELS:
+        if sequence and h * w <= SEQUENCE_MAX_PIXELS:
             _time_sequence(h, w, buf, row)
         if oidn.available() is None:
             row["oidn_prefilter_s"] = timed(lambda: oidn.denoise(buf, clean_aux=True))
@@ -151,10 +152,10 @@ def _time_sequence(h: int, w: int, buf: dict, row: dict, frames: int = 12) -> No
     def average():
         window.past = [(kept, v) for v in views[6::-1]]
         window.take(buf, views[7], [(kept, v) for v in views[8:]])
-    row["averaging_s"] = round(best_time(average, 1), 3)
+    row["averaging_s"] = round(best_time(average, 1), 4)
     outputs = [(buf["color"], views[k % len(views)]) for k in range(frames)]
     for name, ahead in (("filter_s", 0), ("filter_both_s", 7)):
-        row[name] = round(best_time(lambda: list(temporal.filtered(outputs, 0.7, ahead)), 1) / frames, 3)
+        row[name] = round(best_time(lambda: list(temporal.filtered(outputs, 0.7, ahead)), 1) / frames, 4)
 
 
 def _time_denoiser(den, m, steps: int, buf: dict, timed, row: dict) -> None:
@@ -214,7 +215,7 @@ def run(cfg: Config, spp: int = 4, sizes: str | None = None, device: str | None 
     from mcdenoise.pipeline.config import pick_device
     dev = pick_device(device or cfg.diffusion.device)
     result = measure(find_run(cfg, spp), parse_sizes(sizes or (GPU_SIZES if dev.type == "cuda" else CPU_SIZES)),
-                     str(dev), precision, repeats)
+                     str(dev), precision, repeats, sequence=True)
     md = markdown(result)
     Path(out).mkdir(parents=True, exist_ok=True)
     atomic_write_json(Path(out) / "denoise.json", result)
