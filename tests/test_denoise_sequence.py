@@ -114,6 +114,17 @@ def cropped_exr(path, camera, size: tuple[int, int]) -> None:
         f.write(str(path))
 
 
+def test_black_frames_are_written_black_and_said_so(tmp_path):
+    for n in range(2):
+        with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                          {c: np.zeros((6, 8), np.float32) for c in "RGB"}) as f:
+            f.write(str(tmp_path / f"k_{n}.exr"))
+    proc = cli("denoise", "--sequence", tmp_path / "k_#.exr", "--out", tmp_path / "o" / "k_#.exr", "--spp", "4",
+               "--quiet")
+    assert "a black input frame is written black" in proc.stdout and "layers:  alone" not in proc.stdout, proc.stdout
+    assert not np.any(read_layers(tmp_path / "o" / "k_1.exr")["color"])
+
+
 def test_a_display_window_other_than_the_pixels_is_denoised_alone_in_one_line(tmp_path):
     cam = motion.Camera(look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]), 40.0, 32, 24)
     for n in range(2):

@@ -138,7 +138,9 @@ def per_frame_denoiser(cfg: Config, method: str, spp: int, model: Path | None, d
     def run(b, history):
         y = den.denoise(b, int(spp), skip=None, seed=cfg.seed if seed is None else seed, history=history)
         # as denoise --exr says it: what the model had to leave to OIDN
-        if den.last_estimate_only:
+        if den.last_black:
+            lacked.add("a black input frame is written black")
+        elif den.last_estimate_only:
             lacked.add(f"no albedo/normal layers: {den.fallback} alone")
         elif den.last_base_only:
             lacked.add("colour, albedo and normal only (no variance, light components or material layers): "
