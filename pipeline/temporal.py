@@ -85,10 +85,11 @@ def blend_history(current: np.ndarray, history: np.ndarray | None, valid: np.nda
 
 
 def blend_sides(current: np.ndarray, sides: list[tuple[np.ndarray, np.ndarray | None]], weight: float,
-                clamp: bool = True) -> np.ndarray:
+                clamp: bool = True, box: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``blend_history`` with a history from each of ``sides`` ((history, valid): the frame before's, and for a
     shot on disk whole the frame after's): each clamped, then their mean where both are valid and the one valid
-    history where only one is, blended with ``current`` at ``weight``; ``current`` where none is valid."""
+    history where only one is, blended with ``current`` at ``weight``; ``current`` where none is valid. ``box``:
+    ``neighbourhood_range(current)`` when the caller has it already."""
     if (why := weight_problem(weight)) is not None:
         raise ValueError(f"blend weight: {why}")
     current = np.asarray(current, dtype=np.float32)
@@ -98,7 +99,7 @@ def blend_sides(current: np.ndarray, sides: list[tuple[np.ndarray, np.ndarray | 
         if history.shape != current.shape or valid is None or valid.shape != current.shape[:2]:
             raise ValueError(f"history {getattr(history, 'shape', None)} / valid {getattr(valid, 'shape', None)} "
                              f"do not match the frame {current.shape}")
-    lo, hi = neighbourhood_range(current) if clamp else (None, None)
+    lo, hi = (box if box is not None else neighbourhood_range(current)) if clamp else (None, None)
     total, count = np.zeros_like(current), np.zeros(current.shape[:2], np.float32)
     for history, valid in sides:
         past = np.asarray(history, dtype=np.float32)
@@ -165,11 +166,11 @@ def filtered(frames: Iterable[tuple[np.ndarray | None, motion.View | None]], wei
         linked = previous is not None and view is not None and previous[2] is not None \
             and motion.linked(view, previous[2])
         sides = [warp(previous[1], i, view, previous[0], previous[2])] if linked else []
-        causal = blend_sides(y, sides, weight)
+        box = neighbourhood_range(np.asarray(y, np.float32))        # the clamp's range, for both blends
+        causal = blend_sides(y, sides, weight, box=box)
         back = backward(i, view) if reach and view is not None else None
-        sides += [] if back is None else [back]
-        previous = i, causal, view
-        return blend_sides(y, sides, weight) if back is not None else causal, \
+        previous, sides = (i, causal, view), sides + ([] if back is None else [back])
+        return blend_sides(y, sides, weight, box=box) if back is not None else causal, \
             np.logical_or.reduce([v for _, v in sides]) if sides else None
 
     for i, (y, view) in enumerate(frames):
