@@ -100,7 +100,9 @@ NDC: (0, 0) the upper left and (1, 1) the lower right corner of the image, so pi
 """
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -211,25 +213,45 @@ def unproject(depth: np.ndarray, cam: Camera, xy: np.ndarray | None = None) -> n
 
 # ---- bilinear footprints ---------------------------------------------------------------------
 
-def _footprint(xy: np.ndarray, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The four bilinear taps (row, column, weight) around each of ``xy`` [N, 2] (finite), clamped at the
-    border; weights below TAP_EPS set to 0 and the rest renormalised to sum 1."""
+def _footprint(xy: np.ndarray, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The four bilinear taps (pixel: row * width + column, weight) around each of ``xy`` [N, 2] (finite), clamped
+    at the border; weights below TAP_EPS set to 0 and the rest renormalised to sum 1."""
     u = np.clip(xy[:, 0] - 0.5, 0, width - 1)
     v = np.clip(xy[:, 1] - 0.5, 0, height - 1)
     i0 = np.minimum(np.floor(u).astype(np.int64), max(width - 2, 0))
     j0 = np.minimum(np.floor(v).astype(np.int64), max(height - 2, 0))
     fx, fy = u - i0, v - j0
     i1, j1 = np.minimum(i0 + 1, width - 1), np.minimum(j0 + 1, height - 1)
-    taps = [(j0, i0, (1 - fx) * (1 - fy)), (j0, i1, fx * (1 - fy)), (j1, i0, (1 - fx) * fy), (j1, i1, fx * fy)]
-    weights = np.stack([w for _, _, w in taps])
+    r0, r1 = j0 * width, j1 * width
+    taps = [(r0 + i0, (1 - fx) * (1 - fy)), (r0 + i1, fx * (1 - fy)), (r1 + i0, (1 - fx) * fy), (r1 + i1, fx * fy)]
+    weights = np.stack([w for _, w in taps])
     weights[weights < TAP_EPS] = 0.0
     weights /= weights.sum(axis=0, keepdims=True)
-    return [(j, i, w) for (j, i, _), w in zip(taps, weights)]
+    return [(flat, w) for (flat, _), w in zip(taps, weights)]
+
+
+def every_channel(mask: np.ndarray) -> np.ndarray:
+    """``mask`` [..., C] true in all C channels: [...]; ``mask.all(axis=-1)``, several times faster for a few
+    channels (numpy reduces a short last axis slowly)."""
+    return functools.reduce(operator.and_, (mask[..., c] for c in range(mask.shape[-1])))
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sum over the last axis of ``a * b`` [N, C], the channels added in order as ``(a * b).sum(axis=-1)`` does."""
+    return functools.reduce(operator.add, (a[:, c] * b[:, c] for c in range(a.shape[-1])))
+
+
+def _pixels(image: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """The pixels ``flat`` (row * width + column) of ``image`` [H, W, C]: [N, C] in its dtype. One index into
+    the flattened image is several times faster than numpy's two-array indexing, same values."""
+    return image.reshape(-1, image.shape[2]).take(flat, axis=0)
 
 
 def _read(image: np.ndarray, taps) -> np.ndarray:
-    """Bilinear read of ``image`` [H, W, C] over ``taps``: [N, C] float64."""
-    return sum(w[:, None] * image[j, i].astype(np.float64) for j, i, w in taps)
+    """Bilinear read of ``image`` [H, W, C] over ``taps``: [N, C] float64 (the product with the float64 weights
+    widens a float32 image's pixels)."""
+    pixels = image.reshape(-1, image.shape[2])            # once: a strided image is copied by reshape
+    return sum(w[:, None] * pixels.take(flat, axis=0) for flat, w in taps)
 
 
 def _channels(a: np.ndarray | None) -> np.ndarray | None:
@@ -243,15 +265,16 @@ def _channels(a: np.ndarray | None) -> np.ndarray | None:
 
 def reproject(depth_t: np.ndarray, cam_t: Camera, cam_prev: Camera, depth_prev: np.ndarray | None = None,
               normal_t: np.ndarray | None = None, normal_prev: np.ndarray | None = None,
-              depth_tolerance: float = DEPTH_TOLERANCE, normal_threshold: float = NORMAL_THRESHOLD
-              ) -> tuple[np.ndarray, np.ndarray]:
+              depth_tolerance: float = DEPTH_TOLERANCE, normal_threshold: float = NORMAL_THRESHOLD,
+              world_t: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where each pixel of frame t was in frame t-1: (xy_prev [H, W, 2] float32 pixel coordinates of t-1,
     valid [H, W] bool). xy_prev is NaN on the background of t; its value elsewhere is where the point
-    projects even when invalid. The tests that make a pixel invalid: module docstring."""
+    projects even when invalid. The tests that make a pixel invalid: module docstring. ``world_t``:
+    ``unproject(depth_t, cam_t)`` where the caller has it (frame t followed into several frames)."""
     z_t = _channels(depth_t)[..., 0].astype(np.float64)
-    world = unproject(z_t, cam_t)
+    world = unproject(z_t, cam_t) if world_t is None else world_t
     xy, z = project(world, cam_prev)
-    valid = (z_t > 0) & (z > cam_prev.near) & np.isfinite(xy).all(axis=-1)
+    valid = (z_t > 0) & (z > cam_prev.near) & every_channel(np.isfinite(xy))
     valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= cam_prev.width) & (xy[..., 1] >= 0) & (xy[..., 1] <= cam_prev.height)
     idx = np.nonzero(valid)
     if idx[0].size and (depth_prev is not None or normal_prev is not None):
@@ -274,10 +297,10 @@ def _normals_agree(normal_t: np.ndarray, normal_prev: np.ndarray, idx, taps, thr
     """For the pixels ``idx`` of frame t: whether frame t-1's normal, read over ``taps`` and normalised, has a dot
     product of at least ``threshold`` with frame t's."""
     n_prev = _read(np.asarray(normal_prev), taps)
-    n_t = np.asarray(normal_t, dtype=np.float64)[idx]
-    norms = np.linalg.norm(n_prev, axis=-1) * np.linalg.norm(n_t, axis=-1)
+    n_t = np.asarray(normal_t)[idx].astype(np.float64)
+    norms = np.sqrt(_dot(n_prev, n_prev)) * np.sqrt(_dot(n_t, n_t))
     with np.errstate(divide="ignore", invalid="ignore"):
-        cos = np.where(norms > 0, (n_prev * n_t).sum(axis=-1) / norms, -1.0)
+        cos = np.where(norms > 0, _dot(n_prev, n_t) / norms, -1.0)
     return cos >= threshold
 
 
@@ -296,7 +319,7 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
     h, w = m_prev.shape[:2]
     centres = pixel_centres(m_t.shape[1], m_t.shape[0])
     xy = centres + m_t[..., :2]
-    valid = np.isfinite(xy).all(axis=-1)
+    valid = every_channel(np.isfinite(xy))
     xy[~valid] = np.nan
     with np.errstate(invalid="ignore"):
         valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= w) & (xy[..., 1] >= 0) & (xy[..., 1] <= h)
@@ -305,7 +328,8 @@ def flow(motion_t: np.ndarray, motion_prev: np.ndarray, tolerance: float = FLOW_
         taps = _footprint(xy[idx], w, h)
         with np.errstate(invalid="ignore", over="ignore"):      # a non-finite vector fails the test
             back = xy[idx] + _read(m_prev[..., 2:], taps)
-            keep = np.linalg.norm(back - centres[idx], axis=-1) <= tolerance
+            miss = back - centres[idx]
+            keep = np.sqrt(_dot(miss, miss)) <= tolerance
         if depth_t is not None and depth_prev is not None:
             keep &= _depth_agrees(_channels(depth_t)[..., 0][idx], _channels(depth_prev), taps,
                                   FLOW_DEPTH_TOLERANCE if depth_tolerance is None else depth_tolerance)
@@ -318,9 +342,9 @@ def _depth_agrees(z_t: np.ndarray, depth_prev: np.ndarray, taps, tolerance: floa
     with no background tap (module docstring), is within ``tolerance`` of ``z_t`` (above 0): the depth the point
     should have there (``reproject``: predicted by the two cameras; ``flow``: frame t's own)."""
     d_prev = np.asarray(depth_prev, np.float64)
-    background = np.zeros(len(z_t), dtype=bool)
-    for j, i, w in taps:
-        background |= (w > 0) & ~(d_prev[j, i, 0] > 0)
+    background, depths = np.zeros(len(z_t), dtype=bool), d_prev.reshape(-1)
+    for flat, w in taps:
+        background |= (w > 0) & ~(depths.take(flat) > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         seen = _read(np.where(d_prev > 0, 1.0 / d_prev, 0.0), taps)[:, 0]
         return ~background & (z_t > 0) & (np.abs(np.asarray(z_t, np.float64) * seen - 1) <= tolerance)
@@ -348,18 +372,24 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray, kernel:
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
     img = _channels(image_prev)
     valid = np.asarray(valid, dtype=bool)
+    h, w = img.shape[:2]
+    if kernel == "nearest":             # every pixel read (an invalid one at pixel 0), then zeroed: no scatter
+        xy = np.where(valid[..., None], np.asarray(xy_prev, dtype=np.float64), 0.5)
+        if not np.all(np.isfinite(xy)):
+            raise ValueError("xy_prev is not finite on a valid pixel")
+        out = _pixels(img, (_pixel_of(xy[..., 1], h) * w + _pixel_of(xy[..., 0], w)).reshape(-1))
+        out = out.reshape(valid.shape + (img.shape[2],))
+        out[~valid] = 0
+        return out
     out = np.zeros(valid.shape + (img.shape[2],), dtype=img.dtype)
-    idx = np.nonzero(valid)
-    if idx[0].size:
-        xy = np.asarray(xy_prev, dtype=np.float64)[idx]
+    if valid.any():
+        xy = np.asarray(xy_prev)[valid].astype(np.float64)
         if not np.all(np.isfinite(xy)):
             raise ValueError("xy_prev is not finite on a valid pixel")
         if kernel == "bilinear":
-            out[idx] = _read(img, _footprint(xy, img.shape[1], img.shape[0])).astype(img.dtype)
-        elif kernel == "nearest":
-            out[idx] = img[_pixel_of(xy[:, 1], img.shape[0]), _pixel_of(xy[:, 0], img.shape[1])]
+            out[valid] = _read(img, _footprint(xy, w, h)).astype(img.dtype)
         else:
-            out[idx] = np.maximum(_catmull_rom(img, xy), 0.0).astype(img.dtype)
+            out[valid] = np.maximum(_catmull_rom(img, xy), 0.0).astype(img.dtype)
     return out
 
 
@@ -380,11 +410,12 @@ def _catmull_rom(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
         return (f * (-0.5 + f * (1 - 0.5 * f)), 1 + f * f * (-2.5 + 1.5 * f), f * (0.5 + f * (2 - 1.5 * f)),
                 f * f * (-0.5 + 0.5 * f))
     wx, wy = weights(u - i0), weights(v - j0)
+    cols = [np.clip(i0 + dx - 1, 0, w - 1) for dx in range(4)]
     out = np.zeros((xy.shape[0], image.shape[2]))
     for dy in range(4):
-        rows = np.clip(j0 + dy - 1, 0, h - 1)
-        for dx in range(4):
-            out += (wx[dx] * wy[dy])[:, None] * image[rows, np.clip(i0 + dx - 1, 0, w - 1)].astype(np.float64)
+        rows = np.clip(j0 + dy - 1, 0, h - 1) * w
+        for dx in range(4):             # a float32 image is widened to float64 by the product itself
+            out += (wx[dx] * wy[dy])[:, None] * _pixels(image, rows + cols[dx])
     return out
 
 
@@ -413,15 +444,16 @@ def linked(view: View, view_prev: View) -> str | None:
     return None
 
 
-def reproject_view(view: View, view_prev: View) -> tuple[np.ndarray, np.ndarray]:
-    """Where ``view``'s pixels were in ``view_prev``: ``flow`` or ``reproject`` (with both frames' normals), as
-    ``linked`` says; ValueError when the two frames share neither motion vectors nor cameras with depth."""
+def reproject_view(view: View, view_prev: View, world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``view``'s pixels were in ``view_prev``: ``flow`` or ``reproject`` (with both frames' normals, and
+    ``world``, the points ``view`` sees, where the caller has them), as ``linked`` says; ValueError when the two
+    frames share neither motion vectors nor cameras with depth."""
     how = linked(view, view_prev)
     if how == "motion":
         return flow(view.motion, view_prev.motion, depth_t=view.depth, depth_prev=view_prev.depth)
     if how == "camera":
         return reproject(view.depth, view.camera, view_prev.camera, depth_prev=view_prev.depth,
-                         normal_t=view.normal, normal_prev=view_prev.normal)
+                         normal_t=view.normal, normal_prev=view_prev.normal, world_t=world)
     raise ValueError("the two frames share neither motion vectors nor cameras with depth")
 
 
@@ -442,13 +474,14 @@ def trace(view: View, past: list[View], ahead: bool = False) -> list[tuple[np.nd
     if ahead:
         view, past = turned(view), [turned(v) for v in past]
     found: list[tuple[np.ndarray, np.ndarray]] = []
-    newer = view
+    newer, world = view, None
     for older in past:
         how = linked(view, older) if view.motion is None else linked(newer, older)
         if how is None:
             break
-        if how == "camera":
-            found.append(reproject_view(view, older))
+        if how == "camera":                 # the points frame t sees, unprojected once for every frame
+            world = unproject(view.depth, view.camera) if world is None else world
+            found.append(reproject_view(view, older, world))
         elif not found:
             found.append(reproject_view(newer, older))
         else:
@@ -461,7 +494,7 @@ def trace(view: View, past: list[View], ahead: bool = False) -> list[tuple[np.nd
                 offset = np.where(np.isfinite(step_xy), step_xy - pixel_centres(w, h), 0.0)
                 spot = xy[idx]
                 xy[idx] = spot + _read(offset, _footprint(spot, w, h))
-                valid[idx] = step_valid[_pixel_of(spot[:, 1], h), _pixel_of(spot[:, 0], w)]
+                valid[idx] = step_valid.reshape(-1).take(_pixel_of(spot[:, 1], h) * w + _pixel_of(spot[:, 0], w))
                 with np.errstate(invalid="ignore"):
                     valid &= (xy[..., 0] >= 0) & (xy[..., 0] <= w) & (xy[..., 1] >= 0) & (xy[..., 1] <= h)
             xy[~valid] = np.nan

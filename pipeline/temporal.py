@@ -101,16 +101,14 @@ def blend_sides(current: np.ndarray, sides: list[tuple[np.ndarray, np.ndarray | 
                              f"do not match the frame {current.shape}")
     lo, hi = (box if box is not None else neighbourhood_range(current)) if clamp else (None, None)
     total, count = np.zeros_like(current), np.zeros(current.shape[:2], np.float32)
-    for history, valid in sides:
+    for history, valid in sides:           # whole-image operations with where=: no gather and scatter of pixels
         past = np.asarray(history, dtype=np.float32)
         past = np.clip(past, lo, hi) if clamp else past
         keep = valid.astype(bool)
-        total[keep] += past[keep]
+        np.add(total, past, out=total, where=keep[..., None])
         count += keep
-    out = current.copy()
-    keep = count > 0
-    out[keep] = weight * current[keep] + (1.0 - weight) * (total[keep] / count[keep][:, None])
-    return out
+    blended = weight * current + (1.0 - weight) * (total / np.maximum(count, 1)[..., None])
+    return np.where((count > 0)[..., None], blended, current)
 
 
 # How many frames after frame t the backward filter starts from: frame t + 4 would weigh 0.2 % of frame t's output at
@@ -257,14 +255,14 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
         read = _warp_together(frame, [k for k in (*keys, "albedo") if k in keys or albedo], xy, valid, kernel)
         if albedo:
             lit = read["albedo"] > ALBEDO_FLOOR
-            valid = valid & (lit == mine_lit).all(axis=-1)      # a channel black in one frame only: another surface
+            valid = valid & motion.every_channel(lit == mine_lit)   # a channel black in one frame only: another surface
             read = _demodulated(read, read, lit)
         if gated:
             theirs = sum(read[n] for n in names)
             spread = np.sqrt(my_var + sum(read[f"{n}.variance"] for n in names))
-            valid = valid & (np.abs(theirs - mine) <= gate * spread).all(axis=-1)
+            valid = valid & motion.every_channel(np.abs(theirs - mine) <= gate * spread)
         for k in keys:
-            total[k] += read[k] * valid[..., None]
+            np.add(total[k], read[k], out=total[k], where=valid[..., None])
         count += valid
     mean = {k: total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1) for k in keys}
     if albedo:                          # modulated again by frame t's albedo: the texture is this frame's
@@ -276,11 +274,12 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
 def _warp_together(frame: dict[str, np.ndarray], names: list[str], xy: np.ndarray, valid: np.ndarray,
                    kernel: str) -> dict[str, np.ndarray]:
     """``motion.warp`` of each of ``frame``'s ``names`` (float64), read in one call on their channels side by side:
-    the same values (each channel is read on its own) for a quarter of the indexing."""
+    the same values (each channel is read on its own) for a quarter of the indexing. Each comes back contiguous:
+    the arithmetic on it runs twice as fast as on a slice of the block."""
     images = [frame[n] if frame[n].ndim == 3 else frame[n][..., None] for n in names]
-    block = motion.warp(np.concatenate(images, axis=-1), xy, valid, kernel=kernel).astype(np.float64)
+    block = motion.warp(np.concatenate(images, axis=-1), xy, valid, kernel=kernel)
     ends = np.cumsum([im.shape[2] for im in images])
-    return {n: block[..., end - im.shape[2]:end].reshape(frame[n].shape)
+    return {n: np.ascontiguousarray(block[..., end - im.shape[2]:end], dtype=np.float64).reshape(frame[n].shape)
             for n, im, end in zip(names, images, ends)}
 
 

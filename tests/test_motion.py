@@ -169,6 +169,59 @@ def test_warp_is_bilinear_and_clamped_at_the_border():
     np.testing.assert_allclose(out[0, :, 0], [5 * 1.75 + 1.25, 0.0, 5 * 3 + 4])
 
 
+def test_reads_of_a_wide_image_equal_numpy_row_column_indexing():
+    # The reads index the flattened image (row * width + column): on an image wider than tall, with spots all over
+    # it, the border and past it, every kernel gives what indexing rows and columns apart gives, to the bit.
+    rng = np.random.default_rng(9)
+    image = rng.random((5, 9, 3)).astype(np.float32)
+    xy = rng.uniform(-1.0, 10.0, (4, 6, 2)) * [1.0, 0.6]
+    valid = rng.random((4, 6)) < 0.8
+    xy[~valid] = np.nan                                      # invalid spots may be anything, NaN included
+    h, w = image.shape[:2]
+    pts = xy[valid]
+    col = np.clip(np.floor(pts[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.floor(pts[:, 1]).astype(int), 0, h - 1)
+    out = warp(image, xy, valid, kernel="nearest")
+    np.testing.assert_array_equal(out[valid], image[row, col])
+    np.testing.assert_array_equal(out[~valid], 0)
+    u, v = np.clip(pts[:, 0] - 0.5, 0, w - 1), np.clip(pts[:, 1] - 0.5, 0, h - 1)
+    i0, j0 = np.minimum(np.floor(u).astype(int), w - 2), np.minimum(np.floor(v).astype(int), h - 2)
+    fx, fy = (u - i0)[:, None], (v - j0)[:, None]
+    px = image.astype(np.float64)
+    expected = ((1 - fx) * (1 - fy) * px[j0, i0] + fx * (1 - fy) * px[j0, i0 + 1] + (1 - fx) * fy * px[j0 + 1, i0]
+                + fx * fy * px[j0 + 1, i0 + 1])
+    np.testing.assert_allclose(warp(image, xy, valid)[valid], expected, rtol=1e-6, atol=1e-7)
+    cr = warp(image, xy, valid, kernel="catmull_rom")[valid]
+    for k, spot in enumerate(pts):
+        i, j = math.floor(spot[0] - 0.5), math.floor(spot[1] - 0.5)
+        wx, wy = (_catmull_rom_weights(spot[0] - 0.5 - i), _catmull_rom_weights(spot[1] - 0.5 - j))
+        ref = sum(wx[a] * wy[b] * px[min(max(j + b - 1, 0), h - 1), min(max(i + a - 1, 0), w - 1)]
+                  for a in range(4) for b in range(4))
+        np.testing.assert_allclose(cr[k], np.maximum(ref, 0), rtol=1e-6, atol=1e-7)
+    xy[valid.nonzero()[0][0], valid.nonzero()[1][0]] = np.nan
+    for kernel in motion.KERNELS:
+        with pytest.raises(ValueError, match="not finite on a valid pixel"):
+            warp(image, xy, valid, kernel=kernel)
+
+
+def _catmull_rom_weights(f: float) -> list[float]:
+    """The Catmull-Rom weights of offsets -1..2 at fraction f, from the kernel's definition (|x| < 1:
+    1.5|x|^3 - 2.5|x|^2 + 1; 1 <= |x| < 2: -0.5|x|^3 + 2.5|x|^2 - 4|x| + 2)."""
+    def k(x):
+        x = abs(x)
+        return 1.5 * x**3 - 2.5 * x**2 + 1 if x < 1 else (-0.5 * x**3 + 2.5 * x**2 - 4 * x + 2 if x < 2 else 0.0)
+    return [k(f + 1), k(f), k(f - 1), k(f - 2)]
+
+
+def test_every_channel_and_dot_are_numpys_reductions():
+    rng = np.random.default_rng(3)
+    mask = rng.random((6, 7, 3)) < 0.9
+    np.testing.assert_array_equal(motion.every_channel(mask), mask.all(axis=-1))
+    np.testing.assert_array_equal(motion.every_channel(mask[..., :2]), mask[..., :2].all(axis=-1))
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    np.testing.assert_array_equal(motion._dot(a, b), (a * b).sum(axis=-1))
+
+
 def _raw_catmull_rom(image, xy) -> float:
     return float(motion._catmull_rom(image, np.asarray(xy, float)[None])[0, 0])
 
