@@ -254,14 +254,14 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
             break                       # a frame without those layers ends the window
         read = _warp_together(frame, [k for k in (*keys, "albedo") if k in keys or albedo], xy, valid, kernel)
         if albedo:
-            lit = read["albedo"] > ALBEDO_FLOOR
+            lit = read["albedo"].astype(np.float64) > ALBEDO_FLOOR      # as frame t's: compared in float64
             valid = valid & motion.every_channel(lit == mine_lit)   # a channel black in one frame only: another surface
             read = _demodulated(read, read, lit)
         if gated:
-            theirs = sum(read[n] for n in names)
-            spread = np.sqrt(my_var + sum(read[f"{n}.variance"] for n in names))
+            theirs = _sum64([read[n] for n in names])
+            spread = np.sqrt(my_var + _sum64([read[f"{n}.variance"] for n in names]))
             valid = valid & motion.every_channel(np.abs(theirs - mine) <= gate * spread)
-        for k in keys:
+        for k in keys:                  # a float32 read is widened by the addition itself
             np.add(total[k], read[k], out=total[k], where=valid[..., None])
         count += valid
     mean = {k: total[k] / count[..., None] ** (2 if k.endswith(".variance") else 1) for k in keys}
@@ -273,14 +273,23 @@ def _average_group(buffers, past, traced, names, kernel, gate, albedo=False) -> 
 
 def _warp_together(frame: dict[str, np.ndarray], names: list[str], xy: np.ndarray, valid: np.ndarray,
                    kernel: str) -> dict[str, np.ndarray]:
-    """``motion.warp`` of each of ``frame``'s ``names`` (float64), read in one call on their channels side by side:
-    the same values (each channel is read on its own) for a quarter of the indexing. Each comes back contiguous:
-    the arithmetic on it runs twice as fast as on a slice of the block."""
+    """``motion.warp`` of each of ``frame``'s ``names``, read in one call on their channels side by side: the same
+    values (each channel is read on its own) for a quarter of the indexing. Each comes back contiguous (the
+    arithmetic on it runs twice as fast as on a slice of the block), in the frame's dtype: the float64 sums widen it
+    as they add, without a float64 copy of every layer."""
     images = [frame[n] if frame[n].ndim == 3 else frame[n][..., None] for n in names]
     block = motion.warp(np.concatenate(images, axis=-1), xy, valid, kernel=kernel)
     ends = np.cumsum([im.shape[2] for im in images])
-    return {n: np.ascontiguousarray(block[..., end - im.shape[2]:end], dtype=np.float64).reshape(frame[n].shape)
+    return {n: np.ascontiguousarray(block[..., end - im.shape[2]:end]).reshape(frame[n].shape)
             for n, im, end in zip(names, images, ends)}
+
+
+def _sum64(images: list[np.ndarray]) -> np.ndarray:
+    """The sum of ``images`` in float64, each widened as it is added (a new array)."""
+    out = images[0].astype(np.float64)
+    for image in images[1:]:
+        out += image
+    return out
 
 
 def _demodulated(values: dict[str, np.ndarray], frame: dict[str, np.ndarray], lit: np.ndarray | None) -> dict:

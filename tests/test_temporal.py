@@ -336,6 +336,17 @@ def test_irradiance_average_keeps_this_frames_texture_and_averages_the_light_und
     np.testing.assert_allclose(out["color"], beauty_from_components(out), rtol=1e-5)
 
 
+def test_an_albedo_at_the_floor_is_lit_alike_in_every_frame():
+    """A float32 albedo of exactly float32(ALBEDO_FLOOR) lies above the float64 floor: frame t's and the past
+    frame's are compared with the floor alike (in float64), so the same surface in both counts twice."""
+    rng = np.random.default_rng(8)
+    frames = [frame_buffers(rng) for _ in range(2)]
+    for f in frames:
+        f["albedo"][:, :, 0] = np.float32(1e-3)
+    _, count = average_input(frames[0], frames[1:], [still()], "irradiance")
+    assert (count == 2).all()
+
+
 def test_irradiance_gate_passes_a_texture_the_diffuse_gate_refuses():
     """The same irradiance under another albedo in frame t-1 (no noise between them): the diffuse light differs by
     far more than its standard deviation, so ``diffuse`` gated at 2 refuses every past pixel, while ``irradiance``
