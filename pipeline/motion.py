@@ -241,16 +241,17 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return functools.reduce(operator.add, (a[:, c] * b[:, c] for c in range(a.shape[-1])))
 
 
-def _pixels(image: np.ndarray, flat: np.ndarray) -> np.ndarray:
-    """The pixels ``flat`` (row * width + column) of ``image`` [H, W, C]: [N, C] in its dtype. One index into
-    the flattened image is several times faster than numpy's two-array indexing, same values."""
-    return image.reshape(-1, image.shape[2]).take(flat, axis=0)
+def _flat(image: np.ndarray) -> np.ndarray:
+    """``image`` [H, W, C] as [H * W, C], read with ``.take(row * width + column, axis=0)``: one index into the
+    flattened image is several times faster than numpy's two-array indexing, same values. Made once per image
+    and reused for every tap (a strided image is copied by the reshape)."""
+    return image.reshape(-1, image.shape[2])
 
 
 def _read(image: np.ndarray, taps) -> np.ndarray:
     """Bilinear read of ``image`` [H, W, C] over ``taps``: [N, C] float64 (the product with the float64 weights
     widens a float32 image's pixels)."""
-    pixels = image.reshape(-1, image.shape[2])            # once: a strided image is copied by reshape
+    pixels = _flat(image)
     return sum(w[:, None] * pixels.take(flat, axis=0) for flat, w in taps)
 
 
@@ -377,7 +378,7 @@ def warp(image_prev: np.ndarray, xy_prev: np.ndarray, valid: np.ndarray, kernel:
         xy = np.where(valid[..., None], np.asarray(xy_prev, dtype=np.float64), 0.5)
         if not np.all(np.isfinite(xy)):
             raise ValueError("xy_prev is not finite on a valid pixel")
-        out = _pixels(img, (_pixel_of(xy[..., 1], h) * w + _pixel_of(xy[..., 0], w)).reshape(-1))
+        out = _flat(img).take((_pixel_of(xy[..., 1], h) * w + _pixel_of(xy[..., 0], w)).reshape(-1), axis=0)
         out = out.reshape(valid.shape + (img.shape[2],))
         out[~valid] = 0
         return out
@@ -410,12 +411,12 @@ def _catmull_rom(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
         return (f * (-0.5 + f * (1 - 0.5 * f)), 1 + f * f * (-2.5 + 1.5 * f), f * (0.5 + f * (2 - 1.5 * f)),
                 f * f * (-0.5 + 0.5 * f))
     wx, wy = weights(u - i0), weights(v - j0)
-    cols = [np.clip(i0 + dx - 1, 0, w - 1) for dx in range(4)]
+    cols, pixels = [np.clip(i0 + dx - 1, 0, w - 1) for dx in range(4)], _flat(image)
     out = np.zeros((xy.shape[0], image.shape[2]))
     for dy in range(4):
         rows = np.clip(j0 + dy - 1, 0, h - 1) * w
         for dx in range(4):             # a float32 image is widened to float64 by the product itself
-            out += (wx[dx] * wy[dy])[:, None] * _pixels(image, rows + cols[dx])
+            out += (wx[dx] * wy[dy])[:, None] * pixels.take(rows + cols[dx], axis=0)
     return out
 
 
