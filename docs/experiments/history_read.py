@@ -1,0 +1,125 @@
+"""The temporal filter's history read and blended on tonemapped values, against radiance as it ships
+(docs/sequences.md, "The history's read around small bright lights", has the rule this measures for).
+
+    python docs/experiments/history_read.py --store data/sequence --split val
+    python docs/experiments/history_read.py --store data/val_seq --split external
+
+Per sequence of the split and per spp (the first noise realization): ``oidn_prefilter_temporal`` as
+``make eval`` runs it (the diffuse light averaged over 8 frames and 7 after, gated at 2, OIDN's final-frame mode
+on it, the filter on both sides at weight 0.7), with the history
+
+- ``radiance``: read with Catmull-Rom on the radiance and blended on it (``motion.warp_previous``, what ships);
+- ``read``: read with Catmull-Rom on T(x) = x / (1 + |x|) per channel, brought back with T^-1(u) = u / (1 - |u|),
+  blended on the radiance;
+- ``read+blend``: read as ``read``, then clamped and blended on T, brought back with T^-1.
+
+Prints per candidate and spp the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean
+instability (``input_average.instabilities``) and the sequences below oidn_prefilter, then which move gains and
+loses most.
+"""
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+from history_clamp import arguments, oidn_sequences
+from input_average import averaged, instabilities, two_sided
+
+from mcdenoise.evaluate.scoring import score
+from mcdenoise.pipeline import motion, temporal
+from mcdenoise.pipeline.store import Store
+from mcdenoise.train import oidn
+
+
+def tonemap(x: np.ndarray) -> np.ndarray:
+    """T(x) = x / (1 + |x|) per channel, in float64 (odd, increasing, onto (-1, 1))."""
+    x = np.asarray(x, np.float64)
+    return x / (1.0 + np.abs(x))
+
+
+def untonemap(u: np.ndarray) -> np.ndarray:
+    """T^-1(u) = u / (1 - |u|); |u| is kept below 1 - 1e-12 so that a read overshooting 1 stays finite."""
+    u = np.clip(np.asarray(u, np.float64), -1.0 + 1e-12, 1.0 - 1e-12)
+    return u / (1.0 - np.abs(u))
+
+
+def warp_previous_tonemapped(image_prev, view, view_prev, traced=None):
+    """``motion.warp_previous`` with the Catmull-Rom read on T(image), brought back to radiance (0 where invalid,
+    as the radiance read)."""
+    xy, valid = motion.reproject_view(view, view_prev) if traced is None else traced
+    read = motion.warp(tonemap(image_prev), xy, valid, kernel="catmull_rom")
+    top = float(np.max(tonemap(image_prev), initial=0.0))          # no value above the image's own brightest
+    return untonemap(np.minimum(read, top)).astype(np.float32), valid
+
+
+BLEND_SIDES = temporal.blend_sides
+
+
+def blend_sides_tonemapped(current, sides, weight, clamp=True, box=None):
+    """``temporal.blend_sides`` on T of every image (the clamp's box included), brought back with T^-1."""
+    box = None if box is None else (tonemap(box[0]), tonemap(box[1]))
+    out = BLEND_SIDES(tonemap(current).astype(np.float32), [(tonemap(h).astype(np.float32), v) for h, v in sides],
+                      weight, clamp, None if box is None else tuple(b.astype(np.float32) for b in box))
+    return untonemap(out).astype(np.float32)
+
+
+@contextlib.contextmanager
+def history(candidate: str):
+    """The filter's history read (and blended) as ``candidate`` says, inside the block."""
+    saved = motion.warp_previous, temporal.blend_sides
+    if candidate in ("read", "read+blend"):
+        motion.warp_previous = warp_previous_tonemapped
+    if candidate == "read+blend":
+        temporal.blend_sides = blend_sides_tonemapped
+    try:
+        yield
+    finally:
+        motion.warp_previous, temporal.blend_sides = saved
+
+
+CANDIDATES = ("radiance", "read", "read+blend")
+
+
+def main() -> int:
+    ap = arguments(__doc__)
+    ap.add_argument("--ahead", type=int, default=7)
+    args = ap.parse_args()
+    store = Store(args.store)
+    spps = [int(s) for s in args.spp.split(",")]
+    gain = {c: {s: {} for s in spps} for c in CANDIDATES}
+    unsteady = {c: {s: {} for s in spps} for c in CANDIDATES}
+    for spp in spps:
+        for name, frames, base in oidn_sequences(store, args.split, spp):
+            inputs = [averaged(frames, t, 8, "diffuse", "nearest", 2.0, args.ahead) for t in range(len(frames))]
+            outputs = [oidn.denoise({k: b[k] for k in ("color", "albedo", "normal")}, aux=True, clean_aux=True)
+                       for b in inputs]
+            ref = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(base, frames)]
+            for c in CANDIDATES:
+                with history(c):
+                    out = two_sided(outputs, frames, args.weight, args.ahead, temporal.BACK_REACH)
+                psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
+                gain[c][spp][name] = float(np.mean(np.subtract(psnr[1:], ref[1:])))
+                unsteady[c][spp][name] = float(np.nanmean(instabilities(out, frames)))
+            print(f"{spp} spp {name}: " + ", ".join(f"{c} {gain[c][spp][name]:+.3f}" for c in CANDIDATES), flush=True)
+    print(f"\n{args.store} {args.split}: {len(gain['radiance'][spps[0]])} sequences, filter weight {args.weight:g} on "
+          f"both sides, t >= 1, PSNR gain over oidn_prefilter and instability (means over sequences)")
+    print("| history | " + " | ".join(f"gain {s} spp" for s in spps) + " | mean gain | "
+          + " | ".join(f"instability {s} spp" for s in spps) + " | mean | sequences below, "
+          + " / ".join(map(str, spps)) + " spp |")
+    print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- |")
+    for c in CANDIDATES:
+        per = [float(np.mean(list(gain[c][s].values()))) for s in spps]
+        inst = [float(np.mean(list(unsteady[c][s].values()))) for s in spps]
+        below = [sum(v < 0 for v in gain[c][s].values()) for s in spps]
+        print(f"| {c} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
+              + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " |")
+    for c in CANDIDATES[1:]:
+        diff = {(n, s): gain[c][s][n] - gain["radiance"][s][n] for s in spps for n in gain[c][s]}
+        order = sorted(diff, key=diff.get)
+        print(f"{c} - radiance per sequence: lowest " + ", ".join(f"{n} {s} spp {diff[n, s]:+.3f}" for n, s in order[:3])
+              + "; highest " + ", ".join(f"{n} {s} spp {diff[n, s]:+.3f}" for n, s in order[-3:]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
