@@ -15,7 +15,8 @@ on it, the filter on both sides at weight 0.7), with the history
 
 Prints per candidate and spp the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean
 instability (``input_average.instabilities``) and the sequences below oidn_prefilter, then which move gains and
-loses most.
+loses most; beside, not chosen on: HDR-FLIP (mean over t >= 1 and sequences) and how bright the lights come out
+(the output's luminance over the reference's, summed over the pixels whose reference luminance is above 4).
 """
 from __future__ import annotations
 
@@ -78,6 +79,7 @@ def history(candidate: str):
 
 
 CANDIDATES = ("radiance", "read", "read+blend")
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def main() -> int:
@@ -88,6 +90,8 @@ def main() -> int:
     spps = [int(s) for s in args.spp.split(",")]
     gain = {c: {s: {} for s in spps} for c in CANDIDATES}
     unsteady = {c: {s: {} for s in spps} for c in CANDIDATES}
+    flip = {c: {s: {} for s in spps} for c in CANDIDATES}
+    lights = {c: {s: [0.0, 0.0] for s in spps} for c in CANDIDATES}    # output, reference luminance on the lights
     for spp in spps:
         for name, frames, base in oidn_sequences(store, args.split, spp):
             inputs = [averaged(frames, t, 8, "diffuse", "nearest", 2.0, args.ahead) for t in range(len(frames))]
@@ -100,6 +104,12 @@ def main() -> int:
                 psnr = [score(y, f.reference, ["psnr"])["psnr"] for y, f in zip(out, frames)]
                 gain[c][spp][name] = float(np.mean(np.subtract(psnr[1:], ref[1:])))
                 unsteady[c][spp][name] = float(np.nanmean(instabilities(out, frames)))
+                flip[c][spp][name] = float(np.mean([score(y, f.reference, ["hdr_flip"])["hdr_flip"]
+                                                    for y, f in zip(out[1:], frames[1:])]))
+                for y, f in zip(out[1:], frames[1:]):
+                    bright = f.reference @ LUMINANCE > 4.0
+                    lights[c][spp][0] += float((y[bright] @ LUMINANCE).sum())
+                    lights[c][spp][1] += float((f.reference[bright] @ LUMINANCE).sum())
             print(f"{spp} spp {name}: " + ", ".join(f"{c} {gain[c][spp][name]:+.3f}" for c in CANDIDATES), flush=True)
     print(f"\n{args.store} {args.split}: {len(gain['radiance'][spps[0]])} sequences, filter weight {args.weight:g} on "
           f"both sides, t >= 1, PSNR gain over oidn_prefilter and instability (means over sequences)")
@@ -113,6 +123,10 @@ def main() -> int:
         below = [sum(v < 0 for v in gain[c][s].values()) for s in spps]
         print(f"| {c} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
               + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " |")
+    print("beside, not chosen on: " + "; ".join(
+        f"{c}: HDR-FLIP " + " / ".join(f"{np.mean(list(flip[c][s].values())):.4f}" for s in spps) + ", lights "
+        + " / ".join(f"{lights[c][s][0] / lights[c][s][1]:.3f}" if lights[c][s][1] else "none" for s in spps)
+        for c in CANDIDATES) + f" ({' / '.join(map(str, spps))} spp)")
     for c in CANDIDATES[1:]:
         diff = {(n, s): gain[c][s][n] - gain["radiance"][s][n] for s in spps for n in gain[c][s]}
         order = sorted(diff, key=diff.get)
