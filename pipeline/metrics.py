@@ -86,9 +86,9 @@ def reinhard(x):
 def inverse_reinhard(y):
     """``y / (1 - y)`` for y clamped to [0, 1): the HDR radiance whose Reinhard value is y.
 
-    No stage calls it: Reinhard is a tonemap of the losses and metrics, and every such transform has
-    its inverse here with the round trip tested (tests/test_color_metrics.py); the metric tests build
-    HDR inputs of a chosen tonemapped value with it."""
+    The round trip is tested (tests/test_color_metrics.py); ``motion.warp_previous`` reads a temporal
+    filter's history on Reinhard values and brings it back with it, and the metric tests build HDR
+    inputs of a chosen tonemapped value with it."""
     y = clamp_values(_asarray(y), 0.0, _REINHARD_MAX)
     return y / (1.0 - y)
 

@@ -56,9 +56,14 @@ tolerance and r = 2), and across surfaces of nearly equal depth freely.
 instead (``warp(..., kernel="catmull_rom")``: 4x4 taps, clamped at the border, negative results set to 0),
 as TAA implementations read their history: bilinear reads blur the history a little more at every frame it
 is carried, and the sharper read gains 0.06-0.07 dB for the temporal filter (docs/sequences.md, "The
-history's resampling"). It reads a pixel centre exactly too, and reproduces linear images; its wider
-footprint reaches one pixel further across a silhouette than the validity test looks, which the filter's
-clamp bounds. The metrics' warp (``evaluate.sequence``) stays bilinear.
+history's resampling"). It reads a pixel centre exactly too; its wider footprint reaches one pixel further
+across a silhouette than the validity test looks. It reads the **tonemapped** image, x / (1 + x)
+(``metrics.reinhard``), and brings the result back to radiance (``metrics.inverse_reinhard``), capped at the
+image's brightest pixel: interpolated on radiance, a light of radiance 100 a pixel away puts tens of units into
+its dark neighbour at a sub-pixel offset (more with the kernel's overshoot), which the filter's clamp lets
+through since the light is in the neighbourhood; on x / (1 + x) its share is bounded by the read's weight
+(docs/sequences.md, "The history's read around small bright lights"). The metrics' warp
+(``evaluate.sequence``) stays bilinear and on radiance.
 
 A past frame's noisy *input* is read with ``kernel="nearest"``, the pixel the landing spot falls in, whole:
 any interpolation mixes neighbouring pixels' noise, and a denoiser trained on white noise keeps the
@@ -108,6 +113,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import StoreError
+from .metrics import inverse_reinhard, reinhard
 
 # Bilinear taps lighter than this are left out of the footprint (and the rest renormalised): a landing
 # spot within 1e-3 pixel of a centre reads that pixel alone, so round-off never brings in a neighbour.
@@ -508,10 +514,13 @@ def warp_previous(image_prev: np.ndarray, view: View, view_prev: View,
                   traced: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(``image_prev``, an image of the previous frame, brought into this one (H, W, C) float32, the (H, W) bool
     validity): followed with ``reproject_view`` (or ``traced``, what it gave for these two views before), read
-    with the Catmull-Rom kernel (module docstring), 0 where invalid (disocclusions, silhouettes, background, off
+    with the Catmull-Rom kernel on the tonemapped image x / (1 + x) and brought back to radiance, no brighter than
+    the image's brightest pixel (module docstring), 0 where invalid (disocclusions, silhouettes, background, off
     screen)."""
     xy, valid = reproject_view(view, view_prev) if traced is None else traced
-    return warp(np.asarray(image_prev, np.float32), xy, valid, kernel="catmull_rom"), valid
+    toned = reinhard(np.asarray(image_prev, np.float64))
+    read = np.minimum(warp(toned, xy, valid, kernel="catmull_rom"), toned.max(initial=0.0))
+    return inverse_reinhard(read).astype(np.float32), valid
 
 
 # ---- the cameras in files --------------------------------------------------------------------

@@ -18,8 +18,8 @@ and a denoiser trained on white noise keeps correlated noise as detail (docs/seq
 resampling", has both measurements).
 
 The filter and the metric work on images already brought into the current frame
-(``pipeline.motion.warp_previous``: the previous frame's image, read with the Catmull-Rom kernel, with its
-validity mask), so they know nothing about cameras.
+(``pipeline.motion.warp_previous``: the previous frame's image, read with the Catmull-Rom kernel on its
+tonemapped values, with its validity mask), so they know nothing about cameras.
 
 **The temporal filter** (``blend_history``) is what a renderer's TAA or a compositor's temporal
 denoise node does with a per-frame denoiser's outputs: an exponential moving average

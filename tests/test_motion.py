@@ -252,6 +252,35 @@ def test_catmull_rom_reads_centres_and_linear_images_exactly_and_is_sharper():
         warp(step, at, np.ones((1, 3), bool), kernel="lanczos")
 
 
+def test_the_history_is_read_on_tonemapped_values_so_a_small_light_stays_out_of_its_neighbours():
+    """``warp_previous`` reads x / (1 + x) with Catmull-Rom and brings it back: a one-pixel light of radiance 200 on
+    a floor of 0.2, read 0.4 pixel to the right, gives its left neighbour T^-1 of the Catmull-Rom mix of T values
+    (about 1.07; read on radiance, about 85)."""
+    image = np.full((5, 7, 3), 0.2, np.float32)
+    image[2, 3] = 200.0
+    xy = motion.pixel_centres(7, 5) + np.array([0.4, 0.0])
+    valid = np.ones((5, 7), bool)
+    got, kept = motion.warp_previous(image, None, None, (xy, valid))
+    assert got.dtype == np.float32 and kept is valid
+    t = lambda x: x / (1.0 + x)                                     # noqa: E731
+    w = _catmull_rom_weights(0.4)                                   # taps at columns 1, 2, 3 (the light), 4
+    toned = w[0] * t(0.2) + w[1] * t(0.2) + w[2] * t(200.0) + w[3] * t(0.2)
+    np.testing.assert_allclose(got[2, 2], toned / (1.0 - toned), rtol=1e-6)
+    assert 0.2 < got[2, 2, 0] < 1.1 < 50.0 < warp(image, xy, valid, kernel="catmull_rom")[2, 2, 0]
+    np.testing.assert_allclose(got[0], 0.2, rtol=1e-6)                 # far from the light, the floor
+    # past a step 0.2 | 200 the kernel overshoots the bright side; on x / (1 + x) too, so the read is capped at the
+    # image's brightest value (on radiance it would read above it)
+    step = np.full((5, 7, 3), 0.2, np.float32)
+    step[:, 3:] = 200.0
+    at = motion.pixel_centres(7, 5) + np.array([0.25, 0.0])
+    over = warp(step, at, valid, kernel="catmull_rom")[2, 3, 0]
+    capped, _ = motion.warp_previous(step, None, None, (at, valid))
+    assert over > 200.0 and capped.max() == np.float32(200.0) and capped[2, 3, 0] == np.float32(200.0)
+    # a constant image is read back at any offset, to float32 rounding (the weights sum to 1)
+    flat, _ = motion.warp_previous(np.full((5, 7, 3), 3.7, np.float32), None, None, (xy + 0.13, valid))
+    np.testing.assert_allclose(flat, 3.7, rtol=4e-7)
+
+
 # ---- motion vectors (a renderer's own) ----------------------------------------------------------
 
 def blender_vector_pass(cam_t: Camera, depth_t, cam_prev: Camera, depth_prev) -> tuple[np.ndarray, np.ndarray]:

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 FORMAT = "mcdenoise-oidn-pack"
 # what a history pack's previous outputs are (``train.history``) and how they were read into the frame
 # (``motion.warp_previous``): a pack with other histories is built again
-HISTORY_SOURCE = "oidn_prefilter, catmull_rom"
+HISTORY_SOURCE = "oidn_prefilter, catmull_rom on x/(1+x)"
 DROPOUT = 0.15     # probability that a training item lacks a group (each group on its own)
 _COLOURS = ("color", "albedo", *schema.RADIANCE_COMPONENTS)
 # Noise realizations per frame in a pack, by spp: disjoint subsets of the store's stacks
