@@ -337,7 +337,7 @@ def test_the_history_pack_holds_frames_after_the_first_with_their_warped_history
     frames = json.loads(meta["frames"])
     train = Store(store).frames_with("train")
     assert frames == [f"{k.scene}/{k.frame}" for k in train if k.frame >= 1] and frames
-    assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter, catmull_rom"
+    assert json.loads(meta["cond"]) == cond_names(True) and meta["history"] == "oidn_prefilter, catmull_rom on x/(1+x)"
     assert meta["input"] == "diffuse light over 8 frames and 7 after, gate 2"   # eval.temporal_window, _ahead, _gate
     names = cond_names(True)
     assert cond.shape[1] == len(names) and torch.all(cond[:, names.index("has.history"), :24, :32] == 1)

@@ -8,9 +8,9 @@ Per sequence of the split and per spp (the first noise realization): ``oidn_pref
 ``make eval`` runs it (the diffuse light averaged over 8 frames and 7 after, gated at 2, OIDN's final-frame mode
 on it, the filter on both sides at weight 0.7), with the history
 
-- ``radiance``: read with Catmull-Rom on the radiance and blended on it (``motion.warp_previous``, what ships);
-- ``read``: read with Catmull-Rom on T(x) = x / (1 + |x|) per channel, brought back with T^-1(u) = u / (1 - |u|),
-  blended on the radiance;
+- ``radiance``: read with Catmull-Rom on the radiance and blended on it (the read before the rule chose ``read``);
+- ``read``: read with Catmull-Rom on T(x) = x / (1 + x) per channel, brought back with T^-1(u) = u / (1 - u),
+  blended on the radiance (``motion.warp_previous``, what ships);
 - ``read+blend``: read as ``read``, then clamped and blended on T, brought back with T^-1.
 
 Prints per candidate and spp the mean over sequences of (mean over t >= 1 of PSNR - oidn_prefilter's), the mean
@@ -24,33 +24,22 @@ import contextlib
 
 import numpy as np
 from history_clamp import arguments, oidn_sequences
-from input_average import averaged, instabilities, two_sided
+from input_average import averaged, instabilities, means, two_sided
 
 from mcdenoise.evaluate.scoring import score
-from mcdenoise.pipeline import motion, temporal
+from mcdenoise.pipeline import metrics, motion, temporal
 from mcdenoise.pipeline.store import Store
 from mcdenoise.train import oidn
 
 
-def tonemap(x: np.ndarray) -> np.ndarray:
-    """T(x) = x / (1 + |x|) per channel, in float64 (odd, increasing, onto (-1, 1))."""
-    x = np.asarray(x, np.float64)
-    return x / (1.0 + np.abs(x))
-
-
-def untonemap(u: np.ndarray) -> np.ndarray:
-    """T^-1(u) = u / (1 - |u|); |u| is kept below 1 - 1e-12 so that a read overshooting 1 stays finite."""
-    u = np.clip(np.asarray(u, np.float64), -1.0 + 1e-12, 1.0 - 1e-12)
-    return u / (1.0 - np.abs(u))
-
-
-def warp_previous_tonemapped(image_prev, view, view_prev, traced=None):
-    """``motion.warp_previous`` with the Catmull-Rom read on T(image), brought back to radiance (0 where invalid,
-    as the radiance read)."""
+def warp_previous_radiance(image_prev, view, view_prev, traced=None):
+    """The history read before: Catmull-Rom on the radiance itself (0 where invalid)."""
     xy, valid = motion.reproject_view(view, view_prev) if traced is None else traced
-    read = motion.warp(tonemap(image_prev), xy, valid, kernel="catmull_rom")
-    top = float(np.max(tonemap(image_prev), initial=0.0))          # no value above the image's own brightest
-    return untonemap(np.minimum(read, top)).astype(np.float32), valid
+    return motion.warp(np.asarray(image_prev, np.float32), xy, valid, kernel="catmull_rom"), valid
+
+
+def tonemap(x):
+    return metrics.reinhard(np.asarray(x, np.float64))
 
 
 BLEND_SIDES = temporal.blend_sides
@@ -61,15 +50,15 @@ def blend_sides_tonemapped(current, sides, weight, clamp=True, box=None):
     box = None if box is None else (tonemap(box[0]), tonemap(box[1]))
     out = BLEND_SIDES(tonemap(current).astype(np.float32), [(tonemap(h).astype(np.float32), v) for h, v in sides],
                       weight, clamp, None if box is None else tuple(b.astype(np.float32) for b in box))
-    return untonemap(out).astype(np.float32)
+    return metrics.inverse_reinhard(out).astype(np.float32)
 
 
 @contextlib.contextmanager
 def history(candidate: str):
     """The filter's history read (and blended) as ``candidate`` says, inside the block."""
     saved = motion.warp_previous, temporal.blend_sides
-    if candidate in ("read", "read+blend"):
-        motion.warp_previous = warp_previous_tonemapped
+    if candidate == "radiance":
+        motion.warp_previous = warp_previous_radiance
     if candidate == "read+blend":
         temporal.blend_sides = blend_sides_tonemapped
     try:
@@ -118,9 +107,7 @@ def main() -> int:
           + " / ".join(map(str, spps)) + " spp |")
     print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- |")
     for c in CANDIDATES:
-        per = [float(np.mean(list(gain[c][s].values()))) for s in spps]
-        inst = [float(np.mean(list(unsteady[c][s].values()))) for s in spps]
-        below = [sum(v < 0 for v in gain[c][s].values()) for s in spps]
+        per, inst, below = means(gain[c], unsteady[c], spps)
         print(f"| {c} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
               + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " |")
     print("beside, not chosen on: " + "; ".join(

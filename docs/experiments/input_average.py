@@ -90,6 +90,14 @@ def instabilities(outputs, frames) -> list[float]:
     return res
 
 
+def means(gain: dict[int, dict[str, float]], unsteady: dict[int, dict[str, float]], spps: list[int]):
+    """Per spp, of one method's {spp: {sequence: value}}: (the mean gain, the mean instability, the sequences with a
+    gain below 0)."""
+    return ([float(np.mean(list(gain[s].values()))) for s in spps],
+            [float(np.mean(list(unsteady[s].values()))) for s in spps],
+            [sum(v < 0 for v in gain[s].values()) for s in spps])
+
+
 def main() -> int:
     ap = arguments(__doc__)
     ap.add_argument("--kernel", default="catmull_rom", choices=["nearest", "bilinear", "catmull_rom"],
@@ -192,9 +200,7 @@ def main() -> int:
           + " / ".join(map(str, spps)) + " spp | t = 0: gain " + " / ".join(map(str, spps)) + " spp |")
     print("| --- |" + " ---: |" * (2 * len(spps) + 2) + " --- | ---: |")
     for n in names:
-        per = [float(np.mean(list(gain[n][s].values()))) for s in spps]
-        inst = [float(np.mean(list(unsteady[n][s].values()))) for s in spps]
-        below = [sum(v < 0 for v in gain[n][s].values()) for s in spps]
+        per, inst, below = means(gain[n], unsteady[n], spps)
         print(f"| {n} | " + " | ".join(f"{v:+.3f}" for v in per) + f" | {np.mean(per):+.3f} | "
               + " | ".join(f"{v:.4f}" for v in inst) + f" | {np.mean(inst):.4f} | " + " / ".join(map(str, below)) + " | "
               + " / ".join(f"{np.mean(list(first[n][s].values())):+.3f}" for s in spps) + " |")
